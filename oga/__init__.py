@@ -1,0 +1,41 @@
+"""oga: offline gain-schedule optimizer for CNC machine tools.
+
+The public API is imported lazily, so ``import oga`` stays cheap and the
+compiled kernels load only when used.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+# name -> module that defines it
+_EXPORTS = {
+    "Machine": "oga.machine",
+    "load_machine": "oga.machine",
+    "OgaError": "oga.errors",
+    "InputError": "oga.errors",
+    "GcodeError": "oga.errors",
+    "ToolpathError": "oga.errors",
+    "MachineError": "oga.errors",
+    "OptionError": "oga.errors",
+    "PlanError": "oga.errors",
+    "OptimizeError": "oga.errors",
+}
+
+__all__ = sorted(_EXPORTS) + ["__version__"]
+
+
+def __getattr__(name: str):
+    try:
+        module = _EXPORTS[name]
+    except KeyError:
+        raise AttributeError(f"module 'oga' has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__

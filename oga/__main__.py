@@ -1,0 +1,5 @@
+import sys
+
+from oga.cli import main
+
+sys.exit(main())

@@ -1,0 +1,24 @@
+"""Every default of the project, in one place (SI unless the name says otherwise)."""
+
+from __future__ import annotations
+
+__all__ = [
+    "DT_S",
+    "TOL_M",
+    "NP",
+    "LAMBDA",
+    "A1",
+    "A2",
+]
+
+#: Position-loop / interpolation period Te, seconds.
+DT_S = 1e-3
+#: Interpolation tolerance (largest deviation of a setpoint from the programmed path), metres.
+TOL_M = 20e-6
+#: Prediction horizon of the receding-horizon search, samples (paper: 50).
+NP = 50
+#: Weight of the gain increment in the cost (paper: 0.01).
+LAMBDA = 0.01
+#: Candidate fractions of the admissible increment interval (paper: a1 = 0.01, a2 = 0.05).
+A1 = 0.01
+A2 = 0.05

@@ -1,0 +1,220 @@
+"""The machine description: one frozen pydantic model for library, CLI and API.
+
+A machine is a set of linear axes (x, y, z), each with its kinematic limits and
+the parameters of its cascade (velocity PI, force-loop lag, mass, friction),
+the loop timing, and the settings of the gain ranges. Everything is SI; gains
+are spoken in the users' unit (m/min)/mm and named so.
+
+Presets live as TOML files in ``oga/presets/`` (each states the source of its
+numbers); users bring their own file with the same fields (TOML or JSON).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from pathlib import Path as FilePath
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from oga.errors import MachineError
+
+__all__ = [
+    "KP_SI_PER_M_MIN_PER_MM",
+    "Limits",
+    "Cascade",
+    "Axis",
+    "Timing",
+    "GainSettings",
+    "Machine",
+    "PRESETS",
+    "load_machine",
+    "machine_from_dict",
+]
+
+#: 1 (m/min)/mm expressed in 1/s.
+KP_SI_PER_M_MIN_PER_MM = 1000.0 / 60.0
+
+_PRESET_DIR = FilePath(__file__).with_name("presets")
+#: Names of the shipped presets.
+PRESETS: tuple[str, ...] = tuple(sorted(p.stem for p in _PRESET_DIR.glob("*.toml")))
+
+Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Limits(_Frozen):
+    """Kinematic limits of one axis (SI)."""
+
+    vmax_m_s: Pos
+    amax_m_s2: Pos
+    jmax_m_s3: Pos
+
+
+class Cascade(_Frozen):
+    """Velocity PI / force-loop / mechanics of one axis (DESIGN.md, paper Fig. 3).
+
+    Friction ``Ffr(v) = Fc*s + (Fs - Fc)*exp(-(v/vs)^2)*s + B*v`` with
+    ``s = tanh(v / friction_smoothing_m_s)``.
+    """
+
+    mass_kg: Pos
+    coulomb_n: NonNeg
+    static_n: NonNeg
+    stribeck_m_s: Pos
+    viscous_n_s_m: NonNeg
+    kv_n_s_m: Pos
+    tn_s: Pos
+    force_lag_s: Pos
+    force_limit_n: Pos
+    friction_smoothing_m_s: Pos = 1e-4
+
+    @model_validator(mode="after")
+    def _static_above_coulomb(self) -> "Cascade":
+        if self.static_n < self.coulomb_n:
+            raise ValueError("static_n (Stribeck peak) must be >= coulomb_n")
+        return self
+
+
+class Axis(_Frozen):
+    """One linear axis: its limits and its cascade model."""
+
+    limits: Limits
+    cascade: Cascade
+
+
+class Timing(_Frozen):
+    """Loop timing: position-loop period, inner sub-steps, dead time."""
+
+    te_s: Pos = 0.001
+    substeps: Annotated[int, Field(ge=1, le=1000)] = 8
+    dead_time_samples: Annotated[int, Field(ge=0, le=100)] = 2
+
+
+class GainSettings(_Frozen):
+    """Where gains may go: the Kp grid, its configured bounds, Kf grid, margins."""
+
+    kp_span_m_min_per_mm: tuple[Pos, Pos] = (0.5, 5.0)
+    kp_bounds_m_min_per_mm: tuple[Pos, Pos] = (1.0, 5.0)
+    kp_step_m_min_per_mm: Pos = 0.1
+    kf_range: tuple[NonNeg, NonNeg] = (0.0, 1.0)
+    kf_step: Pos = 0.1
+    pm_min_deg: Annotated[float, Field(gt=0, lt=180)] = 70.0
+    gm_min_db: NonNeg = 10.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "GainSettings":
+        for name in ("kp_span_m_min_per_mm", "kp_bounds_m_min_per_mm", "kf_range"):
+            lo, hi = getattr(self, name)
+            if lo > hi:
+                raise ValueError(f"{name}: lower end {lo} is above upper end {hi}")
+        return self
+
+
+class Machine(_Frozen):
+    """A machine tool: named linear axes (subset of x, y, z), timing and gain settings."""
+
+    name: Annotated[str, Field(min_length=1, max_length=100)]
+    source: str = Field("", description="Where the numbers come from.")
+    axes: dict[str, Axis]
+    timing: Timing = Timing()
+    gains: GainSettings = GainSettings()
+
+    @model_validator(mode="after")
+    def _axis_names(self) -> "Machine":
+        bad = sorted(set(self.axes) - {"x", "y", "z"})
+        if bad:
+            raise ValueError(f"axes: unknown axis name(s) {bad}; use x, y, z")
+        if not self.axes:
+            raise ValueError("axes: at least one axis is required")
+        return self
+
+    @property
+    def te(self) -> float:
+        """Position-loop period in seconds."""
+        return self.timing.te_s
+
+    def axis(self, name: str) -> Axis:
+        """The axis called ``name`` (MachineError if the machine lacks it)."""
+        try:
+            return self.axes[name]
+        except KeyError:
+            raise MachineError(f"machine {self.name!r} has no axis {name!r}") from None
+
+    def limits_arrays(self):
+        """Per-axis (x, y, z) vmax, amax, jmax as three arrays of shape (3,).
+
+        Axes the machine lacks get limit 0 (they must not move).
+        """
+        import numpy as np
+
+        out = np.zeros((3, 3))
+        for k, a in enumerate("xyz"):
+            if a in self.axes:
+                lim = self.axes[a].limits
+                out[:, k] = (lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3)
+        return out[0], out[1], out[2]
+
+    def digest(self) -> str:
+        """SHA-256 of the canonical JSON of this machine (identifies it in a table)."""
+        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def _format_validation(err: ValidationError, where: str) -> str:
+    parts = []
+    for e in err.errors():
+        loc = ".".join(str(x) for x in e["loc"]) or "(root)"
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown field"
+        parts.append(f"{loc}: {msg}")
+    return f"{where}: " + "; ".join(parts)
+
+
+def machine_from_dict(data: dict, where: str = "machine") -> Machine:
+    """Validate a plain dict into a :class:`Machine`, raising MachineError naming the field."""
+    if not isinstance(data, dict):
+        raise MachineError(f"{where}: expected an object/table, got {type(data).__name__}")
+    try:
+        return Machine.model_validate(data)
+    except ValidationError as err:
+        raise MachineError(_format_validation(err, where)) from None
+
+
+def load_machine(spec: str | FilePath) -> Machine:
+    """A preset by name (``"ucp710"``) or a machine file (``.toml`` or ``.json``).
+
+    Raises
+    ------
+    MachineError
+        Unknown preset, unreadable file, or invalid content (field named).
+    """
+    text_spec = str(spec)
+    if text_spec in PRESETS:
+        path = _PRESET_DIR / f"{text_spec}.toml"
+    else:
+        path = FilePath(text_spec)
+        if path.suffix.lower() not in (".toml", ".json"):
+            raise MachineError(
+                f"unknown machine {text_spec!r}: not a preset ({', '.join(PRESETS)}) "
+                "nor a .toml/.json machine file"
+            )
+    try:
+        raw = path.read_bytes()
+    except OSError as err:
+        raise MachineError(f"cannot read machine file {text_spec!r}: {err.strerror}") from None
+    try:
+        if path.suffix.lower() == ".toml":
+            data = tomllib.loads(raw.decode("utf-8"))
+        else:
+            data = json.loads(raw)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise MachineError(f"{path.name}: not valid {path.suffix[1:].upper()}: {err}") from None
+    return machine_from_dict(data, where=path.name)
