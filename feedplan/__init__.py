@@ -4,7 +4,21 @@ Pipeline: text (G-code / CSV / JSON) -> :class:`Path` (lines, arcs; metres)
 -> :func:`plan` -> :class:`Setpoints` (uniform samples, per-axis p/v/a/j).
 """
 
+from feedplan.gcode import parse_gcode
 from feedplan.path import Arc, Line, Path
+from feedplan.polyline import parse_csv, parse_json
+from feedplan.read import load_toolpath, read_toolpath
 from feedplan.setpoints import AXES, Setpoints
 
-__all__ = ["AXES", "Arc", "Line", "Path", "Setpoints"]
+__all__ = [
+    "AXES",
+    "Arc",
+    "Line",
+    "Path",
+    "Setpoints",
+    "load_toolpath",
+    "parse_csv",
+    "parse_gcode",
+    "parse_json",
+    "read_toolpath",
+]

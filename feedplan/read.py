@@ -1,0 +1,94 @@
+"""Read a toolpath of any supported format: G-code, CSV or JSON polyline -> Path."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path as FilePath
+
+from feedplan.gcode import parse_gcode
+from feedplan.path import Path
+from feedplan.polyline import parse_csv, parse_json
+from oga.errors import OptionError, ToolpathError
+
+__all__ = ["FORMATS", "SUFFIXES", "read_toolpath", "load_toolpath"]
+
+#: Reader of each format name.
+FORMATS = {"gcode": parse_gcode, "csv": parse_csv, "json": parse_json}
+
+#: Format of each file name extension (lower case).
+SUFFIXES = {**dict.fromkeys((".ngc", ".nc", ".gcode", ".gc", ".tap", ".cnc"), "gcode"),
+            ".csv": "csv", ".json": "json"}
+
+
+def read_toolpath(text: str, fmt: str, source: str = "") -> Path:
+    """Parse toolpath text of a given format.
+
+    Parameters
+    ----------
+    text : str
+        The program or polyline.
+    fmt : {"gcode", "csv", "json"}
+        Its format.
+    source : str, optional
+        Its name, for messages and ``Path.source``.
+
+    Returns
+    -------
+    Path
+        Lines and arcs in metres, feeds in m/s.
+
+    Raises
+    ------
+    OptionError
+        ``fmt`` is not a known format.
+    GcodeError, ToolpathError
+        The text is invalid (line/column or field named).
+    """
+    try:
+        reader = FORMATS[fmt]
+    except KeyError:
+        raise OptionError(f"unknown toolpath format {fmt!r} (expected one of "
+                          f"{', '.join(FORMATS)})") from None
+    return reader(text, source=source)
+
+
+def load_toolpath(path: str | os.PathLike) -> Path:
+    """Read a toolpath file, the format chosen by its extension.
+
+    G-code: ``.ngc .nc .gcode .gc .tap .cnc``; polylines: ``.csv``, ``.json``
+    (any case). The file must be UTF-8 text (a byte-order mark is allowed).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file; its name as given becomes ``Path.source``.
+
+    Returns
+    -------
+    Path
+        Lines and arcs in metres, feeds in m/s.
+
+    Raises
+    ------
+    ToolpathError
+        Unknown extension, unreadable file, or not UTF-8 text.
+    GcodeError, ToolpathError
+        The content is invalid (line/column or field named).
+    """
+    name = os.fspath(path)
+    suffix = FilePath(name).suffix.lower()
+    if suffix not in SUFFIXES:
+        raise ToolpathError(f"{name}: unknown toolpath extension {suffix or '(none)'!r} "
+                            f"(expected one of {' '.join(SUFFIXES)})")
+    try:
+        data = FilePath(name).read_bytes()
+    except OSError as err:
+        raise ToolpathError(f"{name}: cannot read the file ({err.strerror or err})") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data.count(b"\n", 0, err.start) + 1
+        column = err.start - (data.rfind(b"\n", 0, err.start) + 1) + 1
+        raise ToolpathError(f"{name}: not UTF-8 text (byte 0x{data[err.start]:02x})",
+                            line, column) from None
+    return read_toolpath(text, SUFFIXES[suffix], source=name)
