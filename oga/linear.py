@@ -1,0 +1,196 @@
+"""The linear axis: exact discrete models of the cascade's linear part.
+
+Used by the simulation kernel (its sub-step matrices and its lifted step) and by
+the stability analysis (the linearised loop lifted over Te).
+
+The continuous mechanics of one axis (DESIGN.md), with state ``x = [p, v, F]``
+(position m, velocity m/s, actual force N) and inputs ``[F_cmd, F_n]`` (force
+command N, nonlinear friction force N)::
+
+    dp/dt = v
+    dv/dt = (F - B v - F_n) / m
+    dF/dt = (F_cmd - F) / tau
+
+are discretised exactly over one sub-step ``h = Te / substeps`` with both inputs
+held (zero-order hold): :func:`substep_matrices`. The simulation kernel
+(:mod:`oga.simulate`) propagates exactly these matrices, so its linear part is exact.
+
+The discrete velocity PI of every sub-step ``j`` (the same in the kernel) is::
+
+    e_j     = u - v_j
+    F_cmd,j = Kv * (e_j + I_j / Tn)       (limited to +-force_limit in the kernel)
+    I_j+1   = I_j + h * e_j               (forward-Euler integral)
+
+Without force limit and with ``F_n`` held, one sub-step is linear in
+``z = [p, v, F, I]`` and the inputs ``[u, F_n]`` (the velocity command u held over
+Te); composing ``substeps`` of them gives the axis over one Te
+(:func:`substep_sequence`). Linearised (friction -> its viscous part B, which is
+inside the matrices, so ``F_n = 0``) this is the lifted axis (:func:`lifted_axis`). The position loop adds a dead time of
+``dead_time_samples`` samples and the gain Kp (:func:`position_open_loop`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import expm
+
+from oga.machine import Cascade, Machine
+
+__all__ = ["substep_matrices", "substep_sequence", "lifted_axis", "position_open_loop"]
+
+
+def substep_matrices(cascade: Cascade, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact zero-order-hold discretisation of the linear mechanics over ``h``.
+
+    Parameters
+    ----------
+    cascade : Cascade
+        The axis model (mass, viscous friction B, force lag tau are used).
+    h : float
+        Sub-step length, s.
+
+    Returns
+    -------
+    ad : ndarray, shape (3, 3)
+        State transition of ``x = [p, v, F]`` (m, m/s, N) over ``h``.
+    bd : ndarray, shape (3, 2)
+        Input matrix of the held inputs ``[F_cmd, F_n]`` (N, N).
+    """
+    m = cascade.mass_kg
+    tau = cascade.force_lag_s
+    a = np.array(
+        [[0.0, 1.0, 0.0], [0.0, -cascade.viscous_n_s_m / m, 1.0 / m], [0.0, 0.0, -1.0 / tau]]
+    )
+    b = np.array([[0.0, 0.0], [0.0, -1.0 / m], [1.0 / tau, 0.0]])
+    # exp([[A, B], [0, 0]] h) = [[Ad, Bd], [0, I]]
+    aug = np.zeros((5, 5))
+    aug[:3, :3] = a
+    aug[:3, 3:] = b
+    e = expm(aug * h)
+    ad, bd = e[:3, :3].copy(), e[:3, 3:].copy()
+    # exact by structure: p does not act on anything, v does not act on F, and the
+    # friction force does not reach F (the kernel relies on these zeros)
+    ad[:, 0] = (1.0, 0.0, 0.0)
+    ad[2, 1] = 0.0
+    bd[2, 1] = 0.0
+    return ad, bd
+
+
+def substep_sequence(machine: Machine, axis: str) -> tuple[np.ndarray, np.ndarray]:
+    """The linear axis with its velocity PI after each of the sub-steps of one Te.
+
+    Without force limit and with the friction force ``F_n`` held, the state after
+    ``j`` sub-steps is ``z_j = A_j z_0 + B_j [u, F_n]`` with ``z = [p, v, F, I]``.
+
+    Parameters
+    ----------
+    machine : Machine
+        Machine description (timing and the axis cascade).
+    axis : str
+        Axis name ("x", "y" or "z"); MachineError if the machine lacks it.
+
+    Returns
+    -------
+    a : ndarray, shape (S + 1, 4, 4)
+        ``A_j`` for ``j = 0 .. S`` (``S = substeps``; ``A_0`` is the identity).
+    b : ndarray, shape (S + 1, 4, 2)
+        ``B_j``: columns for the velocity command u (m/s) and the friction force F_n (N).
+    """
+    cas = machine.axis(axis).cascade
+    n_sub = machine.timing.substeps
+    h = machine.timing.te_s / n_sub
+    ad, bd = substep_matrices(cas, h)
+    bf = bd[:, 0] * cas.kv_n_s_m  # force command gain on (u - v + I/Tn)
+    m_sub = np.zeros((4, 4))  # z_{j+1} = M z_j + N [u, F_n]
+    m_sub[:3, :3] = ad
+    m_sub[:3, 1] -= bf
+    m_sub[:3, 3] = bf / cas.tn_s
+    m_sub[3, 1] = -h
+    m_sub[3, 3] = 1.0
+    n_sub_in = np.zeros((4, 2))
+    n_sub_in[:3, 0] = bf
+    n_sub_in[3, 0] = h
+    n_sub_in[:3, 1] = bd[:, 1]
+    a = np.empty((n_sub + 1, 4, 4))
+    b = np.empty((n_sub + 1, 4, 2))
+    a[0] = np.eye(4)
+    b[0] = 0.0
+    for j in range(n_sub):
+        a[j + 1] = m_sub @ a[j]
+        b[j + 1] = m_sub @ b[j] + n_sub_in
+    return a, b
+
+
+def lifted_axis(
+    machine: Machine, axis: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The linearised inner loops of one axis lifted over one position-loop period Te.
+
+    Parameters
+    ----------
+    machine : Machine
+        Machine description (timing and the axis cascade).
+    axis : str
+        Axis name ("x", "y" or "z"); MachineError if the machine lacks it.
+
+    Returns
+    -------
+    a : ndarray, shape (4, 4)
+        Discrete state transition over Te of ``z = [p, v, F, I]``
+        (m, m/s, N, m: I is the integral of the velocity error).
+    b : ndarray, shape (4, 1)
+        Input matrix of the velocity command ``u`` (m/s) held over Te.
+    c : ndarray, shape (1, 4)
+        Output: the position p (m), measured at the start of the period.
+    d : ndarray, shape (1, 1)
+        Zero feed-through.
+    """
+    a, b = substep_sequence(machine, axis)
+    c = np.array([[1.0, 0.0, 0.0, 0.0]])
+    return a[-1], b[-1][:, :1].copy(), c, np.zeros((1, 1))
+
+
+def position_open_loop(
+    machine: Machine, axis: str, kp_si: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The position open loop ``L(z) = Kp z^-d G(z)`` as a discrete state-space (period Te).
+
+    ``G`` is :func:`lifted_axis` (velocity command -> position) and ``d`` is
+    ``machine.timing.dead_time_samples``. The state is ``[z, w]`` with
+    ``w = [u_k-1, ..., u_k-d]`` the dead-time line; negative unity feedback
+    ``u = -y`` closes the position loop.
+
+    Parameters
+    ----------
+    machine : Machine
+        Machine description.
+    axis : str
+        Axis name.
+    kp_si : float
+        Position-loop gain Kp, 1/s.
+
+    Returns
+    -------
+    a : ndarray, shape (4 + d, 4 + d)
+    b : ndarray, shape (4 + d, 1)
+    c : ndarray, shape (1, 4 + d)
+        Output ``y = Kp p`` (m/s).
+    d : ndarray, shape (1, 1)
+        Zero feed-through.
+    """
+    a_g, b_g, c_g, _ = lifted_axis(machine, axis)
+    dead = machine.timing.dead_time_samples
+    n = 4 + dead
+    a = np.zeros((n, n))
+    b = np.zeros((n, 1))
+    a[:4, :4] = a_g
+    if dead == 0:
+        b[:4] = b_g
+    else:
+        a[:4, n - 1 : n] = b_g  # the oldest command enters the axis
+        b[4, 0] = 1.0  # the newest command enters the line
+        for i in range(5, n):
+            a[i, i - 1] = 1.0
+    c = np.zeros((1, n))
+    c[0, :4] = kp_si * c_g[0]
+    return a, b, c, np.zeros((1, 1))

@@ -1,0 +1,575 @@
+"""The compiled nonlinear axis simulation: the cascade of DESIGN.md, one axis at a time.
+
+Per axis and position-loop sample k (period Te):
+
+1. measure ``p_k``;
+2. velocity command ``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (Kp in 1/s);
+3. ``u_k`` enters a dead-time line of ``d`` samples: during ``[k Te, (k+1) Te)``
+   the velocity loop receives ``u_{k-d}`` (zero before the start);
+4. ``substeps`` sub-steps of ``h = Te / substeps``, each:
+
+   - discrete velocity PI: ``e = u_{k-d} - v``, ``F_cmd = Kv (e + I / Tn)``
+     limited to ``+-force_limit``; forward-Euler integral ``I += h e``, with
+     conditional anti-windup (the integral is frozen while the command is limited,
+     unless the error drives it back out of the limit);
+   - the nonlinear friction part ``F_n = (Fc + (Fs - Fc) exp(-(v/vs)^2)) tanh(v/eps)``
+     evaluated at the sub-step start;
+   - ``F_cmd`` and ``F_n`` held over ``h`` (zero-order hold) and the linear part
+     (position, velocity, force lag with the viscous friction B) propagated exactly
+     with its matrix exponential (:func:`oga.linear.substep_matrices`).
+
+With ``Fc = Fs = 0`` and a force limit never reached this is exactly the linear
+lifted model of :mod:`oga.linear`. ``tanh`` and ``exp`` are evaluated only where
+their float64 result is not exactly ``+-1`` or does not change ``F_n``.
+
+Speed without approximation: wherever it provably gives the same result as the
+sub-steps (the force command stays inside the limit and ``F_n`` stays exactly
+``+-Fc`` at every sub-step, checked by a bound linear in the state), a whole Te is
+advanced with the lifted linear map of :func:`oga.linear.substep_sequence` (the
+same model; the two paths differ by floating-point rounding only, about 1e-15
+relative). On a contour this covers all but the samples near axis reversals.
+
+The compiled functions (:func:`step`, :func:`window`, :func:`run`) take the packed
+parameters of :func:`axis_params` and a state vector of :func:`state_size` entries:
+``[p, v, F, I, u_{k-1}, ..., u_{k-d}]`` (m, m/s, N, m, then m/s). They are meant to be
+called from other compiled code (the gain search) as well as through
+:func:`simulate`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from feedplan.setpoints import AXES, Setpoints
+from oga.errors import MachineError, OptionError
+from oga.linear import substep_matrices, substep_sequence
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+
+__all__ = [
+    "axis_params",
+    "state_size",
+    "rest_state",
+    "step",
+    "window",
+    "run",
+    "simulate_axis",
+    "simulate",
+    "Simulation",
+]
+
+# Layout of the packed parameters (float64 vector).
+_AD = 0  # 3x3 row-major: x = [p, v, F] over one sub-step
+_BD = 9  # 3x2 row-major: held inputs [F_cmd, F_n]
+_KV = 15  # velocity PI gain, N s/m
+_INV_TN = 16  # 1 / Tn, 1/s
+_H = 17  # sub-step, s
+_FLIM = 18  # force limit, N
+_FC = 19  # Coulomb friction, N
+_DFS = 20  # Fs - Fc, N
+_INV_VS = 21  # 1 / Stribeck velocity, s/m
+_INV_EPS = 22  # 1 / friction smoothing velocity, s/m
+_R2_CUT = 23  # (v/vs)^2 above which the Stribeck term leaves F_n unchanged
+_NSUB = 24  # sub-steps per Te
+_DEAD = 25  # dead time, samples
+_LIFTED = 26  # 1.0: take the lifted step over Te where it is exact; 0.0: never
+_LA = 27  # 4x4 row-major: z = [p, v, F, I] over Te, unsaturated, F_n held
+_LB = 43  # 4x2 row-major: inputs [u, F_n] over Te
+_WV = 51  # 5: bound of |v_j - v_0| over the sub-steps, on |[v, e, F, I, F_n]|
+_WR = 56  # 5: bound of |F_cmd,j - F_cmd,0| over the sub-steps, same coordinates
+_VFAST = 61  # |v| above which F_n is exactly +-Fc (-inf if F_n is identically 0)
+_N_PARAMS = 62
+
+# Layout of the state vector.
+_P, _V, _F, _I, _LINE = 0, 1, 2, 3, 4
+
+#: |v / eps| above which tanh(v / eps) is exactly +-1.0 in float64.
+_TANH_CUT = 20.0
+#: (v / vs)^2 above which exp(-(v / vs)^2) is exactly 0.0 in float64.
+_EXP_CUT = 746.0
+
+
+def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
+    """Packed float64 parameters of one axis for the compiled kernel.
+
+    Parameters
+    ----------
+    machine : Machine
+        Machine description.
+    axis : str
+        Axis name; MachineError if the machine lacks it.
+    lifted : bool, optional
+        If True (default), the kernel advances a whole Te with the lifted linear
+        map wherever that provably equals the sub-steps (no force limit reached and
+        the friction force exactly constant at every sub-step: see
+        :func:`_lifted_guard`); results then differ from pure sub-stepping by
+        rounding only. False: sub-steps everywhere (the reference).
+
+    Returns
+    -------
+    ndarray, shape (62,)
+        Sub-step matrices, PI, force limit, friction constants, sub-steps, dead
+        time, lifted map and the bounds of its guard.
+    """
+    cas = machine.axis(axis).cascade
+    h = machine.timing.te_s / machine.timing.substeps
+    ad, bd = substep_matrices(cas, h)
+    dfs = cas.static_n - cas.coulomb_n
+    if dfs == 0.0:
+        r2_cut = 0.0  # no Stribeck term at all
+    elif cas.coulomb_n == 0.0:
+        r2_cut = _EXP_CUT
+    else:
+        # dfs * exp(-r2) < Fc * 2^-54 (half an ulp of Fc): Fc + that term == Fc exactly
+        r2_cut = min(_EXP_CUT, math.log(dfs / cas.coulomb_n) + 54.0 * math.log(2.0) + 1.0)
+    if cas.coulomb_n == 0.0 and dfs == 0.0:
+        v_fast = -math.inf  # no Coulomb/Stribeck friction: F_n == 0 at every velocity
+    else:
+        # beyond both cuts (1 % margin against rounding in the kernel's tests)
+        v_fast = 1.01 * max(
+            _TANH_CUT * cas.friction_smoothing_m_s, math.sqrt(r2_cut) * cas.stribeck_m_s
+        )
+    out = np.empty(_N_PARAMS)
+    out[_AD : _AD + 9] = ad.ravel()
+    out[_BD : _BD + 6] = bd.ravel()
+    out[_KV] = cas.kv_n_s_m
+    out[_INV_TN] = 1.0 / cas.tn_s
+    out[_H] = h
+    out[_FLIM] = cas.force_limit_n
+    out[_FC] = cas.coulomb_n
+    out[_DFS] = dfs
+    out[_INV_VS] = 1.0 / cas.stribeck_m_s
+    out[_INV_EPS] = 1.0 / cas.friction_smoothing_m_s
+    out[_R2_CUT] = r2_cut
+    out[_NSUB] = machine.timing.substeps
+    out[_DEAD] = machine.timing.dead_time_samples
+    out[_LIFTED] = 1.0 if lifted else 0.0
+    a_j, b_j = substep_sequence(machine, axis)
+    out[_LA : _LA + 16] = a_j[-1].ravel()
+    out[_LB : _LB + 8] = b_j[-1].ravel()
+    out[_WV : _WV + 5], out[_WR : _WR + 5] = _guard_bounds(a_j[:-1], b_j[:-1], cas)
+    out[_VFAST] = v_fast
+    return out
+
+
+def _guard_bounds(a_j, b_j, cas) -> tuple[np.ndarray, np.ndarray]:
+    """Worst-case sub-step deviations of v and of the force command, linear in the state.
+
+    At the starts ``j = 0 .. S-1`` of the sub-steps, ``v_j - v_0`` and
+    ``F_cmd,j - F_cmd,0`` are linear in ``w = [v_0, e_0, F_0, I_0, F_n]``
+    (``e_0 = u - v_0``; the position does not enter). Returns ``(wv, wr)``, each of
+    shape (5,), with ``|v_j - v_0| <= wv . |w|`` and ``|F_cmd,j - F_cmd,0| <= wr . |w|``
+    for every j (while unsaturated and with F_n held).
+    """
+    # rows over [p, v, F, I, u, F_n] -> columns over [v, e, F, I, F_n] (u = e + v)
+    phi = np.concatenate([a_j, b_j], axis=2)  # (S, 4, 6)
+    to_w = np.zeros((6, 5))
+    to_w[1, 0] = to_w[4, 0] = 1.0  # v_0 enters directly and through u
+    to_w[4, 1] = 1.0
+    to_w[2, 2] = to_w[3, 3] = to_w[5, 4] = 1.0
+    w_rows = phi @ to_w  # (S, 4, 5)
+    dv = w_rows[:, 1, :] - w_rows[0, 1, :]
+    di = w_rows[:, 3, :] - w_rows[0, 3, :]
+    dr = cas.kv_n_s_m * (-dv + di / cas.tn_s)  # F_cmd = kv (u - v + I / Tn), u held
+    return np.max(np.abs(dv), axis=0), np.max(np.abs(dr), axis=0)
+
+
+def state_size(machine: Machine) -> int:
+    """Length of an axis state vector: ``4 + dead_time_samples``."""
+    return 4 + machine.timing.dead_time_samples
+
+
+@njit(cache=True)
+def rest_state(params: np.ndarray, p0: float) -> np.ndarray:
+    """An axis at rest at position ``p0`` (m), integral and dead-time line zero.
+
+    Returns
+    -------
+    ndarray, shape (4 + d,)
+    """
+    state = np.zeros(4 + int(params[_DEAD]))
+    state[_P] = p0
+    return state
+
+
+@njit(cache=True)
+def friction_nonlinear(params: np.ndarray, v: float) -> float:
+    """Coulomb + Stribeck friction force (N) at velocity ``v`` (m/s), viscous part excluded."""
+    x = v * params[_INV_EPS]
+    if x > _TANH_CUT:
+        s = 1.0
+    elif x < -_TANH_CUT:
+        s = -1.0
+    else:  # tanh(x) from one exp: half the latency of libm's tanh, error < 3e-16
+        t = math.exp(-2.0 * abs(x))
+        s = math.copysign((1.0 - t) / (1.0 + t), x)
+    r = v * params[_INV_VS]
+    r2 = r * r
+    if r2 > params[_R2_CUT]:
+        return params[_FC] * s
+    return (params[_FC] + params[_DFS] * math.exp(-r2)) * s
+
+
+@njit(cache=True)
+def _substeps(params, p, v, f, i, ud):
+    """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` held."""
+    # x = [p, v, F]: position integrates, force does not depend on p or v, and the
+    # friction input does not reach F (structural zeros of substep_matrices)
+    a01, a02, a11, a12, a22 = params[1], params[2], params[4], params[5], params[8]
+    b00, b01, b10, b11, b20 = params[9], params[10], params[11], params[12], params[13]
+    kv = params[_KV]
+    inv_tn = params[_INV_TN]
+    h = params[_H]
+    flim = params[_FLIM]
+    for _ in range(int(params[_NSUB])):
+        e = ud - v
+        raw = kv * (e + i * inv_tn)
+        if raw > flim:
+            fc = flim
+        elif raw < -flim:
+            fc = -flim
+        else:
+            fc = raw
+        if fc == raw or e * raw < 0.0:
+            i += h * e
+        fn = friction_nonlinear(params, v)
+        p, v, f = (
+            p + a01 * v + a02 * f + b00 * fc + b01 * fn,
+            a11 * v + a12 * f + b10 * fc + b11 * fn,
+            a22 * f + b20 * fc,
+        )
+    return p, v, f, i
+
+
+@njit(cache=True)
+def _lifted_guard(params, v, f, i, ud, fn):
+    """True when the lifted map over Te equals the sub-steps from this state.
+
+    With ``w = [v, u - v, F, I, F_n]`` at the start of the period, every sub-step
+    start satisfies ``|v_j| >= |v| - wv.|w|`` and ``|F_cmd,j| <= |F_cmd,0| + wr.|w|``
+    (:func:`_guard_bounds`). If the first stays above the friction cuts (``v_j`` keeps
+    its sign and ``F_n`` is exactly ``fn`` throughout) and the second below the force
+    limit (the PI is linear throughout), the sub-steps are the linear map.
+    """
+    e = ud - v
+    av, ae, af, ai, an = abs(v), abs(e), abs(f), abs(i), abs(fn)
+    w = params[_WV : _WV + 5]
+    if av - (w[0] * av + w[1] * ae + w[2] * af + w[3] * ai + w[4] * an) <= params[_VFAST]:
+        return False
+    w = params[_WR : _WR + 5]
+    dr = w[0] * av + w[1] * ae + w[2] * af + w[3] * ai + w[4] * an
+    return abs(params[_KV] * (e + i * params[_INV_TN])) + dr < params[_FLIM] * (1.0 - 1e-9)
+
+
+@njit(cache=True)
+def _advance(params, p, v, f, i, ud):
+    """One Te from ``(p, v, F, I)`` with velocity command ``ud`` held: ``(p, v, F, I)``."""
+    if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
+        return p, v, f, i  # at rest and not driven: the sub-steps change nothing
+    if params[_LIFTED] != 0.0:
+        fn = friction_nonlinear(params, v)
+        if _lifted_guard(params, v, f, i, ud, fn):
+            a = params[_LA : _LA + 16]
+            b = params[_LB : _LB + 8]
+            return (
+                p + a[1] * v + a[2] * f + a[3] * i + b[0] * ud + b[1] * fn,
+                a[5] * v + a[6] * f + a[7] * i + b[2] * ud + b[3] * fn,
+                a[9] * v + a[10] * f + a[11] * i + b[4] * ud + b[5] * fn,
+                a[13] * v + a[14] * f + a[15] * i + b[6] * ud + b[7] * fn,
+            )
+    return _substeps(params, p, v, f, i, ud)
+
+
+@njit(cache=True)
+def step(
+    state: np.ndarray, params: np.ndarray, pd: float, vd: float, kp_si: float, kf: float
+) -> float:
+    """Advance one axis by one Te, in place, from sample k to k+1.
+
+    Parameters
+    ----------
+    state : ndarray, shape (4 + d,)
+        Axis state at sample k; overwritten with the state at k+1.
+    params : ndarray
+        From :func:`axis_params`.
+    pd, vd : float
+        Setpoint position (m) and velocity (m/s) of sample k.
+    kp_si, kf : float
+        Position gain (1/s) and velocity feed-forward factor of sample k.
+
+    Returns
+    -------
+    float
+        The velocity command ``u_k`` (m/s).
+    """
+    dead = int(params[_DEAD])
+    u = kp_si * (pd - state[_P]) + kf * vd
+    if dead == 0:
+        ud = u
+    else:
+        ud = state[_LINE + dead - 1]
+        for j in range(dead - 1, 0, -1):
+            state[_LINE + j] = state[_LINE + j - 1]
+        state[_LINE] = u
+    p, v, f, i = _advance(params, state[_P], state[_V], state[_F], state[_I], ud)
+    state[_P] = p
+    state[_V] = v
+    state[_F] = f
+    state[_I] = i
+    return u
+
+
+@njit(cache=True)
+def window(
+    state: np.ndarray,
+    params: np.ndarray,
+    pd: np.ndarray,
+    vd: np.ndarray,
+    k0: int,
+    n: int,
+    kp_si: float,
+    kf: float,
+    out_p: np.ndarray,
+) -> None:
+    """Predict ``n`` samples from a state with constant gains, leaving ``state`` untouched.
+
+    Allocates nothing: the state is carried in local variables and the commands
+    still in the dead-time line are recomputed from ``out_p``.
+
+    Parameters
+    ----------
+    state : ndarray, shape (4 + d,)
+        Axis state at sample ``k0`` (not modified).
+    params : ndarray
+        From :func:`axis_params`.
+    pd, vd : ndarray, shape (N,)
+        Setpoint positions (m) and velocities (m/s) of the whole toolpath; past
+        its end the last position is held with zero velocity.
+    k0, n : int
+        First sample and number of samples to simulate.
+    kp_si, kf : float
+        Candidate gains (1/s and factor), held over the window.
+    out_p : ndarray, shape (>= n,)
+        Receives the positions ``p_{k0+1} .. p_{k0+n}`` (m) in ``out_p[0:n]``.
+    """
+    dead = int(params[_DEAD])
+    last = pd.shape[0] - 1
+    p0 = state[_P]
+    p, v, f, i = p0, state[_V], state[_F], state[_I]
+    for j in range(n):
+        m = j - dead  # the command applied now is u_{k0+m}
+        if m < 0:
+            ud = state[_LINE + dead - 1 - j]
+        else:
+            k = k0 + m
+            pm = p0 if m == 0 else out_p[m - 1]
+            if k <= last:
+                ud = kp_si * (pd[k] - pm) + kf * vd[k]
+            else:
+                ud = kp_si * (pd[last] - pm)
+        p, v, f, i = _advance(params, p, v, f, i, ud)
+        out_p[j] = p
+
+
+@njit(cache=True)
+def run(
+    state: np.ndarray,
+    params: np.ndarray,
+    pd: np.ndarray,
+    vd: np.ndarray,
+    kp_si: np.ndarray,
+    kf: np.ndarray,
+    out_p: np.ndarray,
+    out_u: np.ndarray,
+) -> None:
+    """Simulate N samples with per-sample gains, advancing ``state`` in place.
+
+    Parameters
+    ----------
+    state : ndarray, shape (4 + d,)
+        Axis state at sample 0; on return the state at sample N.
+    params : ndarray
+        From :func:`axis_params`.
+    pd, vd, kp_si, kf : ndarray, shape (N,)
+        Setpoints (m, m/s) and gains (1/s, factor) per sample.
+    out_p, out_u : ndarray, shape (N,)
+        Receive the measured positions ``p_k`` (m) and the commands ``u_k`` (m/s).
+    """
+    dead = int(params[_DEAD])
+    n = pd.shape[0]
+    p, v, f, i = state[_P], state[_V], state[_F], state[_I]
+    for k in range(n):
+        out_p[k] = p
+        u = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
+        out_u[k] = u
+        m = k - dead  # the command applied now is u_m
+        ud = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
+        p, v, f, i = _advance(params, p, v, f, i, ud)
+    # the dead-time line at sample n: u_{n-1}, .., u_{n-d}
+    for j in range(dead - 1, -1, -1):  # downwards: an old entry is read before it is overwritten
+        state[_LINE + j] = out_u[n - 1 - j] if n - 1 - j >= 0 else state[_LINE + j - n]
+    state[_P], state[_V], state[_F], state[_I] = p, v, f, i
+
+
+def simulate_axis(
+    params: np.ndarray, p0: float, pd, vd, kp_si, kf
+) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate one axis from rest at ``p0`` (m).
+
+    Parameters
+    ----------
+    params : ndarray
+        From :func:`axis_params`.
+    p0 : float
+        Initial position, m.
+    pd, vd : array_like, shape (N,)
+        Setpoint positions (m) and velocities (m/s).
+    kp_si, kf : float or array_like, shape (N,)
+        Gains per sample (1/s, factor), or one value for all.
+
+    Returns
+    -------
+    p_act, u : ndarray, shape (N,)
+        Measured positions (m) and velocity commands (m/s).
+
+    Raises
+    ------
+    OptionError
+        An input neither one number nor N of them.
+    """
+    n = np.shape(pd)[0]
+    # fresh writeable C-contiguous float64 copies: one compiled signature of run
+    pd, vd = _vector(pd, "pd", n), _vector(vd, "vd", n)
+    kp, kf_a = _vector(kp_si, "kp_si", n), _vector(kf, "kf", n)
+    p_act = np.empty(n)
+    u = np.empty(n)
+    run(rest_state(params, float(p0)), params, pd, vd, kp, kf_a, p_act, u)
+    return p_act, u
+
+
+def _vector(x, name: str, n: int) -> np.ndarray:
+    """``x`` (scalar or shape (n,)) as a new float64 array of shape (n,)."""
+    out = np.empty(n)
+    try:
+        out[:] = x
+    except (TypeError, ValueError):
+        raise OptionError(f"{name}: expected a number or numbers of shape ({n},)") from None
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """The simulated machine on a toolpath (columns in ``AXES`` order x, y, z).
+
+    Attributes
+    ----------
+    pos : ndarray, shape (N, 3)
+        Measured (actual) positions ``p_k``, m.
+    u : ndarray, shape (N, 3)
+        Velocity commands ``u_k``, m/s.
+    kp_m_min_per_mm : ndarray, shape (N, 3)
+        Position gains used, (m/min)/mm.
+    kf : ndarray, shape (N, 3)
+        Velocity feed-forward factors used.
+    """
+
+    pos: np.ndarray
+    u: np.ndarray
+    kp_m_min_per_mm: np.ndarray
+    kf: np.ndarray
+
+
+def _gain_table(value, name: str, n: int) -> np.ndarray:
+    """A gain given as scalar, {axis: value} or (N, 3) array, as an (N, 3) float64 array."""
+    if isinstance(value, dict):
+        bad = sorted(set(value) - set(AXES))
+        if bad:
+            raise OptionError(f"{name}: unknown axis name(s) {bad}; use x, y, z")
+        missing = [a for a in AXES if a not in value]
+        if missing:
+            raise OptionError(f"{name}: no value for axis/axes {missing}")
+        row = [value[a] for a in AXES]
+        try:
+            table = np.tile(np.asarray(row, dtype=np.float64), (n, 1))
+        except (TypeError, ValueError):
+            raise OptionError(f"{name}: values must be numbers, got {row}") from None
+    else:
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise OptionError(f"{name}: expected a number, a dict or an (N, 3) array") from None
+        if arr.ndim == 0:
+            table = np.full((n, 3), float(arr))
+        elif arr.shape == (n, 3):
+            table = arr.copy()
+        else:
+            raise OptionError(f"{name}: expected shape ({n}, 3), got {arr.shape}")
+    if not np.all(np.isfinite(table)):
+        raise OptionError(f"{name}: values must be finite")
+    return table
+
+
+def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Simulation:
+    """Simulate every axis of ``machine`` on ``setpoints``, each from rest at its first setpoint.
+
+    Parameters
+    ----------
+    setpoints : Setpoints
+        The planned motion (N samples); its period must be the machine's Te.
+    machine : Machine
+        Machine description.
+    kp_m_min_per_mm : float, dict or array_like, shape (N, 3)
+        Position gain in (m/min)/mm: one value, one per axis ``{"x": .., "y": .., "z": ..}``
+        (every axis named), or per sample and axis. Must be positive.
+    kf : float, dict or array_like, shape (N, 3)
+        Velocity feed-forward factor, in the same forms.
+
+    Returns
+    -------
+    Simulation
+        An axis the machine lacks holds its setpoint (u = 0); it must not move.
+
+    Raises
+    ------
+    OptionError
+        Gains malformed or not positive, or sample period different from Te.
+    MachineError
+        A setpoint moves an axis the machine lacks.
+    """
+    n = len(setpoints)
+    if not math.isclose(setpoints.dt, machine.te, rel_tol=1e-9):
+        raise OptionError(
+            f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
+        )
+    kp = _gain_table(kp_m_min_per_mm, "kp_m_min_per_mm", n)
+    kf_t = _gain_table(kf, "kf", n)
+    if np.any(kp <= 0.0):
+        raise OptionError("kp_m_min_per_mm: gains must be positive")
+    pos = np.empty((n, 3))
+    u = np.zeros((n, 3))
+    moving = setpoints.moving_axes
+    for c, a in enumerate(AXES):
+        pd = np.ascontiguousarray(setpoints.pos[:, c])
+        if a not in machine.axes:
+            if c in moving:
+                raise MachineError(
+                    f"machine {machine.name!r} has no axis {a!r}, but the toolpath moves it"
+                )
+            pos[:, c] = pd
+            continue
+        p_act, u_a = simulate_axis(
+            axis_params(machine, a),
+            pd[0] if n else 0.0,
+            pd,
+            setpoints.vel[:, c],
+            kp[:, c] * KP_SI_PER_M_MIN_PER_MM,
+            kf_t[:, c],
+        )
+        pos[:, c] = p_act
+        u[:, c] = u_a
+    for arr in (pos, u, kp, kf_t):
+        arr.flags.writeable = False
+    return Simulation(pos=pos, u=u, kp_m_min_per_mm=kp, kf=kf_t)
