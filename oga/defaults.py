@@ -7,8 +7,10 @@ __all__ = [
     "TOL_M",
     "NP",
     "LAMBDA",
+    "ANCHOR",
     "A1",
     "A2",
+    "CE_WINDOW_SAMPLES",
 ]
 
 #: Position-loop / interpolation period Te, seconds.
@@ -19,6 +21,12 @@ TOL_M = 20e-6
 NP = 50
 #: Weight of the gain increment in the cost (paper: 0.01).
 LAMBDA = 0.01
+#: Weight pulling the adjusted gains back to the baseline (0: the paper's cost), um^2 per unit^2.
+ANCHOR = 0.0
 #: Candidate fractions of the admissible increment interval (paper: a1 = 0.01, a2 = 0.05).
 A1 = 0.01
 A2 = 0.05
+#: Half-width of the index window searched for the contour error around each sample, in
+#: moving samples (standstill not counted). Must exceed the tracking lag in samples,
+#: (1 - Kf) / (Kp Te) plus dead time and velocity-loop lag: about 70 at Kp 1 (m/min)/mm, Kf 0.
+CE_WINDOW_SAMPLES = 150
