@@ -10,7 +10,7 @@ from feedplan.path import Path
 from feedplan.polyline import parse_csv, parse_json
 from oga.errors import OptionError, ToolpathError
 
-__all__ = ["FORMATS", "SUFFIXES", "read_toolpath", "load_toolpath"]
+__all__ = ["FORMATS", "SUFFIXES", "read_toolpath", "read_file", "load_toolpath"]
 
 #: Reader of each format name.
 FORMATS = {"gcode": parse_gcode, "csv": parse_csv, "json": parse_json}
@@ -52,28 +52,21 @@ def read_toolpath(text: str, fmt: str, source: str = "") -> Path:
     return reader(text, source=source)
 
 
-def load_toolpath(path: str | os.PathLike) -> Path:
-    """Read a toolpath file, the format chosen by its extension.
+def read_file(path: str | os.PathLike) -> tuple[str, str]:
+    """The text of a toolpath file and its format, chosen by the extension.
 
     G-code: ``.ngc .nc .gcode .gc .tap .cnc``; polylines: ``.csv``, ``.json``
     (any case). The file must be UTF-8 text (a byte-order mark is allowed).
 
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The file; its name as given becomes ``Path.source``.
-
     Returns
     -------
-    Path
-        Lines and arcs in metres, feeds in m/s.
+    text : str
+    fmt : {"gcode", "csv", "json"}
 
     Raises
     ------
     ToolpathError
         Unknown extension, unreadable file, or not UTF-8 text.
-    GcodeError, ToolpathError
-        The content is invalid (line/column or field named).
     """
     name = os.fspath(path)
     suffix = FilePath(name).suffix.lower()
@@ -91,4 +84,18 @@ def load_toolpath(path: str | os.PathLike) -> Path:
         column = err.start - (data.rfind(b"\n", 0, err.start) + 1) + 1
         raise ToolpathError(f"{name}: not UTF-8 text (byte 0x{data[err.start]:02x})",
                             line, column) from None
-    return read_toolpath(text, SUFFIXES[suffix], source=name)
+    return text, SUFFIXES[suffix]
+
+
+def load_toolpath(path: str | os.PathLike) -> Path:
+    """Read and parse a toolpath file (:func:`read_file`, then :func:`read_toolpath`).
+
+    The file name as given becomes ``Path.source``.
+
+    Raises
+    ------
+    ToolpathError, GcodeError
+        Unreadable file or invalid content (line/column or field named).
+    """
+    text, fmt = read_file(path)
+    return read_toolpath(text, fmt, source=os.fspath(path))

@@ -32,7 +32,8 @@ class Setpoints:
         Path length travelled at each sample, metres (rapids included).
     pos, vel, acc, jerk : ndarray, shape (N, 3)
         Per axis (x, y, z) position m, velocity m/s, acceleration m/s^2 and jerk
-        m/s^3 of the planned motion (analytic values of the planner's profile).
+        m/s^3 of the planned motion; the planner gives centred finite differences of
+        ``pos`` (consistent with the limit checks, which difference ``pos`` itself).
     block : ndarray of int, shape (N,)
         1-based source line of the segment each sample belongs to.
     rapid : ndarray of bool, shape (N,)

@@ -2,7 +2,7 @@
 
 Every error a user can cause is an :class:`OgaError`; each also subclasses the
 built-in it refines, so ``except ValueError`` keeps working for callers that do
-not know the project. Backend exceptions (ruckig, toppra, numba, sqlite) are
+not know the project. Backend exceptions (ruckig, scipy, numba, sqlite) are
 wrapped in these, never leaked.
 """
 

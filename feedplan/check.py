@@ -1,0 +1,358 @@
+"""Independent check of planned setpoints: limits by finite differences, exact geometry.
+
+:func:`check_setpoints` measures what a controller would see: per-axis velocity,
+acceleration and jerk as backward finite differences of the float64 positions
+(``v_k = (p_k - p_{k-1}) / dt``, then ``a`` and ``j`` by further backward
+differences; the machine is taken at rest before the first and after the last
+sample), the path speed against the programmed feed, and the distance of every
+feed sample to the programmed lines and arcs (exact: distance to the circle or
+helix, not to a chord). :func:`deviation_m` is the geometric part, shared with
+the planner's check-and-slow-down loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from feedplan.limits import AxisLimits
+from feedplan.path import PLANES, Arc, Path, Segment
+from feedplan.setpoints import AXES, Setpoints
+from oga.defaults import TOL_M
+
+__all__ = [
+    "SPEED_MARGIN",
+    "PlanCheck",
+    "check_setpoints",
+    "deviation_m",
+    "finite_differences",
+    "point_segment_distance",
+    "segment_table",
+]
+
+#: Path speed allowed above the programmed feed, as a fraction (issue 2: 1.005 F).
+SPEED_MARGIN = 0.005
+#: Programmed moves searched on each side of the previous sample's nearest move.
+_SEARCH_WINDOW = 64
+#: Largest distance of the first/last sample from the programmed start/end, metres.
+_END_TOL_M = 1e-9
+
+
+def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
+    """The programmed moves as arrays for :func:`deviation_m` (build once, measure often).
+
+    Parameters
+    ----------
+    segments : sequence of Line or Arc
+
+    Returns
+    -------
+    tuple of ndarray
+        kind (n,) 0 line / 1 arc; start, end, centre (n, 3) m; plane axes (n, 3);
+        radius m, start angle rad, sweep rad, rise m (n, 4); rapid flags (n,);
+        a ball holding each move, centre and radius m (n, 4).
+    """
+    n = len(segments)
+    kind = np.zeros(n, np.int64)
+    a, b, c = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    ax = np.zeros((n, 3), np.int64)
+    geo = np.zeros((n, 4))  # radius, start angle, sweep, rise
+    rapid = np.zeros(n, np.bool_)
+    sphere = np.zeros((n, 4))  # a ball holding the move: centre, radius
+    for k, s in enumerate(segments):
+        a[k], b[k], rapid[k] = s.start, s.end, s.rapid
+        mid = 0.5 * (s.start + s.end)
+        sphere[k] = (*mid, 0.5 * s.length)
+        if isinstance(s, Arc):
+            kind[k] = 1
+            c[k] = s.center
+            ax[k] = PLANES[s.plane]
+            geo[k] = (s.radius, s.start_angle, s.sweep_rad, s.rise)
+            if abs(s.sweep_rad) <= np.pi:
+                mid = s.point(0.5)
+                reach = max(np.linalg.norm(mid - s.start), np.linalg.norm(mid - s.end))
+                reach += abs(s.rise)
+            else:
+                mid, reach = s.center, np.hypot(s.radius, s.rise) + abs(s.rise)
+            sphere[k] = (*mid, reach)
+    return kind, a, b, c, ax, geo, rapid, sphere
+
+
+@njit(cache=True)
+def point_segment_distance(p, a, b):
+    """Distance (m) from point ``p`` to the straight segment ``a``-``b`` (each shape (3,))."""
+    ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    ap0, ap1, ap2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    den = ab0 * ab0 + ab1 * ab1 + ab2 * ab2
+    f = 0.0
+    if den > 0.0:
+        f = min(1.0, max(0.0, (ap0 * ab0 + ap1 * ab1 + ap2 * ab2) / den))
+    d0, d1, d2 = ap0 - f * ab0, ap1 - f * ab1, ap2 - f * ab2
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(cache=True)
+def _dist_arc(p, a, b, c, ax, geo):
+    i, j, n = ax[0], ax[1], ax[2]
+    radius, th0, sweep, rise = geo[0], geo[1], geo[2], geo[3]
+    best = 1e300
+    for q in (a, b):
+        d0, d1, d2 = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+        best = min(best, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+    dx, dy = p[i] - c[i], p[j] - c[j]
+    rho = np.hypot(dx, dy)
+    span = abs(sweep)
+    sgn = 1.0 if sweep >= 0.0 else -1.0
+    delta = ((np.arctan2(dy, dx) - th0) * sgn) % (2.0 * np.pi)
+    while delta <= span:
+        zn = a[n] + rise * delta / span
+        d = np.hypot(rho - radius, p[n] - zn)
+        if d < best:
+            best = d
+        delta += 2.0 * np.pi
+    return best
+
+
+@njit(cache=True)
+def _seg_dist(p, s, kind, a, b, c, ax, geo):
+    if kind[s] == 0:
+        return point_segment_distance(p, a[s], b[s])
+    return _dist_arc(p, a[s], b[s], c[s], ax[s], geo[s])
+
+
+@njit(cache=True)
+def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, window):
+    n_pts, n_seg = pos.shape[0], kind.shape[0]
+    dist = np.zeros(n_pts)
+    near = np.zeros(n_pts, np.int64)
+    cur = 0
+    while not use[cur]:
+        cur += 1
+    for k in range(n_pts):
+        if skip[k]:
+            near[k] = cur
+            continue
+        # true minimum over the window; the tracked move changes only for a gain
+        # above 1 nm, looking forward first (retraced moves do not pull it back)
+        best = _seg_dist(pos[k], cur, kind, a, b, c, ax, geo)
+        held, arg = best, cur
+        for step in range(1, 2 * window + 1):
+            s = cur + step if step <= window else cur + window - step
+            if s < 0 or s >= n_seg or not use[s]:
+                continue
+            e0 = pos[k, 0] - sphere[s, 0]
+            e1 = pos[k, 1] - sphere[s, 1]
+            e2 = pos[k, 2] - sphere[s, 2]
+            if np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - sphere[s, 3] >= best:
+                continue  # cannot be nearer (and best <= held)
+            d = _seg_dist(pos[k], s, kind, a, b, c, ax, geo)
+            best = min(best, d)
+            if d < held - 1e-9:
+                held, arg = d, s
+        dist[k], near[k] = best, arg
+        cur = arg
+    return dist, near
+
+
+def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
+    """Distance of each point to the programmed feed geometry, following the path.
+
+    Parameters
+    ----------
+    pos : ndarray, shape (N, 3)
+        Points in path order, metres.
+    table : tuple
+        :func:`segment_table` of the programmed moves (rapids are not distance targets).
+    skip : ndarray of bool, shape (N,), optional
+        Points not measured (distance 0), e.g. rapid samples.
+
+    Returns
+    -------
+    dist : ndarray, shape (N,)
+        Exact distance (m) to the nearest feed line or arc among the 64 moves on
+        each side of the tracked move (helical arcs: distance to the helix point at
+        the same angle, an upper bound).
+    tracked : ndarray of int, shape (N,)
+        The move each point is attributed to (index in the table): the previous
+        point's move unless another is nearer by more than 1 nm, moves ahead
+        tried first, so that a retraced stretch does not pull the tracking back.
+    """
+    kind, a, b, c, ax, geo, rapid, sphere = table
+    skip = np.zeros(len(pos), np.bool_) if skip is None else np.asarray(skip, np.bool_)
+    use = ~rapid
+    if not use.any():
+        return np.zeros(len(pos)), np.zeros(len(pos), np.int64)
+    pos = np.ascontiguousarray(pos, dtype=np.float64)
+    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, _SEARCH_WINDOW)
+
+
+def finite_differences(pos: np.ndarray, dt: float):
+    """Backward differences of positions held at rest before and after.
+
+    Parameters
+    ----------
+    pos : ndarray, shape (N, 3)
+        Positions, metres, sampled every ``dt`` seconds.
+    dt : float
+        Sample period, seconds.
+
+    Returns
+    -------
+    vel, acc, jerk : ndarray, shape (N + 3, 3)
+        m/s, m/s^2, m/s^3; row ``k`` ends at ``pos[k]`` (rows past N: the rest after the end).
+    """
+    p = np.concatenate([np.repeat(pos[:1], 3, axis=0), pos, np.repeat(pos[-1:], 3, axis=0)])
+    v = np.diff(p, axis=0) / dt
+    acc = np.diff(v, axis=0) / dt
+    jerk = np.diff(acc, axis=0) / dt
+    return v[2:], acc[1:], jerk
+
+
+@dataclass(frozen=True)
+class PlanCheck:
+    """What the finite-difference and geometry check found.
+
+    Attributes
+    ----------
+    max_vel_m_s, max_acc_m_s2, max_jerk_m_s3 : ndarray, shape (3,)
+        Largest |v|, |a|, |j| per axis (x, y, z) by backward finite differences.
+    vel_ratio, acc_ratio, jerk_ratio : ndarray, shape (3,)
+        Those over the axis limits (``inf`` when an axis with limit 0 moves).
+    speed_ratio : float
+        Largest path speed of a feed sample over its programmed feed (or the override).
+    max_deviation_m : float
+        Largest distance of a feed sample to the programmed lines and arcs.
+    start_error_m, end_error_m : float
+        Distance of the first/last sample to the programmed start/end.
+    ends_at_rest : bool
+        The last three samples coincide (zero velocity and acceleration at the end).
+    ok : bool
+        Every requirement met.
+    violations : tuple of str
+        Each unmet requirement, in words.
+    limits : AxisLimits
+        The limits checked against.
+    """
+
+    max_vel_m_s: np.ndarray
+    max_acc_m_s2: np.ndarray
+    max_jerk_m_s3: np.ndarray
+    vel_ratio: np.ndarray
+    acc_ratio: np.ndarray
+    jerk_ratio: np.ndarray
+    speed_ratio: float
+    max_deviation_m: float
+    start_error_m: float
+    end_error_m: float
+    ends_at_rest: bool
+    ok: bool
+    violations: tuple[str, ...]
+    limits: AxisLimits
+
+    def axes_dict(self) -> dict[str, dict[str, float]]:
+        """Per axis that may move or moved: its largest |v|, |a|, |j| and their limits (SI)."""
+        lim = self.limits
+        return {
+            name: {
+                "max_vel_m_s": float(self.max_vel_m_s[k]),
+                "vmax_m_s": float(lim.vmax_m_s[k]),
+                "max_acc_m_s2": float(self.max_acc_m_s2[k]),
+                "amax_m_s2": float(lim.amax_m_s2[k]),
+                "max_jerk_m_s3": float(self.max_jerk_m_s3[k]),
+                "jmax_m_s3": float(lim.jmax_m_s3[k]),
+            }
+            for k, name in enumerate(AXES)
+            if lim.present[k] or self.max_vel_m_s[k] > 0
+        }
+
+
+def _ratio(value: np.ndarray, limit: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        moving_absent = np.where(value > 0, np.inf, 0.0)
+        return np.where(limit > 0, value / np.where(limit > 0, limit, 1.0), moving_absent)
+
+
+def check_setpoints(
+    sp: Setpoints,
+    path: Path,
+    limits: AxisLimits,
+    *,
+    feed_m_s: float | None = None,
+    tol_m: float = TOL_M,
+) -> PlanCheck:
+    """Check setpoints against the limits, the feed and the programmed geometry.
+
+    Parameters
+    ----------
+    sp : Setpoints
+        The planned setpoints (float64 positions are used, nothing else).
+    path : Path
+        The programmed path they were planned from.
+    limits : AxisLimits
+        Axis limits.
+    feed_m_s : float, optional
+        Feed override (m/s) the plan used; default: each move's programmed feed.
+    tol_m : float
+        Largest allowed distance of a feed sample to the programmed geometry, metres.
+
+    Returns
+    -------
+    PlanCheck
+    """
+    pos = sp.pos
+    vel, acc, jerk = finite_differences(pos, sp.dt)
+    mv, ma, mj = (np.abs(x).max(axis=0) for x in (vel, acc, jerk))
+    rv = _ratio(mv, limits.vmax_m_s)
+    ra = _ratio(ma, limits.amax_m_s2)
+    rj = _ratio(mj, limits.jmax_m_s3)
+    segs = [s for s in path.segments if s.length > 1e-12]
+    dist, near = deviation_m(pos, segment_table(segs), skip=sp.rapid)
+    feed = np.array([np.inf if s.rapid else (feed_m_s or s.feed_m_s) for s in segs] or [np.inf])
+    speed = np.linalg.norm(vel[: len(pos)], axis=1)
+    fs = ~sp.rapid
+    speed_ratio = float((speed[fs] / feed[near[fs]]).max()) if fs.any() else 0.0
+    max_dev = float(dist[fs].max()) if fs.any() else 0.0
+    end = segs[-1].end if segs else path.start
+    start_err = float(np.linalg.norm(pos[0] - path.start))
+    end_err = float(np.linalg.norm(pos[-1] - end))
+    at_rest = bool(len(pos) >= 3 and np.all(pos[-3:] == pos[-1]))
+
+    bad: list[str] = []
+    for name, r, m, unit in (
+        ("velocity", rv, mv, "m/s"),
+        ("acceleration", ra, ma, "m/s^2"),
+        ("jerk", rj, mj, "m/s^3"),
+    ):
+        for k in np.flatnonzero(r > 1.0):
+            bad.append(f"axis {AXES[k]} {name} {m[k]:.6g} {unit} is {r[k]:.4f} x its limit")
+    if speed_ratio > 1.0 + SPEED_MARGIN:
+        bad.append(f"path speed reaches {speed_ratio:.4f} x the programmed feed")
+    if max_dev > tol_m:
+        bad.append(
+            f"deviation from the programmed path {max_dev * 1e6:.2f} um "
+            f"exceeds {tol_m * 1e6:.2f} um"
+        )
+    if start_err > _END_TOL_M:
+        bad.append(f"first sample is {start_err * 1e6:.3f} um from the programmed start")
+    if end_err > _END_TOL_M:
+        bad.append(f"last sample is {end_err * 1e6:.3f} um from the programmed end")
+    if not at_rest:
+        bad.append("the setpoints do not end at rest")
+    return PlanCheck(
+        max_vel_m_s=mv,
+        max_acc_m_s2=ma,
+        max_jerk_m_s3=mj,
+        vel_ratio=rv,
+        acc_ratio=ra,
+        jerk_ratio=rj,
+        speed_ratio=speed_ratio,
+        max_deviation_m=max_dev,
+        start_error_m=start_err,
+        end_error_m=end_err,
+        ends_at_rest=at_rest,
+        ok=not bad,
+        violations=tuple(bad),
+        limits=limits,
+    )

@@ -1,0 +1,470 @@
+"""Smooth curves between exact stops: the geometry the feed planner moves along.
+
+A :class:`~feedplan.path.Path` is cut into :class:`Block` s, each planned from
+rest to rest:
+
+* every rapid (G0) line is a block of its own (rapid/feed transitions are exact stops);
+* feed moves are chained while the tangent turns by at most :data:`CORNER_ANGLE_RAD`
+  from one move to the next; a sharper corner is an exact stop (a new block);
+* runs of at least :data:`MICRO_RUN_MIN` consecutive short G1 lines (each shorter than
+  :data:`MICRO_SEGMENT_M`), as CAM posts write freeform surfaces, are replaced by a
+  least-squares cubic B-spline (curvature-continuous). Every fit is measured both ways
+  against the programmed polyline (each spline point to the polyline, each programmed
+  vertex to the spline); where it deviates by more than ``fit_tol_m`` knots are added
+  there, and a stretch that still fails with a knot at every vertex is split at its
+  sharpest vertex (an exact stop). The fit is local (knots start
+  :data:`FIT_KNOT_SPACING_M` apart and are refined only where the deviation requires),
+  so a sharp feature never produces the overshoot of a global interpolating spline.
+
+Lines and arcs are kept exact. A block's :class:`Curve` is parametrised by ``u`` in
+metres: arc length for lines and arcs, chord length of the programmed vertices for
+fitted splines (``|dr/du|`` within a few per mille of 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from scipy.interpolate import BSpline, make_lsq_spline
+
+from feedplan.check import point_segment_distance
+from feedplan.path import PLANES, Arc, Line, Path
+
+__all__ = [
+    "CORNER_ANGLE_RAD",
+    "MICRO_SEGMENT_M",
+    "MICRO_RUN_MIN",
+    "FIT_KNOT_SPACING_M",
+    "Curve",
+    "Block",
+    "fit_polyline",
+    "polyline_fit_deviation",
+    "blocks_of",
+]
+
+#: Largest tangent turn between two feed moves taken without an exact stop, rad.
+CORNER_ANGLE_RAD = 0.2
+#: G1 lines shorter than this are CAM micro-segments (fitted by a spline), metres.
+MICRO_SEGMENT_M = 1e-3
+#: Fewest consecutive micro-segments that are fitted (shorter runs stay lines).
+MICRO_RUN_MIN = 4
+#: Largest knot spacing of a micro-segment fit before refinement, metres.
+FIT_KNOT_SPACING_M = 0.5e-3
+#: Largest number of knot refinements of one fit.
+_FIT_ROUNDS = 12
+
+_LINE, _ARC, _SPLINE = 0, 1, 2
+
+
+@dataclass(frozen=True, eq=False)
+class Curve:
+    """A chain of pieces (lines, arcs, cubic splines) continuous in position.
+
+    Attributes
+    ----------
+    u0 : ndarray, shape (P + 1,)
+        Parameter (metres) where each piece starts; ``u0[-1]`` is the total.
+    kind : ndarray of int, shape (P,)
+        0 line, 1 arc, 2 spline.
+    org, e1, e2, e3 : ndarray, shape (P, 3)
+        Line: start, unit direction, 0, 0. Arc: centre, ``R`` times the plane's
+        first and second axis, helical rise per metre of ``u`` along the normal.
+    th0, w : ndarray, shape (P,)
+        Arc start angle (rad) and angular rate (rad per metre of ``u``).
+    corr : ndarray, shape (P, 3)
+        Arc end correction per metre of ``u`` (the programmed end minus the
+        exact circle end, spread linearly; below the reader's arc tolerance).
+    splines : tuple of scipy.interpolate.BSpline
+        Cubic splines of the pieces of kind 2 (``org[p, 0]`` indexes them);
+        their parameter starts at 0.
+    """
+
+    u0: np.ndarray
+    kind: np.ndarray
+    org: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    e3: np.ndarray
+    th0: np.ndarray
+    w: np.ndarray
+    corr: np.ndarray
+    splines: tuple
+
+    @property
+    def length(self) -> float:
+        """Parameter length in metres."""
+        return float(self.u0[-1])
+
+    def evaluate(self, u: np.ndarray, left: bool = False):
+        """Position and derivatives with respect to ``u``.
+
+        Parameters
+        ----------
+        u : ndarray, shape (N,)
+            Parameters in [0, length], metres.
+        left : bool
+            At a piece boundary, evaluate the piece that ends there (default:
+            the one that starts there).
+
+        Returns
+        -------
+        p, d1, d2, d3 : ndarray, shape (N, 3)
+            Position (m), dr/du (1), d2r/du2 (1/m), d3r/du3 (1/m^2).
+        """
+        u = np.asarray(u, dtype=np.float64)
+        side = "left" if left else "right"
+        idx = np.clip(np.searchsorted(self.u0, u, side=side) - 1, 0, len(self.kind) - 1)
+        ul = (u - self.u0[idx])[:, None]
+        kind = self.kind[idx]
+        p = np.empty((u.size, 3))
+        d1 = np.zeros((u.size, 3))
+        d2 = np.zeros((u.size, 3))
+        d3 = np.zeros((u.size, 3))
+        m = kind == _LINE
+        if m.any():
+            i = idx[m]
+            p[m] = self.org[i] + ul[m] * self.e1[i]
+            d1[m] = self.e1[i]
+        m = kind == _ARC
+        if m.any():
+            i = idx[m]
+            w = self.w[i][:, None]
+            th = self.th0[i][:, None] + w * ul[m]
+            c, s = np.cos(th), np.sin(th)
+            e1, e2 = self.e1[i], self.e2[i]
+            p[m] = self.org[i] + c * e1 + s * e2 + ul[m] * (self.e3[i] + self.corr[i])
+            d1[m] = w * (c * e2 - s * e1) + self.e3[i] + self.corr[i]
+            d2[m] = -w * w * (c * e1 + s * e2)
+            d3[m] = -w**3 * (c * e2 - s * e1)
+        m = kind == _SPLINE
+        if m.any():
+            sid = self.org[idx, 0].astype(np.int64)
+            for k in np.unique(sid[m]):
+                mk = m & (sid == k)
+                spl, x = self.splines[k], ul[mk, 0]
+                p[mk], d1[mk], d2[mk], d3[mk] = spl(x), spl(x, 1), spl(x, 2), spl(x, 3)
+        return p, d1, d2, d3
+
+
+@dataclass(frozen=True, eq=False)
+class Block:
+    """Moves planned from rest to rest along one curve.
+
+    Attributes
+    ----------
+    curve : Curve
+        The geometry to follow.
+    rapid : bool
+        True for a rapid (G0) line, planned at the axis limits.
+    segments : ndarray of int, shape (n,)
+        Indices into ``Path.segments`` of the programmed moves of this block.
+    seg_u0 : ndarray, shape (n + 1,)
+        Parameter ``u`` of the curve where each programmed move starts (last: the end).
+    fit_deviation_m : float
+        Largest deviation of a fitted spline from its programmed polyline (0 if none).
+    """
+
+    curve: Curve
+    rapid: bool
+    segments: np.ndarray
+    seg_u0: np.ndarray
+    fit_deviation_m: float
+
+
+# --------------------------------------------------------------------------- fitting
+
+
+@njit(cache=True)
+def _two_way_deviation(verts, dense, per, reach):
+    """Per vertex, the larger of: vertex to the dense curve, and dense curve
+    points of the adjacent intervals to the polyline (each within ``reach`` intervals)."""
+    n = verts.shape[0] - 1
+    out = np.zeros(n + 1)
+    for j in range(n + 1):
+        # vertex -> dense polyline of the curve around it
+        best = 1e300
+        lo = max(0, (j - reach) * per)
+        hi = min(dense.shape[0] - 1, (j + reach) * per)
+        for q in range(lo, hi):
+            d = point_segment_distance(verts[j], dense[q], dense[q + 1])
+            if d < best:
+                best = d
+        out[j] = best
+    for q in range(dense.shape[0]):
+        j = min(q // per, n - 1)
+        best = 1e300
+        for s in range(max(0, j - reach), min(n, j + reach + 1)):
+            d = point_segment_distance(dense[q], verts[s], verts[s + 1])
+            if d < best:
+                best = d
+        # charge it to the nearer end vertex of its interval
+        jj = j + 1 if (q - j * per) * 2 > per else j
+        if best > out[jj]:
+            out[jj] = best
+    return out
+
+
+_DENSE_PER_SEGMENT = 8
+
+
+def polyline_fit_deviation(spline: BSpline, verts: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Two-way deviation of a fitted curve from the polyline it replaces.
+
+    Parameters
+    ----------
+    spline : BSpline
+        Curve of parameter ``u`` (metres).
+    verts : ndarray, shape (n + 1, 3)
+        Programmed vertices, metres.
+    u : ndarray, shape (n + 1,)
+        Parameter of each vertex (chord length).
+
+    Returns
+    -------
+    ndarray, shape (n + 1,)
+        Per vertex, metres: the larger of its distance to the curve and the
+        largest distance to the polyline of the curve points on the intervals
+        charged to it. The maximum is the Hausdorff-type deviation of the fit.
+    """
+    per = _DENSE_PER_SEGMENT
+    f = np.arange(per) / per
+    x = np.append((u[:-1, None] + f * np.diff(u)[:, None]).ravel(), u[-1])
+    dense = spline(x)
+    return _two_way_deviation(np.ascontiguousarray(verts), np.ascontiguousarray(dense), per, 3)
+
+
+def _lsq(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray) -> BSpline:
+    """Least-squares cubic through vertices and chord midpoints, clamped on the ends."""
+    mid_u = 0.5 * (u[:-1] + u[1:])
+    mid_p = 0.5 * (verts[:-1] + verts[1:])
+    x = np.empty(2 * u.size - 1)
+    y = np.empty((x.size, 3))
+    x[0::2], x[1::2] = u, mid_u
+    y[0::2], y[1::2] = verts, mid_p
+    t = np.concatenate([[u[0]] * 4, u[knots_at], [u[-1]] * 4])
+    spl = make_lsq_spline(x, y, t, k=3)
+    c = spl.c.copy()
+    c[0], c[-1] = verts[0], verts[-1]
+    return BSpline(t, c, 3)
+
+
+def fit_polyline(verts: np.ndarray, fit_tol_m: float) -> list[tuple[int, int, BSpline, float]]:
+    """Fit a run of micro-segments with cubic splines within a tolerance.
+
+    Parameters
+    ----------
+    verts : ndarray, shape (n + 1, 3)
+        Vertices of the run, metres (n >= 1 segments of non-zero length).
+    fit_tol_m : float
+        Largest two-way deviation allowed, metres.
+
+    Returns
+    -------
+    list of (first, last, spline, deviation_m)
+        Consecutive stretches ``verts[first..last]``, each fitted by a spline whose
+        parameter is the chord length from ``verts[first]`` (starting at 0) and
+        which passes exactly through both end vertices. Stretches meet at a vertex
+        where no single fit met the tolerance (an exact stop there).
+    """
+    u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(verts, axis=0), axis=1))])
+    n = u.size - 1
+    if n == 1:  # one segment: the straight cubic
+        c = verts[0] + np.linspace(0.0, 1.0, 4)[:, None] * (verts[1] - verts[0])
+        return [(0, 1, BSpline(np.r_[[0.0] * 4, [u[1]] * 4], c, 3), 0.0)]
+    step = max(1, int(round(FIT_KNOT_SPACING_M / (u[-1] / n))))
+    knots = set(range(step, n, step))
+    for _ in range(_FIT_ROUNDS):
+        idx = np.array(sorted(knots), dtype=np.int64)
+        spl = _lsq(verts, u, idx)
+        dev = polyline_fit_deviation(spl, verts, u)
+        bad = np.flatnonzero(dev > fit_tol_m)
+        if bad.size == 0:
+            return [(0, n, spl, float(dev.max()))]
+        bounds = np.concatenate([[0], idx, [n]])
+        grown = False
+        for b in bad:
+            k = min(np.searchsorted(bounds, b, side="right"), len(bounds) - 1)
+            for lo, hi in ((bounds[k - 1], bounds[k]), (bounds[max(k - 2, 0)], bounds[k - 1])):
+                if hi - lo > 1:
+                    knots.add(int((lo + hi) // 2))
+                    grown = True
+        if not grown:
+            break
+    # split at the sharpest vertex among the failing ones
+    d = np.diff(verts, axis=0)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    turn = np.zeros(n + 1)
+    turn[1:-1] = np.arccos(np.clip(np.sum(d[:-1] * d[1:], axis=1), -1.0, 1.0))
+    cand = bad[(bad > 0) & (bad < n)]
+    j = int(cand[np.argmax(turn[cand])]) if cand.size else n // 2
+    left = fit_polyline(verts[: j + 1], fit_tol_m)
+    right = fit_polyline(verts[j:], fit_tol_m)
+    return left + [(a + j, b + j, s, e) for a, b, s, e in right]
+
+
+# --------------------------------------------------------------------------- blocks
+
+
+def _tangents(seg) -> tuple[np.ndarray, np.ndarray]:
+    """Unit tangent at the start and at the end of a programmed move."""
+    if isinstance(seg, Line):
+        t = (seg.end - seg.start) / seg.length
+        return t, t
+    i, j, n = PLANES[seg.plane]
+    out = []
+    for u in (0.0, 1.0):
+        th = seg.start_angle + u * seg.sweep_rad
+        t = np.zeros(3)
+        t[i] = -np.sin(th) * seg.radius * seg.sweep_rad
+        t[j] = np.cos(th) * seg.radius * seg.sweep_rad
+        t[n] = seg.rise
+        out.append(t / np.linalg.norm(t))
+    return out[0], out[1]
+
+
+def _turn(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.arccos(np.clip(a @ b, -1.0, 1.0)))
+
+
+class _CurveBuilder:
+    def __init__(self) -> None:
+        self.rows: list[tuple] = []
+        self.splines: list[BSpline] = []
+
+    def line(self, a: np.ndarray, b: np.ndarray) -> None:
+        L = float(np.linalg.norm(b - a))
+        z = np.zeros(3)
+        self.rows.append((L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z))
+
+    def arc(self, seg: Arc) -> None:
+        i, j, n = PLANES[seg.plane]
+        L, R = seg.length, seg.radius
+        e1, e2, e3 = np.zeros(3), np.zeros(3), np.zeros(3)
+        e1[i], e2[j], e3[n] = R, R, seg.rise / L
+        center = seg.center.copy()
+        exact_end = seg.point(1.0)
+        corr = (seg.end - exact_end) / L
+        self.rows.append((L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr))
+
+    def spline(self, spl: BSpline, L: float) -> None:
+        z = np.zeros(3)
+        org = np.array([len(self.splines), 0.0, 0.0])
+        self.splines.append(spl)
+        self.rows.append((L, _SPLINE, org, z, z, z, 0.0, 0.0, z))
+
+    def build(self) -> Curve:
+        cols = list(zip(*self.rows))
+        return Curve(
+            u0=np.concatenate([[0.0], np.cumsum(cols[0])]),
+            kind=np.array(cols[1], dtype=np.int64),
+            org=np.array(cols[2]),
+            e1=np.array(cols[3]),
+            e2=np.array(cols[4]),
+            e3=np.array(cols[5]),
+            th0=np.array(cols[6]),
+            w=np.array(cols[7]),
+            corr=np.array(cols[8]),
+            splines=tuple(self.splines),
+        )
+
+
+def _is_micro(seg) -> bool:
+    return isinstance(seg, Line) and not seg.rapid and seg.length < MICRO_SEGMENT_M
+
+
+def _feed_chains(path: Path, idx: list[int]) -> list[list[int]]:
+    """Split consecutive feed moves at corners (exact stops)."""
+    chains: list[list[int]] = []
+    for k in idx:
+        if chains and chains[-1][-1] == k - 1:
+            t_end = _tangents(path.segments[k - 1])[1]
+            t_start = _tangents(path.segments[k])[0]
+            if _turn(t_end, t_start) <= CORNER_ANGLE_RAD:
+                chains[-1].append(k)
+                continue
+        chains.append([k])
+    return chains
+
+
+def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float) -> list[Block]:
+    """Blocks of one corner-free chain of feed moves (more if a fit splits it)."""
+    segs = path.segments
+    blocks: list[Block] = []
+    b = _CurveBuilder()
+    seg_ids: list[int] = []
+    seg_u: list[float] = [0.0]
+    fit_dev = 0.0
+
+    def close() -> None:
+        nonlocal b, seg_ids, seg_u, fit_dev
+        if seg_ids:
+            blocks.append(
+                Block(b.build(), False, np.array(seg_ids, dtype=np.int64), np.array(seg_u), fit_dev)
+            )
+        b, seg_ids, seg_u, fit_dev = _CurveBuilder(), [], [0.0], 0.0
+
+    k = 0
+    while k < len(chain):
+        run = k
+        while run < len(chain) and _is_micro(segs[chain[run]]):
+            run += 1
+        if run - k >= MICRO_RUN_MIN:
+            ids = chain[k:run]
+            verts = np.vstack([segs[ids[0]].start] + [segs[i].end for i in ids])
+            for first, last, spl, dev in fit_polyline(verts, fit_tol_m):
+                if first > 0:
+                    close()
+                chord = np.linalg.norm(np.diff(verts[first : last + 1], axis=0), axis=1)
+                base = seg_u[-1]
+                b.spline(spl, float(chord.sum()))
+                seg_ids.extend(ids[first:last])
+                seg_u.extend(base + np.cumsum(chord))
+                fit_dev = max(fit_dev, dev)
+            k = run
+            continue
+        seg = segs[chain[k]]
+        if isinstance(seg, Line):
+            b.line(seg.start, seg.end)
+        else:
+            b.arc(seg)
+        seg_ids.append(chain[k])
+        seg_u.append(seg_u[-1] + seg.length)
+        k += 1
+    close()
+    return blocks
+
+
+def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
+    """Cut a path into rest-to-rest blocks of smooth geometry.
+
+    Parameters
+    ----------
+    path : Path
+        The programmed moves; moves of zero length are skipped.
+    fit_tol_m : float
+        Deviation allowed to the spline fits of micro-segment runs, metres.
+
+    Returns
+    -------
+    list of Block
+        In program order; consecutive blocks meet at rest at a programmed point.
+    """
+    out: list[Block] = []
+    feed: list[int] = []
+    for k, seg in enumerate(path.segments):
+        if seg.length <= 1e-12:
+            continue
+        if not seg.rapid:
+            feed.append(k)
+            continue
+        for chain in _feed_chains(path, feed):
+            out.extend(_chain_blocks(path, chain, fit_tol_m))
+        feed = []
+        b = _CurveBuilder()
+        b.line(seg.start, seg.end)
+        out.append(Block(b.build(), True, np.array([k]), np.array([0.0, seg.length]), 0.0))
+    for chain in _feed_chains(path, feed):
+        out.extend(_chain_blocks(path, chain, fit_tol_m))
+    return out

@@ -1,0 +1,577 @@
+"""Jerk-limited feed planning: a path in, uniformly sampled setpoints out.
+
+Method
+------
+The path is cut into rest-to-rest blocks (:func:`feedplan.fit.blocks_of`: rapids,
+corner-free chains of lines, arcs and fitted micro-segment splines).
+
+*Rapids* are straight lines planned at the axis limits: the per-axis limits are
+projected on the line and ruckig computes the time-optimal jerk-limited 1-D
+profile (one ``calculate()`` per rapid, no waypoints); its seven phases are
+evaluated in closed form at every sample.
+
+*Feed blocks* are planned in two stages, the classic "acceleration-limited profile
+plus FIR filter" of industrial interpolators:
+
+1. an acceleration-limited time-optimal speed profile along the curve: a speed
+   ceiling on a grid of about :data:`GRID_M` (programmed feed, axis velocities,
+   centripetal acceleration, the arc rounding of stage 2, and jerk-derived
+   ceilings where the curvature jumps or the tangent kinks between pieces), then
+   compiled forward/backward passes with a tangential acceleration limit ``A_t``
+   (a share of ``J T``, small near curvature jumps). The positions ``r(u(t))`` are
+   sampled every ``dt``;
+2. a moving average of ``M`` samples (``T = M dt``) over these positions, the same
+   on every axis so the axes stay synchronised. In finite differences the filtered
+   jerk is exactly ``(a_k - a_{k-M}) / T`` of the unfiltered accelerations, and the
+   filtered velocity and acceleration are averages of unfiltered ones: a bounded
+   acceleration change over ``T`` gives a bounded jerk, with no jerk spike where the
+   curvature jumps (line to arc). The price is a rounding of the contour, about
+   ``v^2 T^2 kappa / 24`` on an arc; it is optionally pre-compensated (the
+   unfiltered samples are pushed outwards by that amount, smoothed, see
+   :func:`_rounding_compensation`), which lets small arcs run at the feed.
+
+A check-and-slow-down loop then measures the filtered float64 setpoints as
+:mod:`feedplan.check` does (finite differences against every axis limit, path speed
+against the feed, exact distance to the programmed lines and arcs) and, where a
+sample fails, lowers the ceiling (and ``A_t``) over the stretch of the curve that
+sample averages, and replans, until clean. Per block a few filter lengths ``T`` up
+to the 1-D jerk-optimal ``sqrt(F / J)``, each with and without the compensation
+(:data:`_VARIANTS`), are tried and the fastest clean plan is kept; a variant is
+abandoned as soon as it is slower than the best so far.
+
+Why not toppra: in the first stage the only constraint left to the parametrisation
+is the scalar tangential limit ``A_t`` (axis velocities and centripetal
+accelerations are in the ceiling, everything is re-checked after filtering), and
+for that toppra's per-grid-point LP reduces to the closed-form forward/backward pass
+written here. toppra would add a matplotlib import and an LP solve per grid point,
+and its profile would still need the same jerk treatment afterwards.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
+
+from feedplan.check import SPEED_MARGIN, deviation_m, finite_differences, segment_table
+from feedplan.fit import Block, blocks_of
+from feedplan.limits import AxisLimits
+from feedplan.path import PLANES, Arc, Path
+from feedplan.setpoints import AXES, Setpoints
+from oga.defaults import DT_S, TOL_M
+from oga.errors import OptionError, PlanError
+
+__all__ = ["plan", "GRID_M", "FIT_TOL_FRACTION"]
+
+#: Spacing of the speed-profile grid along the path, metres.
+GRID_M = 0.25e-3
+#: Share of the tolerance given to the spline fits of micro-segments.
+FIT_TOL_FRACTION = 0.5
+#: Filter lengths tried, as fractions of the 1-D jerk-optimal sqrt(F / J).
+_T_FRACTIONS = (1.0, 0.75, 0.55, 0.4, 0.3, 0.22)
+#: Limits are met with this relative margin (float noise of the checks).
+_MARGIN = 1e-3
+#: Variants tried per filter length: (share, compensate). The initial ceiling on curves
+#: keeps the uncompensated rounding ``v^2 T^2 kappa / 24`` of the filter within ``share``
+#: times the tolerance left after the fit; with the rounding compensation on, most of it
+#: is cancelled (the check-and-slow-down loop handles the rest). Short arcs between kinks
+#: fare better without it.
+_VARIANTS = ((0.98, False), (2.0, True), (2.5, True), (3.0, True))
+#: Tangential acceleration limit as a share of J T (the rest is left to curvature changes).
+_AT_SHARE = 0.9
+#: Share of J T left to the tangential acceleration within reach of a curvature jump (the
+#: rest goes to the step of centripetal acceleration there; > 0 so that speed can change).
+_JUMP_AT_SHARE = 0.1
+#: Largest ceiling factor applied where a sample fails: 2 % slower per round, 5 % after
+#: :data:`_GENTLE_ROUNDS` rounds (the last stubborn samples).
+_STEP = (0.98, 0.95)
+_GENTLE_ROUNDS = 10
+#: Largest number of check-and-slow-down rounds per filter length.
+_ROUNDS = 60
+
+
+# --------------------------------------------------------------------------- rapids
+
+
+def _rapid(block: Block, path: Path, limits: AxisLimits, dt: float):
+    """Samples of a rapid line: positions (n, 3) m and source lines (n,)."""
+    seg = path.segments[block.segments[0]]
+    L = seg.length
+    d = (seg.end - seg.start) / L
+    m = np.abs(d) > 1e-15
+    lim = [
+        (1.0 - _MARGIN) * float(np.min(x[m] / np.abs(d[m])))
+        for x in (limits.vmax_m_s, limits.amax_m_s2, limits.jmax_m_s3)
+    ]
+    inp = InputParameter(1)
+    inp.current_position, inp.target_position = [0.0], [L]
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [lim[0]], [lim[1]], [lim[2]]
+    traj = Trajectory(1)
+    try:
+        res = Ruckig(1).calculate(inp, traj)
+    except RuckigError as err:
+        raise PlanError(f"line {seg.line}: rapid of {L * 1e3:.4g} mm: ruckig: {err}") from err
+    if res not in (Result.Working, Result.Finished):
+        raise PlanError(f"line {seg.line}: rapid of {L * 1e3:.4g} mm: ruckig returned {res}")
+    prof = traj.profiles[0][0]
+    tb = np.concatenate([[0.0], np.cumsum(prof.t)])
+    n = int(math.ceil(traj.duration / dt - 1e-9))
+    t = np.minimum(np.arange(n + 3) * dt, tb[-1])
+    ph = np.clip(np.searchsorted(tb, t, side="right") - 1, 0, 6)
+    tau = t - tb[ph]
+    j, a0 = np.array(prof.j)[ph], np.array(prof.a)[ph]
+    v0, p0 = np.array(prof.v)[ph], np.array(prof.p)[ph]
+    s = p0 + tau * (v0 + tau * (a0 / 2 + tau * j / 6))
+    pos = seg.start + s[:, None] * d
+    pos[n:] = seg.end
+    return pos, np.full(len(t), seg.line)
+
+
+# --------------------------------------------------------------------------- feed blocks
+
+
+@njit(cache=True)
+def _forward_backward(u, ceil, acc):
+    """Largest speeds under the ceiling with |dv^2/du| <= 2 acc per cell, rest at both ends."""
+    n = u.shape[0]
+    v2 = ceil * ceil
+    v2[0] = 0.0
+    v2[n - 1] = 0.0
+    for k in range(n - 1):
+        v2[k + 1] = min(v2[k + 1], v2[k] + 2.0 * acc[k] * (u[k + 1] - u[k]))
+    for k in range(n - 2, -1, -1):
+        v2[k] = min(v2[k], v2[k + 1] + 2.0 * acc[k] * (u[k + 1] - u[k]))
+    return np.sqrt(v2)
+
+
+@njit(cache=True)
+def _sample(u, v, dt):
+    """Parameter u and its rate du/dt every dt along constant-acceleration cells (speeds v at u)."""
+    n = u.shape[0]
+    tn = np.zeros(n)
+    for k in range(n - 1):
+        tn[k + 1] = tn[k] + 2.0 * (u[k + 1] - u[k]) / (v[k] + v[k + 1])
+    ns = int(np.ceil(tn[n - 1] / dt - 1e-9)) + 1
+    us, ud = np.empty(ns), np.zeros(ns)
+    c = 0
+    for k in range(ns):
+        t = k * dt
+        if t >= tn[n - 1]:
+            us[k] = u[n - 1]
+            continue
+        while t >= tn[c + 1]:
+            c += 1
+        tau = t - tn[c]
+        a = (v[c + 1] * v[c + 1] - v[c] * v[c]) / (2.0 * (u[c + 1] - u[c]))
+        us[k] = min(u[c] + v[c] * tau + 0.5 * a * tau * tau, u[c + 1])
+        ud[k] = v[c] + a * tau
+    us[ns - 1] = u[n - 1]
+    return us, ud
+
+
+@njit(cache=True)
+def _moving_average(x, m, extra):
+    """Mean of the last m samples (x held before its start and after its end)."""
+    n = x.shape[0]
+    out = np.empty((n + m - 1 + extra, x.shape[1]))
+    for c in range(x.shape[1]):
+        ref = x[0, c]
+        for k in range(out.shape[0]):
+            acc = 0.0
+            for q in range(k - m + 1, k + 1):
+                acc += x[min(max(q, 0), n - 1), c] - ref
+            out[k, c] = ref + acc / m
+    for k in range(n + m - 2, out.shape[0]):
+        out[k] = x[n - 1]
+    return out
+
+
+@njit(cache=True)
+def _lower(u_nodes, u_pre, lo, hi, factor, scale):
+    """Lower ``scale`` to ``factor[i]`` on the nodes over u_pre[lo[i]]..u_pre[hi[i]] (+1 node)."""
+    for i in range(lo.shape[0]):
+        a = np.searchsorted(u_nodes, u_pre[lo[i]]) - 1
+        b = np.searchsorted(u_nodes, u_pre[hi[i]]) + 1
+        for k in range(max(a, 0), min(b, u_nodes.shape[0] - 1) + 1):
+            if factor[i] < scale[k]:
+                scale[k] = factor[i]
+
+
+@dataclass(frozen=True, eq=False)
+class _Feed:
+    """What every planning round of one feed block needs."""
+
+    block: Block
+    first: np.ndarray  # programmed start and end, (3,) m
+    last: np.ndarray
+    nodes: np.ndarray  # grid along u, (G,) m
+    seg_feed: np.ndarray  # feed of each programmed move, (n,) m/s
+    seg_lines: np.ndarray  # its source line, (n,)
+    table: tuple  # feedplan.check.segment_table of the moves
+    limits: AxisLimits
+    tol_m: float
+    dt: float
+
+
+@dataclass(frozen=True, eq=False)
+class _Attempt:
+    """Filtered positions (n, 3) m, source line per sample, duration s."""
+
+    pos: np.ndarray
+    line: np.ndarray
+    duration: float
+
+
+def _grid(block: Block) -> np.ndarray:
+    u0 = block.curve.u0
+    return np.unique(
+        np.concatenate(
+            [
+                np.linspace(u0[k], u0[k + 1], max(2, math.ceil((u0[k + 1] - u0[k]) / GRID_M)) + 1)
+                for k in range(len(u0) - 1)
+            ]
+        )
+    )
+
+
+def _static_limits(fb: _Feed):
+    """Speed ceiling (m/s) independent of T, |unit tangent| per axis, curvature (1/m) per node."""
+    nodes, seg_u0 = fb.nodes, fb.block.seg_u0
+    ceil = np.full(nodes.size, np.inf)
+    tan = np.zeros((nodes.size, 3))
+    kappa = np.zeros(nodes.size)
+    last = len(fb.seg_feed) - 1
+    k_right = np.clip(np.searchsorted(seg_u0, nodes, side="right") - 1, 0, last)
+    k_left = np.clip(np.searchsorted(seg_u0, nodes, side="left") - 1, 0, last)
+    feed = np.minimum(fb.seg_feed[k_right], fb.seg_feed[k_left])
+    ax = fb.limits.present
+    vmax, amax = fb.limits.vmax_m_s[ax], fb.limits.amax_m_s2[ax]
+    with np.errstate(divide="ignore"):
+        for left in (False, True):
+            _, d1, d2, _ = fb.block.curve.evaluate(nodes, left=left)
+            speed = np.linalg.norm(d1, axis=1)
+            ceil = np.minimum(ceil, feed / speed)
+            ceil = np.minimum(ceil, np.min(vmax / np.abs(d1[:, ax]), axis=1))
+            ceil = np.minimum(ceil, np.sqrt(np.min(0.5 * amax / np.abs(d2[:, ax]), axis=1)))
+            tan = np.maximum(tan, np.abs(d1 / speed[:, None]))
+            kappa = np.maximum(kappa, np.linalg.norm(d2, axis=1) / speed**2)
+    return ceil, tan, kappa, feed
+
+
+def _centred_mean(x: np.ndarray, m: int) -> np.ndarray:
+    """Centred moving average over m (odd) samples, zero outside; shape of x (N, 3)."""
+    h = m // 2
+    c = np.cumsum(np.vstack([np.zeros((h + 1, 3)), x, np.zeros((h, 3))]), axis=0)
+    return (c[m:] - c[:-m]) / m
+
+
+def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
+    """Offset (N, 3) m of the unfiltered samples that cancels the filter's contour rounding.
+
+    A centred mean over ``m`` samples turns a smooth motion ``p(t)`` into ``p + s2/2 p''``
+    plus higher orders, ``s2 = (m^2 - 1) dt^2 / 12``; the normal part of ``p''`` (the
+    centripetal acceleration) moves the filtered point inside curves. Subtracting
+    ``s2/2`` of it beforehand keeps arcs on their radius. The offset is smoothed twice
+    over the filter length, so it adds no jerk step where the curvature jumps, and it
+    fades in and out over the first and last ``2 m`` samples (at rest at both ends).
+    """
+    speed = np.linalg.norm(d1, axis=1)
+    t = d1 / speed[:, None]
+    normal = d2 - np.sum(d2 * t, axis=1)[:, None] * t
+    s2 = (m * m - 1) * dt * dt / 12.0
+    off = -0.5 * s2 * (ud**2)[:, None] * normal
+    odd = m | 1
+    off = _centred_mean(_centred_mean(off, odd), odd)
+    n = len(off)
+    ramp = np.clip(np.minimum(np.arange(n), n - 1 - np.arange(n)) / (2.0 * m), 0.0, 1.0)
+    return off * (ramp * ramp * (3.0 - 2.0 * ramp))[:, None]
+
+
+def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensate: bool):
+    """Plan with one ceiling and filter length (rounding compensation on or off), check it.
+
+    Returns
+    -------
+    attempt : _Attempt
+    f_speed, f_acc : ndarray, shape (n + 3,)
+        Per filtered sample (and the 3 at rest after it), the factor to apply to the
+        speed ceiling and to ``A_t`` where it is averaged (1 where clean).
+    u : ndarray
+        Curve parameter of each unfiltered sample, m.
+    """
+    lim, dt = fb.limits, fb.dt
+    u, ud = _sample(fb.nodes, _forward_backward(fb.nodes, ceil, acc_t), dt)
+    p, d1, d2, _ = fb.block.curve.evaluate(u)
+    p[0], p[-1] = fb.first, fb.last
+    if compensate:
+        p += _rounding_compensation(d1, d2, ud, m, dt)
+    pos = _moving_average(p, m, 3)
+    fv, fa, fj = finite_differences(pos, dt)
+    dist, near = deviation_m(pos, fb.table)
+    n = len(pos)
+    axes = lim.present  # the others do not move (checked before planning)
+    r_v = np.max(np.abs(fv[:, axes]) / lim.vmax_m_s[axes], axis=1)
+    r_a = np.max(np.abs(fa[:, axes]) / lim.amax_m_s2[axes], axis=1)
+    r_j = np.max(np.abs(fj[:, axes]) / lim.jmax_m_s3[axes], axis=1)
+    r_s, r_d = np.zeros(len(fv)), np.zeros(len(fv))
+    r_s[:n] = np.linalg.norm(fv[:n], axis=1) / (fb.seg_feed[near] * (1.0 + SPEED_MARGIN))
+    r_d[:n] = dist / fb.tol_m
+    centre = np.clip(np.arange(n) - (m - 1) // 2, 0, len(u) - 1)
+    seg_at = np.searchsorted(fb.block.seg_u0, u[centre], side="right") - 1
+    line = fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
+    ok = 1.0 - _MARGIN
+    # speed enters velocities linearly, rounding and accelerations/jerk about quadratically
+    f_acc = ok / np.maximum(np.maximum(r_a, r_j), ok)
+    f_speed = np.minimum(
+        ok / np.maximum(np.maximum(r_v, r_s), ok), np.sqrt(ok / np.maximum(r_d, ok))
+    )
+    f_speed = np.minimum(f_speed, np.sqrt(f_acc))
+    return _Attempt(pos, line, (n - 1) * dt), f_speed, f_acc, u
+
+
+def _converge(
+    fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensate: bool, beat: float
+):
+    """Check-and-slow-down rounds for one filter length.
+
+    Returns a clean attempt faster than ``beat`` (s), or None.
+    """
+    for rnd in range(_ROUNDS):
+        att, f_speed, f_acc, u = _run_filter(fb, ceil, acc_t, m, compensate)
+        if att.duration >= beat:  # rounds only slow down: give up
+            return None
+        bad = np.flatnonzero((f_speed < 1.0) | (f_acc < 1.0))
+        if bad.size == 0:
+            return att
+        # filtered sample k averages unfiltered k - m + 1 .. k (its differences: 3 more)
+        lo = np.clip(bad - m - 3, 0, len(u) - 1)
+        hi = np.clip(bad, 0, len(u) - 1)
+        s_node = np.ones(fb.nodes.size)
+        _lower(fb.nodes, u, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]), s_node)
+        a_node = np.ones(fb.nodes.size)
+        _lower(fb.nodes, u, lo, hi, f_acc[bad], a_node)
+        ceil = ceil * s_node
+        acc_t = acc_t * np.minimum(a_node[:-1], a_node[1:])
+    return None
+
+
+def _joints(curve):
+    """Where pieces meet with a jump of curvature or a kink of the tangent.
+
+    Returns
+    -------
+    u_jump : ndarray, shape (J,)
+        Parameters (m) of curvature jumps (line to arc, arc to arc); the acceleration
+        steps by ``v^2 d_kappa`` there, which the filter spreads over ``T``.
+    d_kappa : ndarray, shape (J, 3)
+        Jump of the curvature vector ``d2r/du2``, 1/m.
+    u_kink : ndarray, shape (K,)
+        Parameters (m) of kinks (tangent turns up to the corner angle); the velocity
+        turns by ``v d_tan`` within one sample there, a jerk ``v |d_tan_i| / (T dt)``
+        after filtering.
+    d_tan : ndarray, shape (K, 3)
+        Jump of the unit tangent.
+    """
+    u_b = curve.u0[1:-1]
+    right, left = curve.evaluate(u_b), curve.evaluate(u_b, left=True)
+    d_kappa = right[2] - left[2]
+    d_tan = right[1] / np.linalg.norm(right[1], axis=1)[:, None]
+    d_tan -= left[1] / np.linalg.norm(left[1], axis=1)[:, None]
+    jumps = np.linalg.norm(d_kappa, axis=1) > 1e-9
+    kinks = np.linalg.norm(d_tan, axis=1) > 1e-9
+    return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
+
+
+def _plan_feed(
+    block: Block, path: Path, limits: AxisLimits, feeds: np.ndarray, tol_m: float, dt: float
+):
+    """Samples of a feed block: positions (n, 3) m and source lines (n,)."""
+    segs = [path.segments[i] for i in block.segments]
+    fb = _Feed(
+        block=block,
+        first=segs[0].start,
+        last=segs[-1].end,
+        nodes=_grid(block),
+        seg_feed=feeds[block.segments],
+        seg_lines=np.array([s.line for s in segs], dtype=np.int64),
+        table=segment_table(segs),
+        limits=limits,
+        tol_m=tol_m,
+        dt=dt,
+    )
+    ceil0, tan, kappa, feed = _static_limits(fb)
+    ax = limits.present
+    jmax, amax = limits.jmax_m_s3[ax], limits.amax_m_s2[ax]
+    with np.errstate(divide="ignore"):
+        j_path = np.min(jmax / tan[:, ax], axis=1)
+        a_path = np.min(0.5 * amax / tan[:, ax], axis=1)
+    moving = np.any(tan[:, ax] > 1e-12, axis=0)
+    t_opt = math.sqrt(float(np.max(feed)) / float(np.min(jmax[moving])))
+    u_jump, d_kappa, u_kink, d_tan = _joints(block.curve)
+    best = None
+    lengths = sorted({max(1, round(t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
+    for m, (share, compensate) in itertools.product(lengths, _VARIANTS):
+        T = m * dt
+        rounding_m = (tol_m - block.fit_deviation_m) * share
+        with np.errstate(divide="ignore"):
+            ceil = np.minimum(ceil0, np.sqrt(24.0 * rounding_m / (kappa * T * T)))
+        acc_node = np.minimum(_AT_SHARE * j_path * T, a_path)
+        reach = float(np.max(feed)) * T  # the filter window around a jump
+        for ub, d in zip(u_jump, d_kappa):
+            near = np.abs(fb.nodes - ub) <= reach
+            with np.errstate(divide="ignore"):
+                v2 = np.min((1.0 - _JUMP_AT_SHARE) * jmax * T / np.abs(d[ax]))
+            ceil[near] = np.minimum(ceil[near], math.sqrt(v2))
+            acc_node[near] = np.minimum(acc_node[near], _JUMP_AT_SHARE * j_path[near] * T)
+        for uk, d in zip(u_kink, d_tan):
+            near = np.abs(fb.nodes - uk) <= GRID_M  # the speed while crossing it
+            with np.errstate(divide="ignore"):
+                v_jerk = np.min(jmax * T * dt / np.abs(d[ax]))
+            v_cut = 8.0 * tol_m / (T * np.linalg.norm(d))  # corner cut ~ v T |dt| / 8
+            ceil[near] = np.minimum(ceil[near], min(v_jerk, v_cut))
+        acc_t = np.minimum(acc_node[:-1], acc_node[1:])
+        beat = math.inf if best is None else best.duration
+        att = _converge(fb, ceil, acc_t, m, compensate, beat)
+        if att is not None:
+            best = att
+    if best is None:
+        raise PlanError(
+            f"line {segs[0].line}: no plan within the limits and the tolerance "
+            f"after {_ROUNDS} slow-down rounds"
+        )
+    return best.pos, best.line
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def _feeds(path: Path, feed_m_s: float | None) -> np.ndarray:
+    out = np.empty(len(path.segments))
+    for k, s in enumerate(path.segments):
+        if s.rapid:
+            out[k] = np.inf
+        elif feed_m_s is not None:
+            out[k] = feed_m_s
+        elif math.isfinite(s.feed_m_s) and s.feed_m_s > 0:
+            out[k] = s.feed_m_s
+        else:
+            where = f"line {s.line}" if s.line else f"move {k + 1}"
+            raise OptionError(f"{where}: no feed programmed (F); give feed_m_s")
+    return out
+
+
+def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float) -> None:
+    if feed_m_s is not None and not (math.isfinite(feed_m_s) and feed_m_s > 0):
+        raise OptionError(f"feed_m_s must be a positive finite number, got {feed_m_s!r}")
+    if not (math.isfinite(tol_m) and tol_m > 0):
+        raise OptionError(f"tol_m must be a positive finite number, got {tol_m!r}")
+    if not (math.isfinite(dt) and dt > 0):
+        raise OptionError(f"dt must be a positive finite number, got {dt!r}")
+    for s in path.segments:
+        span = np.abs(s.end - s.start)
+        if isinstance(s, Arc) and s.length > 1e-12:
+            i, j, _ = PLANES[s.plane]
+            span[i] = span[j] = s.radius
+        for k in np.flatnonzero((span > 1e-12) & ~limits.present):
+            where = f"line {s.line}" if s.line else "the path"
+            raise PlanError(f"{where} moves axis {AXES[k]}, which has a 0 limit (it must not move)")
+
+
+def _plane_of(pos: np.ndarray, rapid: np.ndarray, preferred: str):
+    feed = pos[~rapid]
+    if len(feed) == 0:
+        return None
+    span = feed.max(axis=0) - feed.min(axis=0)
+    for name in (preferred, *[p for p in PLANES if p != preferred]):
+        if span[PLANES[name][2]] <= 1e-9:
+            return name
+    return None
+
+
+def _derivatives(pos: np.ndarray, dt: float):
+    """Centred differences of positions at rest before and after: v, a at sample k, j at k + 1/2.
+
+    Each is a backward difference shifted by at most two samples, so it obeys
+    the same limits as the finite-difference check.
+    """
+    p = np.concatenate([np.repeat(pos[:1], 2, axis=0), pos, np.repeat(pos[-1:], 2, axis=0)])
+    vel = (p[3:-1] - p[1:-3]) / (2 * dt)
+    acc = (p[3:-1] - 2 * p[2:-2] + p[1:-3]) / dt**2
+    jerk = (p[4:] - 3 * p[3:-1] + 3 * p[2:-2] - p[1:-3]) / dt**3
+    return vel, acc, jerk
+
+
+def plan(
+    path: Path,
+    limits: AxisLimits,
+    *,
+    feed_m_s: float | None = None,
+    tol_m: float = TOL_M,
+    dt: float = DT_S,
+) -> Setpoints:
+    """Plan jerk-limited setpoints along a path.
+
+    Parameters
+    ----------
+    path : Path
+        Programmed moves, metres.
+    limits : AxisLimits
+        Per-axis velocity, acceleration and jerk limits (SI).
+    feed_m_s : float, optional
+        Path speed (m/s) for every feed move, overriding the programmed feeds.
+    tol_m : float
+        Largest distance of a feed setpoint to the programmed geometry, metres.
+    dt : float
+        Sample period, seconds.
+
+    Returns
+    -------
+    Setpoints
+        Starting at rest on ``path.start`` and ending at rest (last three samples
+        equal) on the end of the last move. Finite differences of ``pos`` meet every
+        axis limit, the path speed stays within 1.005 x the feed, every feed sample
+        lies within ``tol_m`` of the programmed lines and arcs. ``vel`` and ``acc`` are
+        centred differences of ``pos`` at each sample, ``jerk`` the third difference
+        centred half a sample later (each within the limits like ``pos``'s backward
+        differences).
+
+    Raises
+    ------
+    OptionError
+        Bad ``feed_m_s``/``tol_m``/``dt``, or a feed move without feed and no override.
+    PlanError
+        The path moves an axis whose limits are 0, or no plan meets the limits.
+    """
+    _validate(path, limits, feed_m_s, tol_m, dt)
+    seg_feed = _feeds(path, feed_m_s)
+    blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION)
+    pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]
+    for blk in blocks:
+        if blk.rapid:
+            p, ln = _rapid(blk, path, limits, dt)
+        else:
+            p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt)
+        pos.append(p[1:])  # p[0] is where the previous block ended, at rest
+        line.append(ln[1:])
+        rapid.append(np.full(len(p) - 1, blk.rapid))
+    if blocks:  # the first sample belongs to the first move
+        line[0][0], rapid[0][0] = line[1][0], rapid[1][0]
+    pos, line, rapid = np.concatenate(pos), np.concatenate(line), np.concatenate(rapid)
+    vel, acc, jerk = _derivatives(pos, dt)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    return Setpoints(
+        dt=dt,
+        s=s,
+        pos=pos,
+        vel=vel,
+        acc=acc,
+        jerk=jerk,
+        block=line,
+        rapid=rapid,
+        plane=_plane_of(pos, rapid, path.plane),
+        source=path.source,
+    )

@@ -1,0 +1,350 @@
+"""Feed planner: every plan checked here by finite differences and exact geometry.
+
+The checks are written in this file (not feedplan.check): backward differences of
+the float64 positions held at rest before and after, and distances to densely
+sampled programmed geometry via a k-d tree (1 um spacing: the nearest-sample
+distance overestimates the true distance by well under 0.1 um at 20 um).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path as FilePath
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from ruckig import InputParameter, Ruckig, Trajectory
+from scipy.spatial import cKDTree
+
+from feedplan.check import check_setpoints
+from feedplan.gcode import parse_gcode
+from feedplan.limits import AxisLimits
+from feedplan.path import PLANES, Arc, Line, Path
+from feedplan.setpoints import Setpoints
+from feedplan.plan import plan
+from oga.errors import OptionError, PlanError
+
+#: ucp710 (DESIGN.md): X and Y 30 m/min, 2.5 m/s^2, 10 m/s^3; Z 30 m/min, 2.1 m/s^2, 100 m/s^3
+UCP = AxisLimits(np.full(3, 0.5), np.array([2.5, 2.5, 2.1]), np.array([10.0, 10.0, 100.0]))
+F3000 = 0.05  # m/s
+DATA = FilePath(__file__).with_name("data")
+MM = 1e-3
+TOL = 20e-6
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def fd(pos: np.ndarray, dt: float):
+    """Backward differences, at rest before and after; row k ends at pos[k] (N + 3 rows)."""
+    p = np.concatenate([np.repeat(pos[:1], 3, axis=0), pos, np.repeat(pos[-1:], 3, axis=0)])
+    v = np.diff(p, axis=0) / dt
+    a = np.diff(v, axis=0) / dt
+    j = np.diff(a, axis=0) / dt
+    return v[2:], a[1:], j
+
+
+def dense(seg, step=1e-6) -> np.ndarray:
+    n = max(2, int(math.ceil(seg.length / step)) + 1)
+    return seg.point(np.linspace(0.0, 1.0, n))
+
+
+def deviation(pos: np.ndarray, segs) -> np.ndarray:
+    tree = cKDTree(np.vstack([dense(s) for s in segs]))
+    return tree.query(pos)[0]
+
+
+def arc_between(start, center, plane, sweep, feed, rise=0.0, line=0) -> Arc:
+    start = np.asarray(start, float)
+    center = np.asarray(center, float)
+    i, j, n = PLANES[plane]
+    d = start - center
+    th = math.atan2(d[j], d[i]) + sweep
+    r = math.hypot(d[i], d[j])
+    end = center.copy()
+    end[i] += r * math.cos(th)
+    end[j] += r * math.sin(th)
+    end[n] = start[n] + rise
+    return Arc(start, end, center, plane, sweep, feed, line)
+
+
+def assert_plan_ok(sp, path: Path, limits: AxisLimits, tol=TOL):
+    v, a, j = fd(sp.pos, sp.dt)
+    for x, lim in ((v, limits.vmax_m_s), (a, limits.amax_m_s2), (j, limits.jmax_m_s3)):
+        assert np.all(np.abs(x) <= lim), (np.abs(x).max(axis=0), lim)
+    feed_samples = ~sp.rapid
+    speed = np.linalg.norm(v[: len(sp.pos)], axis=1)
+    fmax = max(s.feed_m_s for s in path.segments if not s.rapid)
+    assert speed[feed_samples].max() <= 1.005 * fmax
+    feed_segs = [s for s in path.segments if not s.rapid]
+    dev = deviation(sp.pos[feed_samples], feed_segs)
+    assert dev.max() <= tol, dev.max()
+    assert np.array_equal(sp.pos[0], path.start)
+    assert np.allclose(sp.pos[-3:], path.segments[-1].end, rtol=0, atol=1e-12)
+    assert np.all(sp.pos[-3:] == sp.pos[-1])  # at rest: v = a = 0 at the end
+
+
+def rest_to_rest(length, v, a, j) -> float:
+    inp = InputParameter(1)
+    inp.current_position, inp.target_position = [0.0], [length]
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [v], [a], [j]
+    traj = Trajectory(1)
+    Ruckig(1).calculate(inp, traj)
+    return traj.duration
+
+
+# ----------------------------------------------------------------------------- cases
+
+
+def test_line_near_ruckig_time_optimum():
+    seg = Line([0, 0, 0], [20 * MM, 0, 0], F3000, line=1)
+    path = Path(seg.start, (seg,), "xy")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    best = rest_to_rest(seg.length, F3000, 2.5, 10.0)
+    assert best - 1e-9 <= sp.duration <= 1.03 * best + 3e-3
+    assert np.all(sp.block == 1) and not sp.rapid.any()
+
+
+def test_rapid_at_axis_limits_is_ruckig_optimal_and_straight():
+    d = np.array([30, 40, 0]) * MM
+    seg = Line([0, 0, 0], d, math.inf, rapid=True, line=2)
+    path = Path(seg.start, (seg,), "xy")
+    sp = plan(path, UCP)
+    v, a, j = fd(sp.pos, sp.dt)
+    for x, lim in ((v, UCP.vmax_m_s), (a, UCP.amax_m_s2), (j, UCP.jmax_m_s3)):
+        assert np.all(np.abs(x) <= lim)
+    u = d / np.linalg.norm(d)
+    lims = (UCP.vmax_m_s, UCP.amax_m_s2, UCP.jmax_m_s3)
+    best = rest_to_rest(0.05, *(float(np.min(x[:2] / u[:2])) for x in lims))
+    assert best - 1e-9 <= sp.duration <= 1.002 * best + 3 * sp.dt
+    # on the line: cross product with its direction vanishes
+    assert np.abs(np.cross(sp.pos, u)).max() < 1e-12
+    assert sp.rapid.all()
+
+
+def test_full_circle_within_limits_and_fast():
+    start = np.array([50 * MM, 0, 0])
+    arc = arc_between(start, [0, 0, 0], "xy", 2 * math.pi, F3000, line=4)
+    path = Path(start, (arc,), "xy")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    # start/stop along Y: half the extra of a 1-D rest-to-rest each
+    extra = rest_to_rest(1.0, F3000, 2.5, 10.0) - 1.0 / F3000
+    assert sp.duration <= 1.05 * (arc.length / F3000 + extra)
+    assert sp.plane == "xy"
+
+
+def test_reference_xz_within_limits_and_cycle_time_target():
+    path = parse_gcode((DATA / "reference_xz.ngc").read_text(), source="reference_xz")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    # bound: L/F plus half the extra of a 1-D rest-to-rest profile at each end (both along X)
+    extra = rest_to_rest(1.0, F3000, 2.5, 10.0) - 1.0 / F3000
+    assert sp.duration <= 1.10 * (path.feed_length / F3000 + extra)
+
+
+def test_line_arc_line_curvature_jumps_in_xz():
+    # X line, G18 quarter arc R5 mm, Z line: curvature jumps of 200 1/m at both joints
+    l1 = Line([0, 0, 0], [20 * MM, 0, 0], F3000, line=1)
+    arc = arc_between(l1.end, [20 * MM, 0, 5 * MM], "zx", -math.pi / 2, F3000, line=2)  # G2 in G18
+    assert np.allclose(arc.end, [25 * MM, 0, 5 * MM], atol=1e-12)
+    l2 = Line(arc.end, arc.end + [0, 0, 15 * MM], F3000, line=3)
+    path = Path(l1.start, (l1, arc, l2), "zx")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    assert sp.plane == "zx"
+    assert set(np.unique(sp.block)) == {1, 2, 3}
+    # no exact stop at tangent joints: the speed never drops near zero in mid-path
+    v, _, _ = fd(sp.pos, sp.dt)
+    speed = np.linalg.norm(v[: len(sp.pos)], axis=1)
+    mid = (sp.s > 5 * MM) & (sp.s < path.length - 5 * MM)
+    assert speed[mid].min() > 0.3 * F3000
+
+
+def test_helix_three_axes():
+    start = np.array([10 * MM, 0, 0])
+    arc = arc_between(start, [0, 0, 0], "xy", 3 * math.pi, 2000 / 60000, rise=3 * MM, line=7)
+    path = Path(start, (arc,), "xy")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    assert sp.plane is None  # Z moves with the feed
+    assert sp.moving_axes == (0, 1, 2)
+
+
+def test_sharp_corner_is_an_exact_stop():
+    l1 = Line([0, 0, 0], [10 * MM, 0, 0], F3000, line=1)
+    l2 = Line(l1.end, [10 * MM, 10 * MM, 0], F3000, line=2)
+    path = Path(l1.start, (l1, l2), "xy")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    at_corner = np.flatnonzero(np.all(sp.pos == l1.end, axis=1))
+    assert at_corner.size >= 3 and np.all(np.diff(at_corner) == 1)  # at rest there (v = a = 0)
+
+
+def test_noisy_micro_lines_are_fitted_within_tolerance():
+    rng = np.random.default_rng(3)
+    x = np.arange(0, 401) * 0.05 * MM
+    z = 1.5 * MM * np.sin(2 * np.pi * x / (12 * MM)) + rng.uniform(-0.5e-6, 0.5e-6, x.size)
+    pts = np.round(np.column_stack([x, np.zeros_like(x), z]), 6)  # 1 um grid
+    segs = tuple(Line(pts[k], pts[k + 1], F3000, line=k + 10) for k in range(len(pts) - 1))
+    path = Path(pts[0], segs, "zx")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    assert sp.block.min() == 10 and sp.block.max() == 409
+    assert np.all(np.diff(sp.block) >= 0)
+
+
+def test_feed_override_and_rapid_then_feed():
+    r = Line([0, 0, 0], [0, 0, 10 * MM], math.inf, rapid=True, line=1)
+    l1 = Line(r.end, r.end + [20 * MM, 0, 0], 0.2, line=2)
+    path = Path(r.start, (r, l1), "xy")
+    sp = plan(path, UCP, feed_m_s=F3000)
+    v, _, _ = fd(sp.pos, sp.dt)
+    speed = np.linalg.norm(v[: len(sp.pos)], axis=1)
+    assert speed[~sp.rapid].max() <= 1.005 * F3000
+    assert speed[~sp.rapid].max() >= 0.99 * F3000
+    assert sp.rapid[: 10].all() and not sp.rapid[-10:].any()
+    assert sp.plane == "xy"
+
+
+def test_feed_change_and_reported_derivatives():
+    l1 = Line([0, 0, 0], [20 * MM, 0, 0], F3000, line=1)
+    l2 = Line(l1.end, [40 * MM, 0, 0], 1000 / 60000, line=2)
+    l3 = Line(l2.end, [60 * MM, 0, 0], F3000, line=3)
+    path = Path(l1.start, (l1, l2, l3), "xy")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    v, a, j = fd(sp.pos, sp.dt)
+    speed = np.linalg.norm(v[: len(sp.pos)], axis=1)
+    inside = (sp.pos[:, 0] > 20.001 * MM) & (sp.pos[:, 0] < 39.999 * MM)
+    assert speed[inside].max() <= 1.005 * l2.feed_m_s
+    assert speed[sp.pos[:, 0] < 19 * MM].max() >= 0.99 * F3000
+    # vel/acc/jerk: the backward differences centred on the sample, within the limits too
+    n = len(sp.pos)
+    assert np.allclose(sp.vel, (v[:n] + v[1 : n + 1]) / 2, rtol=0, atol=1e-12)
+    assert np.allclose(sp.acc, a[1 : n + 1], rtol=0, atol=1e-9)
+    assert np.allclose(sp.jerk, j[2 : n + 2], rtol=0, atol=1e-6)
+    for x, lim in ((sp.vel, UCP.vmax_m_s), (sp.acc, UCP.amax_m_s2), (sp.jerk, UCP.jmax_m_s3)):
+        assert np.all(np.abs(x) <= lim)
+    assert np.allclose(sp.s[-1], path.length, rtol=1e-9)
+
+
+def test_no_feed_without_override_is_an_option_error():
+    seg = Line([0, 0, 0], [1 * MM, 0, 0], math.nan, line=3)
+    with pytest.raises(OptionError, match="line 3"):
+        plan(Path(seg.start, (seg,)), UCP)
+
+
+def test_machine_without_z_plans_in_xy():
+    lim = AxisLimits(np.array([0.5, 0.5, 0]), np.array([2.5, 2.5, 0]), np.array([10.0, 10.0, 0]))
+    start = np.array([10 * MM, 0, 0])
+    arc = arc_between(start, [0, 0, 0], "xy", math.pi, F3000, line=1)
+    line = Line(arc.end, arc.end + [0, -10 * MM, 0], F3000, line=2)
+    path = Path(start, (arc, line), "xy")
+    sp = plan(path, lim)
+    assert_plan_ok(sp, path, lim)
+    assert np.all(sp.pos[:, 2] == 0.0)
+
+
+def test_moving_an_absent_axis_is_a_plan_error():
+    lim = AxisLimits(np.array([0.5, 0.5, 0]), np.array([2.5, 2.5, 0]), np.array([10.0, 10.0, 0]))
+    seg = Line([0, 0, 0], [1 * MM, 0, 1 * MM], F3000, line=4)
+    with pytest.raises(PlanError, match="axis z"):
+        plan(Path(seg.start, (seg,)), lim)
+
+
+@pytest.mark.parametrize("kw", [{"tol_m": 0.0}, {"dt": -1e-3}, {"feed_m_s": math.inf}])
+def test_bad_options(kw):
+    seg = Line([0, 0, 0], [1 * MM, 0, 0], F3000)
+    with pytest.raises(OptionError):
+        plan(Path(seg.start, (seg,)), UCP, **kw)
+
+
+# ----------------------------------------------------------------------------- feedplan.check
+
+
+def line_arc_line() -> Path:
+    l1 = Line([0, 0, 0], [20 * MM, 0, 0], F3000, line=1)
+    arc = arc_between(l1.end, [20 * MM, 0, 5 * MM], "zx", -math.pi / 2, F3000, line=2)
+    l2 = Line(arc.end, arc.end + [0, 0, 15 * MM], F3000, line=3)
+    return Path(l1.start, (l1, arc, l2), "zx")
+
+
+def test_check_agrees_with_independent_measurements():
+    path = line_arc_line()
+    sp = plan(path, UCP)
+    chk = check_setpoints(sp, path, UCP)
+    v, a, j = fd(sp.pos, sp.dt)
+    assert chk.ok and chk.violations == ()
+    assert np.allclose(chk.max_jerk_m_s3, np.abs(j).max(axis=0), rtol=1e-12)
+    assert np.allclose(chk.acc_ratio, np.abs(a).max(axis=0) / UCP.amax_m_s2, rtol=1e-12)
+    assert abs(chk.max_deviation_m - deviation(sp.pos, path.segments).max()) < 0.05e-6
+    assert chk.ends_at_rest and chk.end_error_m == 0.0
+    axes = chk.axes_dict()
+    assert set(axes) == {"x", "y", "z"}
+    assert axes["x"]["max_jerk_m_s3"] == np.abs(j[:, 0]).max() and axes["x"]["jmax_m_s3"] == 10.0
+
+
+def test_check_flags_a_constant_feed_plan_and_measures_arcs_exactly():
+    path = line_arc_line()
+    s = np.arange(0.0, path.length, F3000 * 1e-3)
+    bounds = np.cumsum([0.0] + [seg.length for seg in path.segments])
+    k = np.clip(np.searchsorted(bounds, s, side="right") - 1, 0, 2)
+    segs = path.segments
+    pos = np.array([segs[i].point((x - bounds[i]) / segs[i].length) for i, x in zip(k, s)])
+    zero = np.zeros((len(pos), 3))
+    sp = Setpoints(1e-3, s, pos, zero, zero, zero, k + 1, np.zeros(len(pos), bool))
+    chk = check_setpoints(sp, path, UCP)
+    assert not chk.ok
+    assert chk.max_deviation_m < 1e-12  # samples on the arc itself, not on chords
+    text = " ".join(chk.violations)
+    assert "axis x jerk" in text and "axis z jerk" in text  # speed step at start, curvature jumps
+    assert "end at rest" in text and "programmed end" in text
+    # a sample pushed 30 um off the line is measured as such
+    bumped = pos.copy()
+    bumped[100, 2] += 30e-6
+    sp2 = Setpoints(1e-3, s, bumped, sp.vel, sp.acc, sp.jerk, sp.block, sp.rapid)
+    assert abs(check_setpoints(sp2, path, UCP).max_deviation_m - 30e-6) < 1e-12
+
+
+# ----------------------------------------------------------------------------- properties
+
+
+@st.composite
+def chains(draw):
+    """Random chains of 1-3 lines and arcs in XY or ZX, a few mm long."""
+    plane = draw(st.sampled_from(["xy", "zx"]))
+    i, j, n = PLANES[plane]
+    feed = draw(st.floats(500, 4000)) / 60000
+    p = np.zeros(3)
+    heading = draw(st.floats(-math.pi, math.pi))
+    segs = []
+    for k in range(draw(st.integers(1, 3))):
+        if draw(st.booleans()):
+            L = draw(st.floats(0.5, 6.0)) * MM
+            q = p.copy()
+            q[i] += L * math.cos(heading)
+            q[j] += L * math.sin(heading)
+            segs.append(Line(p, q, feed, line=k + 1))
+        else:
+            R = draw(st.floats(1.0, 20.0)) * MM
+            sweep = draw(st.floats(0.3, 3.0)) * draw(st.sampled_from([-1.0, 1.0]))
+            side = math.copysign(1.0, sweep)  # centre to the left for CCW
+            c = p.copy()
+            c[i] += R * math.cos(heading + side * math.pi / 2)
+            c[j] += R * math.sin(heading + side * math.pi / 2)
+            segs.append(arc_between(p, c, plane, sweep, feed, line=k + 1))
+            heading += sweep
+        p = segs[-1].end
+        heading += draw(st.sampled_from([0.0, 0.0, 0.05, 1.0]))  # tangent, kink, corner
+    return Path(np.zeros(3), tuple(segs), plane)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(chains())
+def test_random_chains_plan_within_limits_and_tolerance(path):
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
