@@ -28,6 +28,7 @@ __all__ = [
     "Axis",
     "Timing",
     "GainSettings",
+    "PlannerSettings",
     "Machine",
     "PRESETS",
     "load_machine",
@@ -117,6 +118,19 @@ class GainSettings(_Frozen):
         return self
 
 
+class PlannerSettings(_Frozen):
+    """Share of each axis limit the interpolator plans with.
+
+    The position loop's velocity command overshoots the setpoints' acceleration
+    and jerk (by about 10-20 % at the usual gains), and the command must meet the
+    axis limits too (paper eq. 2); the interpolator therefore keeps a reserve.
+    Velocity is planned at the full limit.
+    """
+
+    accel_fraction: Annotated[float, Field(gt=0, le=1)] = 0.9
+    jerk_fraction: Annotated[float, Field(gt=0, le=1)] = 0.75
+
+
 class Machine(_Frozen):
     """A machine tool: named linear axes (subset of x, y, z), timing and gain settings."""
 
@@ -125,6 +139,7 @@ class Machine(_Frozen):
     axes: dict[str, Axis]
     timing: Timing = Timing()
     gains: GainSettings = GainSettings()
+    planner: PlannerSettings = PlannerSettings()
 
     @model_validator(mode="after")
     def _axis_names(self) -> "Machine":
@@ -147,19 +162,30 @@ class Machine(_Frozen):
         except KeyError:
             raise MachineError(f"machine {self.name!r} has no axis {name!r}") from None
 
-    def limits_arrays(self):
-        """Per-axis (x, y, z) vmax, amax, jmax as three arrays of shape (3,).
+    def axis_limits(self) -> "AxisLimits":
+        """Per-axis (x, y, z) kinematic limits for the planner and the checks.
 
         Axes the machine lacks get limit 0 (they must not move).
         """
-        import numpy as np
+        from feedplan.limits import AxisLimits
 
-        out = np.zeros((3, 3))
-        for k, a in enumerate("xyz"):
-            if a in self.axes:
-                lim = self.axes[a].limits
-                out[:, k] = (lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3)
-        return out[0], out[1], out[2]
+        rows = [
+            (a.limits.vmax_m_s, a.limits.amax_m_s2, a.limits.jmax_m_s3) if a else (0.0, 0.0, 0.0)
+            for a in (self.axes.get(n) for n in ("x", "y", "z"))
+        ]
+        v, acc, j = zip(*rows)
+        return AxisLimits(vmax_m_s=v, amax_m_s2=acc, jmax_m_s3=j)
+
+    def planning_limits(self) -> "AxisLimits":
+        """The limits the interpolator plans with: :meth:`axis_limits` times the planner fractions."""
+        from feedplan.limits import AxisLimits
+
+        lim = self.axis_limits()
+        return AxisLimits(
+            vmax_m_s=lim.vmax_m_s,
+            amax_m_s2=lim.amax_m_s2 * self.planner.accel_fraction,
+            jmax_m_s3=lim.jmax_m_s3 * self.planner.jerk_fraction,
+        )
 
     def digest(self) -> str:
         """SHA-256 of the canonical JSON of this machine (identifies it in a table)."""
