@@ -39,9 +39,9 @@ from oga.errors import InputError, OptionError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.metrics import ContourMetrics, contour_metrics
 from oga.simulate import axis_params, simulate, simulate_axis
+from oga.stability import decimal_grid
 
 __all__ = [
-    "decimal_grid",
     "command_peaks",
     "KinematicRange",
     "BestFixed",
@@ -52,22 +52,7 @@ __all__ = [
 ]
 
 #: Decimals kept on grid values (removes float noise of lo + i * step).
-_GRID_DECIMALS = 9
 _UM2 = 1e12
-
-
-def decimal_grid(lo: float, hi: float, step: float) -> np.ndarray:
-    """``lo, lo + step, ... <= hi`` rounded to exact decimals; shape (n,).
-
-    Raises
-    ------
-    OptionError
-        ``step <= 0`` or ``hi < lo``.
-    """
-    if not step > 0 or not hi >= lo:
-        raise OptionError(f"grid: need step > 0 and lo <= hi, got lo={lo}, hi={hi}, step={step}")
-    n = int(math.floor((hi - lo) / step + 1e-9)) + 1
-    return np.round(lo + np.arange(n) * step, _GRID_DECIMALS)
 
 
 @njit(cache=True)

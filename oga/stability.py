@@ -23,7 +23,7 @@ from oga.errors import OptionError
 from oga.linear import position_open_loop
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 
-__all__ = ["Margins", "StabilityRange", "margins", "stable_range"]
+__all__ = ["Margins", "StabilityRange", "decimal_grid", "margins", "stable_range"]
 
 #: Points of the logarithmic frequency grid.
 _GRID_POINTS = 4000
@@ -211,10 +211,22 @@ def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
     )
 
 
-def _kp_grid(lo: float, hi: float, step: float) -> np.ndarray:
-    """Grid ``lo, lo + step, ..`` up to ``hi`` with values rounded to exact decimals."""
+def decimal_grid(lo: float, hi: float, step: float) -> np.ndarray:
+    """``lo, lo + step, ... <= hi`` rounded to exact decimals (``1.1``, not ``1.1000000000000001``).
+
+    Raises
+    ------
+    OptionError
+        ``step <= 0`` or ``hi < lo``.
+    """
+    if not step > 0 or not hi >= lo:
+        raise OptionError(f"grid: need step > 0 and lo <= hi, got lo={lo}, hi={hi}, step={step}")
     n = int(math.floor((hi - lo) / step + 1e-9)) + 1
-    return np.round(lo + step * np.arange(n), _KP_DECIMALS)
+    return np.round(lo + np.arange(n) * step, _KP_DECIMALS)
+
+
+#: stable_range results by (machine digest, axis): the margins take about a second per axis.
+_RANGES: dict[tuple[str, str], "StabilityRange"] = {}
 
 
 def stable_range(machine: Machine, axis: str) -> StabilityRange:
@@ -238,8 +250,15 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     StabilityRange
     """
     machine.axis(axis)
+    key = (machine.digest(), axis)
+    if key not in _RANGES:
+        _RANGES[key] = _stable_range(machine, axis)
+    return _RANGES[key]
+
+
+def _stable_range(machine: Machine, axis: str) -> StabilityRange:
     g = machine.gains
-    kp = _kp_grid(*g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm)
+    kp = decimal_grid(*g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm)
     found = [margins(machine, axis, k) for k in kp]
     pm = np.array([m.pm_deg for m in found])
     gm = np.array([m.gm_db for m in found])

@@ -12,7 +12,8 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of
 from oga.errors import InputError, OptionError
 from oga.machine import load_machine, machine_from_dict
-from oga.ranges import decimal_grid, gain_ranges, kinematic_range
+from oga.ranges import gain_ranges, kinematic_range
+from oga.stability import decimal_grid
 from oga.simulate import simulate
 
 UCP = load_machine("ucp710")

@@ -1,0 +1,174 @@
+"""Verification of a gain schedule: replay it from scratch and check every constraint.
+
+Every metric a user sees comes from this replay on the nonlinear model, never
+from the search's predictions. The checks:
+
+- the velocity command ``u`` of every axis meets paper eq. 2 at every feed sample:
+  ``|u| <= Vmax``, ``|u_k - u_{k-1}| / Te <= Amax``,
+  ``|u_k - 2 u_{k-1} + u_{k-2}| / Te^2 <= Jmax`` (commands before the start are 0:
+  the axis starts at rest);
+- every Kp lies inside its axis's allowed range (within the stable range);
+- Kf lies in the machine's Kf range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from feedplan.setpoints import AXES, Setpoints
+from oga.contour import contour_error_of
+from oga.machine import Machine
+from oga.metrics import ContourMetrics, contour_metrics
+from oga.ranges import command_peaks
+from oga.simulate import simulate
+
+__all__ = ["Verification", "command_ratios", "verify"]
+
+#: Relative slack on the limit checks, for float64 rounding only.
+_SLACK = 1e-9
+
+
+def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.ndarray:
+    """Largest ratio of the velocity command's |v|, |a|, |j| to the axis limits (paper eq. 2).
+
+    Checked over the feed samples, as the kinematic range is (:mod:`oga.ranges`):
+    rapids are planned at the limits and leave no room for any position loop.
+
+    Parameters
+    ----------
+    u : ndarray, shape (N, 3)
+        Velocity commands, m/s (axes x, y, z); the axes are at rest before sample 0.
+    setpoints : Setpoints
+        The setpoints (sample period and rapid flags).
+    machine : Machine
+        Supplies the limits; an axis the machine lacks must have u == 0.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``[axis, (v, a, j)]`` ratios; <= 1 means within the limit.
+    """
+    lim = machine.axis_limits()
+    limits = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
+    check = np.ascontiguousarray(~setpoints.rapid)
+    out = np.zeros((3, 3))
+    for k in range(3):
+        peaks = command_peaks(np.ascontiguousarray(u[:, k], dtype=np.float64), check, setpoints.dt)
+        for j in range(3):
+            if limits[k, j] > 0:
+                out[k, j] = peaks[j] / limits[k, j]
+            elif peaks[j] > 0:
+                out[k, j] = np.inf
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Verification:
+    """The replay of a schedule and its checks.
+
+    Attributes
+    ----------
+    ok : bool
+        Every check passed (``limits_ok and stability_ok``).
+    limits_ok : bool
+        Eq. 2 holds for every axis at every sample.
+    stability_ok : bool
+        Every Kp inside its allowed range and Kf inside the machine's Kf range.
+    pos : ndarray, shape (N, 3)
+        Actual positions of the replay, m.
+    u : ndarray, shape (N, 3)
+        Velocity commands of the replay, m/s.
+    ce : ndarray, shape (N,)
+        Contour error of the replay, m.
+    metrics : ContourMetrics
+        Statistics over the feed samples.
+    command_ratio : ndarray, shape (3, 3)
+        Largest |v|, |a|, |j| of the command per axis as a ratio to the limit.
+    max_dkp_per_sample, max_dkf_per_sample : ndarray, shape (3,)
+        Largest gain change between consecutive samples per axis ((m/min)/mm, 1).
+    violations : tuple of str
+        What failed, in words.
+    """
+
+    ok: bool
+    limits_ok: bool
+    stability_ok: bool
+    pos: np.ndarray
+    u: np.ndarray
+    ce: np.ndarray
+    metrics: ContourMetrics
+    command_ratio: np.ndarray
+    max_dkp_per_sample: np.ndarray
+    max_dkf_per_sample: np.ndarray
+    violations: tuple[str, ...]
+
+    @property
+    def status(self) -> str:
+        """``"ok"`` or ``"failed"``."""
+        return "ok" if self.ok else "failed"
+
+
+def verify(
+    setpoints: Setpoints,
+    machine: Machine,
+    kp_m_min_per_mm: np.ndarray,
+    kf: np.ndarray,
+    kp_bounds: dict[str, tuple[float, float]],
+) -> Verification:
+    """Replay gains on the model from rest and check them.
+
+    Parameters
+    ----------
+    setpoints : Setpoints
+        The planned motion (N samples).
+    machine : Machine
+        The machine.
+    kp_m_min_per_mm, kf : ndarray, shape (N, 3)
+        The gains per sample and axis.
+    kp_bounds : dict
+        Allowed (lo, hi) Kp in (m/min)/mm per checked axis (the moving axes).
+
+    Returns
+    -------
+    Verification
+    """
+    kp = np.asarray(kp_m_min_per_mm, dtype=np.float64)
+    kf = np.asarray(kf, dtype=np.float64)
+    sim = simulate(setpoints, machine, kp, kf)
+    ce = contour_error_of(setpoints, sim.pos)
+    metrics = contour_metrics(ce, setpoints.pos, sim.pos, ~setpoints.rapid)
+    ratio = command_ratios(sim.u, setpoints, machine)
+    limit_v = [
+        f"axis {a}: velocity command {what} reaches {ratio[k, j]:.3f}x its limit"
+        for k, a in enumerate(AXES)
+        for j, what in enumerate(("velocity", "acceleration", "jerk"))
+        if ratio[k, j] > 1.0 + _SLACK
+    ]
+    gain_v = []
+    for a, (lo, hi) in kp_bounds.items():
+        col = kp[:, AXES.index(a)]
+        if col.min() < lo - 1e-12 or col.max() > hi + 1e-12:
+            gain_v.append(
+                f"axis {a}: Kp leaves [{lo}, {hi}] (m/min)/mm: {col.min():.4f}..{col.max():.4f}"
+            )
+    kf_lo, kf_hi = machine.gains.kf_range
+    if kf.min() < kf_lo - 1e-12 or kf.max() > kf_hi + 1e-12:
+        gain_v.append(f"Kf leaves [{kf_lo}, {kf_hi}]: {kf.min():.4f}..{kf.max():.4f}")
+    limits_ok, stability_ok = not limit_v, not gain_v
+    dkp = np.abs(np.diff(kp, axis=0)).max(axis=0, initial=0.0)
+    dkf = np.abs(np.diff(kf, axis=0)).max(axis=0, initial=0.0)
+    return Verification(
+        ok=limits_ok and stability_ok,
+        limits_ok=limits_ok,
+        stability_ok=stability_ok,
+        pos=sim.pos,
+        u=sim.u,
+        ce=ce,
+        metrics=metrics,
+        command_ratio=ratio,
+        max_dkp_per_sample=dkp,
+        max_dkf_per_sample=dkf,
+        violations=tuple(limit_v + gain_v),
+    )
