@@ -8,9 +8,17 @@ __all__ = [
     "NP",
     "LAMBDA",
     "ANCHOR",
+    "MPC_BLOCKS",
+    "MPC_REPLAN",
     "A1",
     "A2",
     "CE_WINDOW_SAMPLES",
+    "API_HOST",
+    "API_PORT",
+    "API_MAX_UPLOAD_BYTES",
+    "API_SYNC_MAX_MOTION_S",
+    "API_SYNC_TIMEOUT_S",
+    "BATCH_FORMATS",
 ]
 
 #: Position-loop / interpolation period Te, seconds.
@@ -19,10 +27,14 @@ DT_S = 1e-3
 TOL_M = 20e-6
 #: Prediction horizon of the receding-horizon search, samples (paper: 50).
 NP = 50
-#: Weight of the gain increment in the cost (paper: 0.01).
-LAMBDA = 0.01
-#: Weight pulling the adjusted gains back to the baseline (0: the paper's cost), um^2 per unit^2.
-ANCHOR = 0.0
+#: Weight of the gain increments in the cost per mode, um^2 per unit^2 (paper: 0.01).
+LAMBDA = {"paper": 0.01, "full": 100.0}
+#: Weight pulling the gains back to the baseline per mode, um^2 per unit^2 (paper: none).
+ANCHOR = {"paper": 0.0, "full": 300.0}
+#: Full mode: move blocks over the horizon (the gain trajectory may step at each block start).
+MPC_BLOCKS = 5
+#: Full mode: samples between two plans (longer intervals were measured to lose the gain).
+MPC_REPLAN = 1
 #: Candidate fractions of the admissible increment interval (paper: a1 = 0.01, a2 = 0.05).
 A1 = 0.01
 A2 = 0.05
@@ -30,3 +42,17 @@ A2 = 0.05
 #: moving samples (standstill not counted). Must exceed the tracking lag in samples,
 #: (1 - Kf) / (Kp Te) plus dead time and velocity-loop lag: about 70 at Kp 1 (m/min)/mm, Kf 0.
 CE_WINDOW_SAMPLES = 150
+
+# --- REST service (oga serve) and batch -------------------------------------------------------
+#: Interface the server binds to (loopback only; the container binds 0.0.0.0 explicitly).
+API_HOST = "127.0.0.1"
+#: TCP port of the server.
+API_PORT = 8000
+#: Largest request body the server accepts, bytes (413 beyond it).
+API_MAX_UPLOAD_BYTES = 16 * 1024 * 1024
+#: Longest toolpath of POST /v1/gain-table, seconds of motion at the programmed feeds (413 beyond).
+API_SYNC_MAX_MOTION_S = 10.0
+#: Longest wait of POST /v1/gain-table for its job before it answers 202 (poll the job), s.
+API_SYNC_TIMEOUT_S = 120.0
+#: Table formats written by ``oga batch`` (names of oga.export.TABLE_FORMATS).
+BATCH_FORMATS = ("csv",)

@@ -18,7 +18,7 @@ from oga.errors import InputError, OgaError
 __all__ = ["main"]
 
 #: Sub-commands, each a module ``oga.cli.<name>``.
-COMMANDS: tuple[str, ...] = ("plan",)
+COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,78 @@
+"""Benchmark of the gain search: MSE(CE) ratios, max |CE|, real-time factor, tuning study.
+
+Run:  python bench/bench_optimize.py [--quick]
+
+Per toolpath (tests/data copies of the team's programs), on ucp710:
+- paper mode (Z only, Kp only, from Kp 1.6 / Kf 0.9, Kp in [1.0, 2.7], Np 50, lambda 0.01),
+  compared with that fixed pair (the paper's C1/C2);
+- full mode (every contouring axis, Kp and Kf, from the best fixed gains of the
+  ranges stage), compared with those best fixed gains;
+and the real-time factor (toolpath duration / search time, one thread, warm
+caches), then the paper's tuning study on reference_xz: Np in {10, 25, 50, 100}
+at lambda 0, then lambda in {0, 0.01, 0.1} at Np 50. Every figure comes from the
+verified replay. A benchmark prints figures; it asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+from feedplan.plan import plan  # noqa: E402
+from feedplan.read import load_toolpath  # noqa: E402
+from oga.machine import load_machine  # noqa: E402
+from oga.optimize import optimize  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
+PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7",
+             np=50, lam=0.01)
+
+
+def row(name, mode, sp, r):
+    b, o = r.baseline.metrics, r.optimized.metrics
+    search_s = r.optimize_time_s
+    print(f"{name:18s} {mode:6s} {len(sp):7d} {r.baseline_kp[r.adjusted[0]]:4.1f}/"
+          f"{r.baseline_kf[r.adjusted[0]]:3.1f} {b.rms_m * 1e6:8.3f} {o.rms_m * 1e6:8.3f} "
+          f"{b.max_abs_m * 1e6:8.3f} {o.max_abs_m * 1e6:8.3f} {r.ratio_mse:7.3f} "
+          f"{sp.duration / search_s:7.1f}x  {r.status}", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="reference_xz only, no tuning study")
+    args = ap.parse_args()
+    machine = load_machine("ucp710")
+    names = ["reference_xz"] if args.quick else [
+        "reference_xz", "short_xz", "circle_r50_f3000", "freeform_xz", "helix_r20"]
+    planned = {n: plan(load_toolpath(DATA / f"{n}.ngc"), machine.planning_limits()) for n in names}
+    optimize(planned["reference_xz"], machine, {**PAPER, "np": 5})  # compile / load caches
+    optimize(planned["reference_xz"], machine, {"np": 5})
+    print(f"{'toolpath':18s} {'mode':6s} {'samples':>7s} {'base':>7s} {'rms0 um':>8s} "
+          f"{'rms um':>8s} {'max0 um':>8s} {'max um':>8s} {'ratio':>7s} {'RT':>8s}  status")
+    for name, sp in planned.items():
+        if sp.plane == "zx":
+            row(name, "paper", sp, optimize(sp, machine, PAPER))
+        t0 = time.perf_counter()
+        r = optimize(sp, machine, {})
+        row(name, "full", sp, r)
+        print(f"{'':18s} (full mode with ranges stage: {time.perf_counter() - t0:.1f} s)")
+    if args.quick:
+        return
+    sp = planned["reference_xz"]
+    print("\npaper-mode tuning study on reference_xz (ratio of MSE(CE) to Kp 1.6 / Kf 0.9)")
+    for n_pred in (10, 25, 50, 100):
+        r = optimize(sp, machine, {**PAPER, "np": n_pred, "lam": 0.0})
+        print(f"  Np {n_pred:3d}, lambda 0    : ratio {r.ratio_mse:.3f}, max dKp/sample "
+              f"{r.optimized.max_dkp_per_sample[2]:.4f}")
+    for lam in (0.0, 0.01, 0.1):
+        r = optimize(sp, machine, {**PAPER, "np": 50, "lam": lam})
+        print(f"  Np  50, lambda {lam:<5g}: ratio {r.ratio_mse:.3f}, max dKp/sample "
+              f"{r.optimized.max_dkp_per_sample[2]:.4f}")
+
+
+if __name__ == "__main__":
+    main()

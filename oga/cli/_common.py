@@ -1,0 +1,65 @@
+"""Helpers shared by the sub-commands: common flags, reading inputs, writing outputs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path as FilePath
+
+from oga.errors import InputError
+
+__all__ = ["add_toolpath_args", "load_inputs", "write_text", "write_json"]
+
+
+def add_toolpath_args(p: argparse.ArgumentParser, *, toolpath_required: bool = True) -> None:
+    """Flags every toolpath command shares: TOOLPATH, --machine, --feed, --tolerance."""
+    p.add_argument("toolpath", nargs=None if toolpath_required else "?", metavar="TOOLPATH",
+                   help="G-code (.ngc/.nc/.gcode/.tap), CSV or JSON polyline")
+    p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
+                   help="machine preset name or machine file (.toml/.json); default ucp710")
+    p.add_argument("--feed", type=float, metavar="MM_PER_MIN",
+                   help="feed override in mm/min (default: the program's F)")
+    p.add_argument("--tolerance", type=float, default=None, metavar="MM",
+                   help="interpolation tolerance in mm (default 0.02)")
+
+
+def load_inputs(args: argparse.Namespace):
+    """(path, machine, feed_m_s or None, tol_m) from the common flags; InputError if bad."""
+    from feedplan.read import load_toolpath
+    from oga.defaults import TOL_M
+    from oga.machine import load_machine
+
+    if args.feed is not None and not (0 < args.feed < float("inf")):
+        raise InputError(f"--feed must be a positive number of mm/min, got {args.feed}")
+    if args.tolerance is not None and not (0 < args.tolerance <= 10):
+        raise InputError(f"--tolerance must be in (0, 10] mm, got {args.tolerance}")
+    machine = load_machine(args.machine)
+    path = load_toolpath(args.toolpath)
+    feed_m_s = None if args.feed is None else args.feed / 60e3
+    tol_m = TOL_M if args.tolerance is None else args.tolerance * 1e-3
+    return path, machine, feed_m_s, tol_m
+
+
+def write_text(target: str | os.PathLike, text: str) -> None:
+    """Write ``text`` atomically (temporary file in the same folder, then rename)."""
+    target = FilePath(target)
+    if target.parent and not target.parent.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def write_json(target: str | os.PathLike, data: dict) -> None:
+    """Write ``data`` as indented JSON, atomically."""
+    write_text(target, json.dumps(data, indent=2, sort_keys=False) + "\n")

@@ -1,0 +1,461 @@
+"""Full mode: receding-horizon gain search as a small model-predictive problem, compiled.
+
+The paper's search (:mod:`oga.search`) tries five increments per sample, each
+held over the horizon. On jerk-limited setpoints that held-gain prediction
+misleads it: it moves a gain far while an axis is idle (the kinematic bound is
+void there), then cannot bring it back once the axis moves (the bound is tight
+there). Full mode instead plans a whole gain *trajectory* over the horizon and
+re-plans as it recedes:
+
+1. every ``replan`` samples, from the current true state, simulate each axis
+   over ``Np`` samples on the exact nonlinear model with the gains held
+   (the nominal prediction), and once more per adjusted gain and per move
+   block with that gain raised by a small step from the block on: finite-difference
+   sensitivities of the predicted positions and velocity commands to a gain
+   trajectory that may step at the start of each of ``blocks`` blocks;
+2. the predicted contour error is linearised around the nominal prediction
+   (distance to the line of the nearest path segment, as in :mod:`oga.search`),
+   giving a quadratic cost in the block increments ``d``:
+   ``|E(d)|^2 + lam |d|^2 + anchor |K(d) - K_baseline|^2`` (um^2);
+3. constraints: every gain inside its bounds in every block, and eq. 2 on the
+   linearised velocity command over the whole horizon (with a small margin);
+   each block step stays inside a trust region where the linearisation holds;
+   the QP is solved exactly by a small dense active-set method;
+4. exact line search: the planned trajectory scaled by 1, 1/2, 1/4, 1/8 and 0
+   (holding the gains) is simulated exactly from the true state; among the
+   scales whose velocity command meets eq. 2 over the whole horizon, the one
+   with the least exact contour-error cost is taken (so a step never makes the
+   exact prediction worse than holding, and never breaks eq. 2 in it);
+5. the first ``replan`` samples of the plan are applied and the true state is
+   advanced with the exact kernel.
+
+Every figure a user sees still comes from the replay in :mod:`oga.verify`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from oga.contour import nearest_segment
+from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.simulate import run, step
+
+__all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED"]
+
+STAT_FALLBACK = 0  # re-plans where even the held gains broke eq. 2 over the horizon
+STAT_WINDOWS = 1  # horizon simulations
+STAT_SCALED = 2  # re-plans whose increments were scaled down by the exact check
+
+_C = KP_SI_PER_M_MIN_PER_MM
+_M2_TO_UM2 = 1e12
+#: Finite-difference step of the sensitivities: (m/min)/mm for Kp, 1 for Kf.
+_H = 1e-3
+#: Share of the eq. 2 limits the linearised constraints may use (the exact check uses 1).
+_LIN_MARGIN = 0.95
+#: Trust region of one block step, (m/min)/mm for Kp and 1 for Kf (the linearisation holds there).
+_TRUST_KP = 0.1
+_TRUST_KF = 0.02
+
+
+@njit(cache=True)
+def _qp_active_set(p, q, a, lo, hi, m, x):
+    """Minimise ``x'Px/2 + q'x`` subject to ``lo <= A x <= hi`` (first ``m`` rows of A).
+
+    A small dense active-set method for a strictly convex QP with few active rows:
+    start from the unconstrained minimum, add the most violated row to the working
+    set, solve the KKT system of the working set, drop a row whose multiplier has
+    the wrong sign, repeat. Rows should be scaled to unit-order bounds. On return
+    ``x`` is the solution (or the best feasible iterate if the iteration limit is hit;
+    zero if none was feasible).
+    """
+    nv = p.shape[0]
+    for i in range(nv):
+        x[i] = 0.0
+    if nv == 0:
+        return
+    work = np.empty(nv, dtype=np.int64)  # working rows
+    side = np.empty(nv, dtype=np.int64)  # -1 at lo, +1 at hi
+    nw = 0
+    kkt = np.empty((2 * nv, 2 * nv))
+    rhs = np.empty(2 * nv)
+    best_feasible = False
+    for _it in range(4 * nv + 10):
+        n = nv + nw
+        for i in range(n):
+            for j in range(n):
+                kkt[i, j] = 0.0
+        for i in range(nv):
+            for j in range(nv):
+                kkt[i, j] = p[i, j]
+            rhs[i] = -q[i]
+        for c in range(nw):
+            r = work[c]
+            for i in range(nv):
+                kkt[nv + c, i] = a[r, i]
+                kkt[i, nv + c] = a[r, i]
+            rhs[nv + c] = lo[r] if side[c] < 0 else hi[r]
+        try:
+            sol = np.linalg.solve(kkt[:n, :n], rhs[:n])
+        except Exception:  # dependent working rows: drop the newest
+            nw -= 1
+            continue
+        # a multiplier of the wrong sign: that row is not binding, drop it
+        worst_c = -1
+        worst_v = 1e-12
+        for c in range(nw):
+            nu = sol[nv + c] * side[c]
+            if -nu > worst_v:
+                worst_v = -nu
+                worst_c = c
+        if worst_c >= 0:
+            work[worst_c] = work[nw - 1]
+            side[worst_c] = side[nw - 1]
+            nw -= 1
+            continue
+        # the most violated row not in the working set
+        viol_r = -1
+        viol_v = 1e-9
+        viol_s = 0
+        for r in range(m):
+            t = 0.0
+            for i in range(nv):
+                t += a[r, i] * sol[i]
+            if lo[r] - t > viol_v:
+                viol_v = lo[r] - t
+                viol_r = r
+                viol_s = -1
+            elif t - hi[r] > viol_v:
+                viol_v = t - hi[r]
+                viol_r = r
+                viol_s = 1
+        if viol_r < 0:  # optimal
+            for i in range(nv):
+                x[i] = sol[i]
+            return
+        if nw == nv:  # cannot add more rows: stop with the last feasible point
+            break
+        work[nw] = viol_r
+        side[nw] = viol_s
+        nw += 1
+
+
+@njit(cache=True)
+def _nearest(pd, count, ce_window, c, j_prev, x, y, z):
+    """Nearest segment of the path to (x, y, z) for window sample ``c``: ``(j, t, d2)``.
+
+    Searches a few segments around ``j_prev`` (the previous window sample's
+    answer) and falls back to the full window of :func:`oga.contour.window_bounds`
+    when there is no previous answer or the nearest point lies on the edge of
+    the local search.
+    """
+    n = pd.shape[0]
+    if j_prev >= 0:
+        lo = max(j_prev - 3, 0)
+        hi = min(j_prev + 8, n - 1)
+        j, t, d2 = nearest_segment(pd, lo, hi, x, y, z)
+        if j > lo and j < hi - 1:
+            return j, t, d2
+    lo = np.searchsorted(count, count[c] - ce_window, side="left")
+    hi = np.searchsorted(count, count[c] + ce_window, side="right") - 1
+    return nearest_segment(pd, lo, hi, x, y, z)
+
+
+@njit(cache=True)
+def _simulate(state, params, pd, vd, k, n, kp_si, kf, scratch, out_p, out_u):
+    """Exact prediction from ``state`` at sample k over n samples with per-sample gains.
+
+    ``pd``/``vd`` are padded past the end (last position held, zero velocity), so
+    the slices always exist. ``out_p[i]`` is the measured position at sample k+i.
+    """
+    scratch[:] = state
+    run(scratch, params, pd[k:k + n], vd[k:k + n], kp_si, kf, out_p, out_u)
+
+
+@njit(cache=True)
+def _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_lo, kp_hi,
+                kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa):
+    """Gain trajectory of axis ``a`` over the horizon for block steps ``scale * x``.
+
+    Fills ``plan_kp[a]``, ``plan_kf[a]`` ((m/min)/mm, 1) and the kernel's ``kpa`` (1/s), ``kfa``.
+    """
+    for i in range(n_pred):
+        plan_kp[a, i] = kp[a]
+        plan_kf[a, i] = kf[a]
+    for v in range(nv):
+        if var_axis[v] != a:
+            continue
+        for i in range(var_blk[v] * blen, n_pred):
+            if var_gain[v] == 0:
+                plan_kp[a, i] += scale * x[v]
+            else:
+                plan_kf[a, i] += scale * x[v]
+    for i in range(n_pred):
+        plan_kp[a, i] = min(max(plan_kp[a, i], kp_lo[a]), kp_hi[a])
+        plan_kf[a, i] = min(max(plan_kf[a, i], kf_lo[a]), kf_hi[a])
+        kpa[i] = plan_kp[a, i] * _C
+        kfa[i] = plan_kf[a, i]
+
+
+@njit(cache=True)
+def _eq2_excess(u, u1, u2, vmax, amax, jmax, te, n):
+    """Largest excess over 1 of |u|/V, |du|/(A Te), |d2u|/(J Te^2) over n samples (0: within)."""
+    worst = 0.0
+    for i in range(n):
+        v = u[i]
+        worst = max(worst, abs(v) / vmax - 1.0, abs(v - u1) / (amax * te) - 1.0,
+                    abs(v - 2.0 * u1 + u2) / (jmax * te * te) - 1.0)
+        u2 = u1
+        u1 = v
+    return worst
+
+
+@njit(cache=True)
+def mpc_chunk(
+    k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
+    kp_base, kf_base, vmax, amax, jmax, te, u_hist, n_pred, n_blocks, replan, lam, anchor,
+    ce_window, count, moving, kp_out, kf_out, u_out, stats,
+):
+    """Run the full-mode search over samples ``k0 .. k1 - 1`` in place.
+
+    Parameters are those of :func:`oga.search.search_chunk`, plus: ``pdT``/``vdT``
+    padded by ``n_pred`` samples past the end (shape (3, N + n_pred)); ``kp_base``,
+    ``kf_base`` (3,) the baseline gains the anchor pulls to; ``n_blocks`` move
+    blocks over the horizon; ``replan`` samples between two plans (``k0`` must be
+    a multiple of it); ``anchor`` weight; ``count`` from
+    :func:`oga.contour.moving_count` for the nearest-point window.
+    """
+    n_total = pd.shape[0]
+    blen = max(n_pred // n_blocks, 1)
+    # variables: (axis, gain, block) for adjusted gains
+    var_axis = np.empty(12 * n_blocks, dtype=np.int64)
+    var_gain = np.empty(12 * n_blocks, dtype=np.int64)  # 0 kp, 1 kf
+    var_blk = np.empty(12 * n_blocks, dtype=np.int64)
+    nv = 0
+    for a in range(3):
+        if not moving[a]:
+            continue
+        for g in range(2):
+            if (g == 0 and adj_kp[a]) or (g == 1 and adj_kf[a]):
+                for b in range(n_blocks):
+                    var_axis[nv] = a
+                    var_gain[nv] = g
+                    var_blk[nv] = b
+                    nv += 1
+    p0 = np.empty((3, n_pred))
+    u0 = np.empty((3, n_pred))
+    sp = np.zeros((nv, n_pred))  # position sensitivities
+    su = np.zeros((nv, n_pred))  # command sensitivities
+    kpa = np.empty(n_pred)
+    kfa = np.empty(n_pred)
+    scratch = np.empty(states.shape[1])
+    tmp_p = np.empty(n_pred)
+    tmp_u = np.empty(n_pred)
+    dq = np.empty((n_pred, 3))
+    tang = np.empty((n_pred, 3))
+    pmat = np.empty((nv, nv))
+    qvec = np.empty(nv)
+    max_rows = 2 * nv + 3 * 3 * n_pred
+    amat = np.zeros((max_rows, nv))
+    alo = np.empty(max_rows)
+    ahi = np.empty(max_rows)
+    x = np.zeros(nv)
+    plan_kp = np.empty((3, n_pred))
+    plan_kf = np.empty((3, n_pred))
+    trial = np.empty((3, n_pred))
+    for k in range(k0, k1, replan):
+        # 1: nominal predictions and sensitivities
+        for a in range(3):
+            for i in range(n_pred):
+                kpa[i] = kp[a] * _C
+                kfa[i] = kf[a]
+            if moving[a]:
+                _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
+                          tmp_p, tmp_u)
+                stats[STAT_WINDOWS] += 1
+                p0[a, :] = tmp_p
+                u0[a, :] = tmp_u
+            else:
+                for i in range(n_pred):
+                    p0[a, i] = states[a, 0]
+                    u0[a, i] = 0.0
+        for v in range(nv):
+            a = var_axis[v]
+            start = var_blk[v] * blen
+            for i in range(n_pred):
+                kpa[i] = kp[a] * _C
+                kfa[i] = kf[a]
+                if i >= start:
+                    if var_gain[v] == 0:
+                        kpa[i] += _H * _C
+                    else:
+                        kfa[i] += _H
+            _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
+                      tmp_p, tmp_u)
+            stats[STAT_WINDOWS] += 1
+            for i in range(n_pred):
+                sp[v, i] = (tmp_p[i] - p0[a, i]) / _H
+                su[v, i] = (tmp_u[i] - u0[a, i]) / _H
+        # 2: linearised contour error around the nominal prediction
+        j = -1
+        for i in range(n_pred):
+            c = min(k + i, n_total - 1)
+            j, t, _d2 = _nearest(pd, count, ce_window, c, j, p0[0, i], p0[1, i], p0[2, i])
+            if j < 0:  # the path stands still around this sample: distance to its point
+                for a in range(3):
+                    dq[i, a] = p0[a, i] - pd[c, a]
+                    tang[i, a] = 0.0
+                continue
+            sx = pd[j + 1, 0] - pd[j, 0]
+            sy = pd[j + 1, 1] - pd[j, 1]
+            sz = pd[j + 1, 2] - pd[j, 2]
+            inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
+            tang[i, 0], tang[i, 1], tang[i, 2] = sx * inv, sy * inv, sz * inv
+            dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
+            dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
+            dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
+        # quadratic cost: sum_i (dq_i + S_i x)' M_i (dq_i + S_i x), M = I - t t'
+        for v in range(nv):
+            qvec[v] = 0.0
+            for w in range(nv):
+                pmat[v, w] = 0.0
+        for i in range(n_pred):
+            for v in range(nv):
+                a = var_axis[v]
+                sv = sp[v, i]
+                if sv == 0.0:
+                    continue
+                mq = 0.0
+                for b in range(3):
+                    mab = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
+                    mq += mab * dq[i, b]
+                qvec[v] += 2.0 * _M2_TO_UM2 * mq * sv
+                for w in range(nv):
+                    b = var_axis[w]
+                    mab = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
+                    pmat[v, w] += 2.0 * _M2_TO_UM2 * mab * sv * sp[w, i]
+        for v in range(nv):
+            a = var_axis[v]
+            pmat[v, v] += 2.0 * lam
+            # anchor on the gain of every block from this variable's block on
+            base = kp_base[a] if var_gain[v] == 0 else kf_base[a]
+            cur = kp[a] if var_gain[v] == 0 else kf[a]
+            for w in range(nv):
+                if var_axis[w] == a and var_gain[w] == var_gain[v]:
+                    shared = n_blocks - max(var_blk[v], var_blk[w])
+                    pmat[v, w] += 2.0 * anchor * shared / n_blocks
+            qvec[v] += 2.0 * anchor * (cur - base) * (n_blocks - var_blk[v]) / n_blocks
+        # 3: constraints: gain bounds per block, a trust region per step, eq. 2 rows
+        m = 0
+        for v in range(nv):
+            a = var_axis[v]
+            for w in range(nv):
+                same = var_axis[w] == a and var_gain[w] == var_gain[v]
+                amat[m, w] = 1.0 if same and var_blk[w] <= var_blk[v] else 0.0
+                amat[m + 1, w] = 1.0 if w == v else 0.0
+            if var_gain[v] == 0:
+                alo[m] = kp_lo[a] - kp[a]
+                ahi[m] = kp_hi[a] - kp[a]
+                tr = _TRUST_KP
+            else:
+                alo[m] = kf_lo[a] - kf[a]
+                ahi[m] = kf_hi[a] - kf[a]
+                tr = _TRUST_KF
+            alo[m + 1] = -tr
+            ahi[m + 1] = tr
+            m += 2
+        for a in range(3):
+            if not moving[a]:
+                continue
+            lims = (_LIN_MARGIN * vmax[a], _LIN_MARGIN * amax[a] * te,
+                    _LIN_MARGIN * jmax[a] * te * te)
+            for r in range(3):
+                for i in range(n_pred):
+                    # the r-th difference of u at window sample i (history before i = 0)
+                    nominal = u0[a, i]
+                    if r >= 1:
+                        nominal -= (1.0 if r == 1 else 2.0) * (u0[a, i - 1] if i >= 1 else u_hist[a, 0])
+                    if r == 2:
+                        nominal += u0[a, i - 2] if i >= 2 else u_hist[a, 1 - i]
+                    scale = 1.0 / lims[r]
+                    for v in range(nv):
+                        cv = 0.0
+                        if var_axis[v] == a:
+                            cv = su[v, i]
+                            if r >= 1 and i >= 1:
+                                cv -= (1.0 if r == 1 else 2.0) * su[v, i - 1]
+                            if r == 2 and i >= 2:
+                                cv += su[v, i - 2]
+                        amat[m, v] = cv * scale
+                    alo[m] = -1.0 - nominal * scale
+                    ahi[m] = 1.0 - nominal * scale
+                    m += 1
+        _qp_active_set(pmat, qvec, amat, alo, ahi, m, x)
+        # 4: exact line search: the plan scaled by 1, 1/2, 1/4, 1/8 and 0 (hold), each
+        #    simulated exactly; the least exact window cost among those meeting eq. 2 wins
+        best_cost = np.inf
+        best_scale = -1.0
+        least_excess = np.inf
+        least_scale = 0.0
+        for t_ in range(5):
+            scale = 0.0 if t_ == 4 else 0.5**t_
+            worst = 0.0
+            for a in range(3):
+                if not moving[a]:
+                    continue
+                _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_lo,
+                            kp_hi, kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa)
+                _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
+                          tmp_p, tmp_u)
+                stats[STAT_WINDOWS] += 1
+                for i in range(n_pred):
+                    trial[a, i] = tmp_p[i]
+                worst = max(worst, _eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
+                                               amax[a], jmax[a], te, n_pred))
+            for a in range(3):
+                if not moving[a]:
+                    for i in range(n_pred):
+                        trial[a, i] = states[a, 0]
+            cost = 0.0
+            j = -1
+            for i in range(n_pred):
+                c = min(k + i, n_total - 1)
+                j, _t, d2 = _nearest(pd, count, ce_window, c, j, trial[0, i], trial[1, i],
+                                     trial[2, i])
+                if j < 0:
+                    d2 = ((trial[0, i] - pd[c, 0]) ** 2 + (trial[1, i] - pd[c, 1]) ** 2
+                          + (trial[2, i] - pd[c, 2]) ** 2)
+                cost += d2
+            cost *= _M2_TO_UM2
+            for a in range(3):
+                if moving[a]:
+                    cost += anchor * ((plan_kp[a, n_pred - 1] - kp_base[a]) ** 2
+                                      + (plan_kf[a, n_pred - 1] - kf_base[a]) ** 2)
+            if worst <= 1e-9 and cost < best_cost:
+                best_cost = cost
+                best_scale = scale
+            if worst < least_excess:
+                least_excess = worst
+                least_scale = scale
+        if best_scale < 0.0:  # nothing meets eq. 2: take the least violating
+            stats[STAT_FALLBACK] += 1
+            best_scale = least_scale
+        if best_scale < 1.0:
+            stats[STAT_SCALED] += 1
+        for a in range(3):
+            if moving[a]:
+                _plan_gains(a, best_scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf,
+                            kp_lo, kp_hi, kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa)
+        # 5: apply the first `replan` samples of the plan and advance the true state
+        for i in range(min(replan, k1 - k)):
+            kk = k + i
+            for a in range(3):
+                if moving[a]:
+                    kp[a] = plan_kp[a, i]
+                    kf[a] = plan_kf[a, i]
+                kp_out[kk, a] = kp[a]
+                kf_out[kk, a] = kf[a]
+                u = step(states[a], params[a], pdT[a, kk], vdT[a, kk], kp[a] * _C, kf[a])
+                u_out[kk, a] = u
+                u_hist[a, 1] = u_hist[a, 0]
+                u_hist[a, 0] = u

@@ -1,0 +1,331 @@
+"""``optimize``: the gain schedule of a toolpath, searched, verified and summarised.
+
+The stages: the allowed gain ranges (stability per axis, and the best fixed
+gains when the baseline is ``"best"``), the receding-horizon search
+(:mod:`oga.search`), then a replay of both the baseline and the schedule from
+scratch (:mod:`oga.verify`). Every figure of the result comes from the replays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from feedplan.setpoints import AXES, Setpoints
+from oga import defaults
+from oga.errors import OptionError
+from oga.machine import Machine
+from oga.options import OptimizeOptions, options_from_dict
+from oga.verify import Verification, verify
+
+__all__ = ["GainSchedule", "OptimizeResult", "optimize", "setpoints_digest"]
+
+#: Samples per compiled call between two progress reports.
+_CHUNK = 2000
+
+
+@dataclass(frozen=True, eq=False)
+class GainSchedule:
+    """Gains per sample and axis (columns x, y, z).
+
+    Attributes
+    ----------
+    kp_m_min_per_mm : ndarray, shape (N, 3)
+        Position-loop gain, (m/min)/mm.
+    kf : ndarray, shape (N, 3)
+        Velocity feed-forward factor.
+    """
+
+    kp_m_min_per_mm: np.ndarray
+    kf: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class OptimizeResult:
+    """What :func:`optimize` found, and the replays that judge it.
+
+    Attributes
+    ----------
+    status : {"ok", "failed"}
+        ``"ok"`` when the schedule passed every check of its replay; a failed
+        schedule must never be exported as valid.
+    setpoints : Setpoints
+        The setpoints the schedule belongs to.
+    machine : Machine
+        The machine it was computed for.
+    options : OptimizeOptions
+        The options used.
+    schedule : GainSchedule
+        The optimised gains.
+    baseline_kp, baseline_kf : dict
+        The fixed gains per machine axis it starts from and is compared with.
+    baseline, optimized : Verification
+        Replays of the fixed baseline and of the schedule.
+    adjusted : tuple of str
+        Axes whose gains the search moved.
+    kp_bounds : dict
+        Allowed Kp range per contouring axis, (m/min)/mm.
+    optimize_time_s : float
+        Wall time of the search and its verification, s.
+    fallbacks : int
+        Samples where no candidate met eq. 2 and the least violating was taken.
+    windows : int
+        Prediction windows simulated.
+    """
+
+    status: str
+    setpoints: Setpoints
+    machine: Machine
+    options: OptimizeOptions
+    schedule: GainSchedule
+    baseline_kp: dict[str, float]
+    baseline_kf: dict[str, float]
+    baseline: Verification
+    optimized: Verification
+    adjusted: tuple[str, ...]
+    kp_bounds: dict[str, tuple[float, float]]
+    optimize_time_s: float
+    fallbacks: int
+    windows: int
+
+    @property
+    def ratio_mse(self) -> float:
+        """MSE(CE) of the schedule over MSE(CE) of the baseline."""
+        return self.optimized.metrics.mse_m2 / self.baseline.metrics.mse_m2
+
+    def summary(self, toolpath: str = "", toolpath_sha256: str | None = None) -> dict:
+        """The summary JSON (users' units), as written by ``oga optimize --summary``."""
+
+        def metrics(v: Verification) -> dict:
+            m = v.metrics.to_dict()
+            return {k: m[k] for k in ("mse_ce_um2", "rms_ce_um", "max_ce_um", "p95_ce_um")}
+
+        moving = [AXES[i] for i in self.setpoints.moving_axes]
+        return {
+            "toolpath": toolpath or self.setpoints.source,
+            "toolpath_sha256": toolpath_sha256,
+            "setpoints_sha256": setpoints_digest(self.setpoints),
+            "machine": self.machine.name,
+            "machine_sha256": self.machine.digest(),
+            "status": self.status,
+            "samples": len(self.setpoints),
+            "duration_s": self.setpoints.duration,
+            "contouring_axes": moving,
+            "adjusted": list(self.adjusted),
+            "gains": list(self.options.gains),
+            "kp_bounds_m_min_per_mm": {a: list(b) for a, b in self.kp_bounds.items()},
+            "baseline": {"kp": self.baseline_kp, "kf": self.baseline_kf,
+                         **metrics(self.baseline)},
+            "optimized": metrics(self.optimized),
+            "ratio_mse": self.ratio_mse,
+            "limits_ok": self.optimized.limits_ok,
+            "stability_ok": self.optimized.stability_ok,
+            "violations": list(self.optimized.violations),
+            "command_ratio_to_limits": {
+                a: dict(zip(("v", "a", "j"), self.optimized.command_ratio[i].tolist()))
+                for i, a in enumerate(AXES) if a in moving
+            },
+            "max_dkp_per_sample": {a: float(self.optimized.max_dkp_per_sample[i])
+                                   for i, a in enumerate(AXES) if a in moving},
+            "max_dkf_per_sample": {a: float(self.optimized.max_dkf_per_sample[i])
+                                   for i, a in enumerate(AXES) if a in moving},
+            "fallback_samples": self.fallbacks,
+            "optimize_time_s": self.optimize_time_s,
+            "options": self.options.as_dict(),
+        }
+
+
+def setpoints_digest(sp: Setpoints) -> str:
+    """SHA-256 of the setpoint positions and period (identifies the motion a table belongs to)."""
+    h = hashlib.sha256()
+    h.update(np.float64(sp.dt).tobytes())
+    h.update(np.ascontiguousarray(sp.pos).tobytes())
+    return h.hexdigest()
+
+
+def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, float]]:
+    """Allowed Kp per contouring axis: its stable range, or ``kp_range`` for adjusted axes."""
+    from oga.stability import stable_range
+
+    bounds = {}
+    for a in moving:
+        rng = stable_range(machine, a)
+        lo, hi = rng.kp_min, rng.kp_max
+        if options.kp_range is not None and a in adjusted:
+            rlo, rhi = options.kp_range
+            if rlo < lo - 1e-9 or rhi > hi + 1e-9:
+                raise OptionError(
+                    f"kp_range: [{rlo}, {rhi}] leaves the stable range [{lo}, {hi}] "
+                    f"(m/min)/mm of axis {a}"
+                )
+            lo, hi = rlo, rhi
+        bounds[a] = (float(lo), float(hi))
+    return bounds
+
+
+def _baseline(setpoints, machine, options, moving):
+    if options.baseline == "best":
+        from oga.ranges import gain_ranges
+
+        best = gain_ranges(setpoints, machine).best_fixed
+        if best is None:
+            raise OptionError(
+                "baseline: no equal fixed gains meet the kinematic limits on this toolpath; "
+                "give --baseline KP,KF"
+            )
+        kp = {a: float(best.kp[a]) for a in moving}
+        kf = {a: float(best.kf[a]) for a in moving}
+        kp0, kf0 = kp[moving[0]], kf[moving[0]]
+    else:
+        kp0, kf0 = options.baseline
+        kp = {a: float(kp0) for a in moving}
+        kf = {a: float(kf0) for a in moving}
+    # axes that do not move keep the same (common) fixed gains
+    for a in AXES:
+        kp.setdefault(a, float(kp0))
+        kf.setdefault(a, float(kf0))
+    return kp, kf
+
+
+def optimize(
+    setpoints: Setpoints,
+    machine: Machine,
+    options: OptimizeOptions | dict | None = None,
+    *,
+    progress: Callable[[float], None] | None = None,
+) -> OptimizeResult:
+    """Search the gain schedule of ``setpoints`` on ``machine`` and verify it.
+
+    Parameters
+    ----------
+    setpoints : Setpoints
+        Planned motion (its period must be the machine's Te).
+    machine : Machine
+        The machine.
+    options : OptimizeOptions or dict, optional
+        Search options (CLI/API names); default the full mode: best fixed
+        baseline, every contouring axis, Kp and Kf.
+    progress : callable, optional
+        Called with the fraction done (0..1) between chunks of samples.
+
+    Returns
+    -------
+    OptimizeResult
+        ``status`` tells whether the schedule passed verification.
+
+    Raises
+    ------
+    OptionError
+        Inconsistent options (an adjusted axis that does not move, a Kp range
+        outside the stable range, no feasible baseline).
+    """
+    from oga.simulate import axis_params, rest_state
+
+    if not isinstance(options, OptimizeOptions):
+        options = options_from_dict(options)
+    t0 = time.perf_counter()
+    moving = tuple(AXES[i] for i in setpoints.moving_axes)
+    if not moving:
+        raise OptionError("toolpath: no axis moves; nothing to optimise")
+    adjusted = moving if options.adjust is None else tuple(options.adjust)
+    still = [a for a in adjusted if a not in moving]
+    if still:
+        raise OptionError(f"adjust: axis {', '.join(still)} does not move on this toolpath")
+    for a in moving:
+        machine.axis(a)
+    kp_bounds = _kp_bounds(machine, options, moving, adjusted)
+    base_kp, base_kf = _baseline(setpoints, machine, options, moving)
+
+    n = len(setpoints)
+    te = setpoints.dt
+    pd = np.ascontiguousarray(setpoints.pos)
+    pdT = np.ascontiguousarray(setpoints.pos.T)
+    vdT = np.ascontiguousarray(setpoints.vel.T)
+    present = [a for a in AXES if a in machine.axes]
+    params = np.stack([axis_params(machine, a if a in machine.axes else present[0]) for a in AXES])
+    states = np.stack([rest_state(params[i], pd[0, i]) for i in range(3)])
+    kp = np.array([base_kp[a] for a in AXES])
+    kf = np.array([base_kf[a] for a in AXES])
+    adj = np.array([a in adjusted for a in AXES])
+    adj_kp = adj & ("kp" in options.gains)
+    adj_kf = adj & ("kf" in options.gains)
+    kp_lo = np.array([kp_bounds.get(a, (kp[i], kp[i]))[0] for i, a in enumerate(AXES)])
+    kp_hi = np.array([kp_bounds.get(a, (kp[i], kp[i]))[1] for i, a in enumerate(AXES)])
+    kf_lo = np.full(3, machine.gains.kf_range[0])
+    kf_hi = np.full(3, machine.gains.kf_range[1])
+    for i, a in enumerate(AXES):
+        if adj[i] and not kp_lo[i] <= kp[i] <= kp_hi[i]:
+            raise OptionError(
+                f"baseline: Kp {kp[i]} of axis {a} lies outside its range "
+                f"[{kp_lo[i]}, {kp_hi[i]}] (m/min)/mm"
+            )
+    lim = machine.axis_limits()
+    vmax, amax, jmax = lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3
+    is_moving = np.array([a in moving for a in AXES])
+    kp_base = kp.copy()
+    kf_base = kf.copy()
+    kp_out = np.empty((n, 3))
+    kf_out = np.empty((n, 3))
+    u_out = np.empty((n, 3))
+    u_hist = np.zeros((3, 2))
+    common = (pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
+    if options.mode == "paper":
+        from oga.search import STAT_FALLBACK, STAT_WINDOWS, search_chunk
+
+        stats = np.zeros(2, dtype=np.int64)
+        chunk = _CHUNK
+
+        def advance(k0, k1):
+            search_chunk(k0, k1, *common, vmax, amax, jmax, te, u_hist, options.np, options.lam_value,
+                         options.anchor_value, kp_base, kf_base, defaults.A1, defaults.A2,
+                         defaults.CE_WINDOW_SAMPLES, is_moving, kp_out, kf_out, u_out, stats)
+    else:
+        from oga.contour import moving_count
+        from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
+
+        stats = np.zeros(3, dtype=np.int64)
+        pad = options.np + 1
+        pdT = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
+        vdT = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
+        common = (pd, pdT, vdT) + common[3:]
+        count = moving_count(pd)
+        replan = defaults.MPC_REPLAN
+        chunk = (_CHUNK // replan) * replan
+
+        def advance(k0, k1):
+            mpc_chunk(k0, k1, *common, kp_base, kf_base, vmax, amax, jmax, te, u_hist,
+                      options.np, defaults.MPC_BLOCKS, replan, options.lam_value,
+                      options.anchor_value,
+                      defaults.CE_WINDOW_SAMPLES, count, is_moving, kp_out, kf_out, u_out, stats)
+
+    for k0 in range(0, n, chunk):
+        advance(k0, min(k0 + chunk, n))
+        if progress is not None:
+            progress(min(k0 + chunk, n) / n)
+    schedule = GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out)
+    for arr in (kp_out, kf_out):
+        arr.flags.writeable = False
+    fixed_kp = np.tile([base_kp[a] for a in AXES], (n, 1))
+    fixed_kf = np.tile([base_kf[a] for a in AXES], (n, 1))
+    baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
+    optimized = verify(setpoints, machine, kp_out, kf_out, kp_bounds)
+    return OptimizeResult(
+        status=optimized.status,
+        setpoints=setpoints,
+        machine=machine,
+        options=options,
+        schedule=schedule,
+        baseline_kp=base_kp,
+        baseline_kf=base_kf,
+        baseline=baseline,
+        optimized=optimized,
+        adjusted=adjusted,
+        kp_bounds=kp_bounds,
+        optimize_time_s=time.perf_counter() - t0,
+        fallbacks=int(stats[STAT_FALLBACK]),
+        windows=int(stats[STAT_WINDOWS]),
+    )

@@ -1,0 +1,157 @@
+"""Options of the gain search: one pydantic model for library, CLI and API.
+
+Field names are the CLI flags of ``oga optimize`` (``np``, ``lam``, ``adjust``,
+``gains``, ``baseline``, ``kp_range``, ``feed``, ``tolerance``); unknown keys
+are refused. Defaults come from :mod:`oga.defaults`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from oga import defaults
+from oga.errors import OptionError
+
+__all__ = ["OptimizeOptions", "options_from_dict"]
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class OptimizeOptions(BaseModel):
+    """What to optimise and how.
+
+    Attributes
+    ----------
+    mode : {"full", "paper"}
+        ``"full"``: the gain trajectory over the horizon is planned as a small
+        model-predictive problem and re-planned as the horizon recedes
+        (:mod:`oga.mpc`); ``"paper"``: the published method, five candidate
+        increments per gain and sample, each held over the horizon
+        (:mod:`oga.search`).
+    baseline : "best" or (kp_m_min_per_mm, kf)
+        The fixed gains the schedule starts from and is compared with: ``"best"``
+        (the best equal fixed gains of the ranges stage) or one explicit pair
+        applied to every axis.
+    adjust : tuple of axis names, or None
+        Axes whose gains the search adjusts; None = every contouring (moving) axis.
+        The others keep the baseline gains.
+    gains : tuple of "kp", "kf"
+        Which gains move.
+    kp_range : (lo, hi) in (m/min)/mm, or None
+        Bounds of the adjusted Kp; None = each axis's stable range. Must lie
+        inside the stable range.
+    np : int
+        Prediction horizon in samples.
+    lam : float or None
+        Weight of the gain increments in the cost ``J = E'E + lam dK'dK`` with the
+        contour error E in um and the increments in (m/min)/mm (Kp) and 1 (Kf);
+        None: the mode's default (:data:`oga.defaults.LAMBDA`).
+    anchor : float or None
+        Weight of the gains' distance from the baseline in the cost,
+        ``+ anchor (K - K_baseline)'(K - K_baseline)`` (um^2 per unit^2); 0 is
+        the paper's cost. On straight moves the contour error does not see the
+        axes' lag, so without it the gains drift there unchecked, and the jerk
+        limit then keeps them from coming back in time for the next curve.
+        None: the mode's default (:data:`oga.defaults.ANCHOR`).
+    feed_mm_per_min : float or None
+        Overrides the program's feed.
+    tolerance_mm : float
+        Interpolation tolerance of the feed planner.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid", populate_by_name=True)
+
+    mode: Literal["full", "paper"] = "full"
+    baseline: Literal["best"] | tuple[Finite, Finite] = "best"
+    adjust: tuple[Literal["x", "y", "z"], ...] | None = None
+    gains: tuple[Literal["kp", "kf"], ...] = ("kp", "kf")
+    kp_range: tuple[Finite, Finite] | None = None
+    np: Annotated[int, Field(ge=1, le=1000)] = defaults.NP
+    lam: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    anchor: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    feed_mm_per_min: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(
+        None, alias="feed"
+    )
+    tolerance_mm: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = Field(
+        defaults.TOL_M * 1e3, alias="tolerance"
+    )
+
+    @field_validator("adjust", "gains", mode="before")
+    @classmethod
+    def _split(cls, v):
+        if isinstance(v, str):
+            v = tuple(p.strip() for p in v.split(",") if p.strip())
+        return v
+
+    @field_validator("baseline", "kp_range", mode="before")
+    @classmethod
+    def _pair(cls, v):
+        if isinstance(v, str) and v != "best":
+            try:
+                v = tuple(float(p) for p in v.split(","))
+            except ValueError:
+                raise ValueError("expected 'best' or two numbers KP,KF") from None
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "OptimizeOptions":
+        if not self.gains:
+            raise ValueError("gains: name at least one of kp, kf")
+        if len(set(self.gains)) != len(self.gains):
+            raise ValueError("gains: repeated entry")
+        if self.adjust is not None and (not self.adjust or len(set(self.adjust)) != len(self.adjust)):
+            raise ValueError("adjust: name each axis once (x, y, z)")
+        if self.baseline != "best":
+            kp, kf = self.baseline
+            if kp <= 0:
+                raise ValueError("baseline: Kp must be positive")
+            if not 0 <= kf <= 1:
+                raise ValueError("baseline: Kf must lie in [0, 1]")
+        if self.kp_range is not None:
+            lo, hi = self.kp_range
+            if not 0 < lo <= hi:
+                raise ValueError("kp_range: need 0 < LO <= HI")
+        return self
+
+    @property
+    def lam_value(self) -> float:
+        """``lam``, or the mode's default."""
+        return defaults.LAMBDA[self.mode] if self.lam is None else self.lam
+
+    @property
+    def anchor_value(self) -> float:
+        """``anchor``, or the mode's default."""
+        return defaults.ANCHOR[self.mode] if self.anchor is None else self.anchor
+
+    @property
+    def tol_m(self) -> float:
+        """Interpolation tolerance in metres."""
+        return self.tolerance_mm * 1e-3
+
+    @property
+    def feed_m_s(self) -> float | None:
+        """Feed override in m/s (None: the program's feed)."""
+        return None if self.feed_mm_per_min is None else self.feed_mm_per_min / 60e3
+
+    def as_dict(self) -> dict:
+        """Plain JSON-able dict with the CLI/API names, mode defaults filled in."""
+        out = self.model_dump(mode="json", by_alias=True)
+        out["lam"] = self.lam_value
+        out["anchor"] = self.anchor_value
+        return out
+
+
+def options_from_dict(data: dict | None = None, **overrides) -> OptimizeOptions:
+    """Validate options (API body, CLI flags), raising OptionError naming the field."""
+    merged = {**(data or {}), **{k: v for k, v in overrides.items() if v is not None}}
+    try:
+        return OptimizeOptions.model_validate(merged)
+    except ValidationError as err:
+        parts = []
+        for e in err.errors():
+            loc = ".".join(str(x) for x in e["loc"]) or "options"
+            msg = "unknown option" if e["type"] == "extra_forbidden" else e["msg"]
+            parts.append(f"{loc}: {msg}")
+        raise OptionError("; ".join(parts)) from None

@@ -1,0 +1,89 @@
+"""The whole job on plain inputs: toolpath text -> setpoints -> verified gain schedule.
+
+Used by ``oga optimize``, ``oga batch`` and the REST workers, so every surface
+runs exactly the same steps.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Callable
+
+from feedplan.path import Path
+from feedplan.read import read_toolpath
+from feedplan.setpoints import Setpoints
+from oga.machine import Machine
+from oga.optimize import OptimizeResult, optimize
+from oga.options import OptimizeOptions
+
+__all__ = ["Job", "run_job"]
+
+
+@dataclass(frozen=True, eq=False)
+class Job:
+    """A finished job: what went in and what came out.
+
+    Attributes
+    ----------
+    path : Path
+        The parsed toolpath.
+    setpoints : Setpoints
+        The planned motion.
+    result : OptimizeResult
+        The verified schedule (check ``result.status``).
+    toolpath_sha256 : str
+        Hash of the submitted toolpath text.
+    """
+
+    path: Path
+    setpoints: Setpoints
+    result: OptimizeResult
+    toolpath_sha256: str
+
+    def summary(self) -> dict:
+        """The summary JSON of ``oga optimize --summary``."""
+        return self.result.summary(toolpath=self.path.source, toolpath_sha256=self.toolpath_sha256)
+
+
+def run_job(
+    text: str,
+    fmt: str,
+    machine: Machine,
+    options: OptimizeOptions,
+    *,
+    source: str = "",
+    progress: Callable[[float], None] | None = None,
+) -> Job:
+    """Read, plan and optimise one toolpath.
+
+    Parameters
+    ----------
+    text : str
+        The toolpath (G-code, CSV or JSON text).
+    fmt : {"gcode", "csv", "json"}
+        Its format.
+    machine : Machine
+        The machine.
+    options : OptimizeOptions
+        Search and planning options (feed override, tolerance).
+    source : str
+        Name of the program, for messages.
+    progress : callable, optional
+        Called with the fraction done of the search (0..1).
+
+    Raises
+    ------
+    InputError
+        Bad toolpath, options or machine (message names line/field).
+    PlanError, OptimizeError
+        Planning or search failed.
+    """
+    from feedplan.plan import plan
+
+    path = read_toolpath(text, fmt, source=source)
+    sp = plan(path, machine.planning_limits(), feed_m_s=options.feed_m_s, tol_m=options.tol_m,
+              dt=machine.te)
+    result = optimize(sp, machine, options, progress=progress)
+    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()
+    return Job(path=path, setpoints=sp, result=result, toolpath_sha256=digest)

@@ -1,0 +1,387 @@
+"""The receding-horizon gain search (OGA, paper sec. 3.6), compiled.
+
+At every sample ``k`` and for every axis ``a`` the search
+
+1. bounds the gain increments: the stability bound (paper eq. 7) keeps the gain
+   inside its range; the kinematic bound (eqs. 8-10) keeps the velocity command
+   ``u_k = Kp E_k + Kf Vd_k`` inside the interval that eq. 2 allows given the
+   two previous commands (``|u| <= Vmax``, ``|du|/Te <= Amax``,
+   ``|d2u|/Te^2 <= Jmax``);
+2. forms the paper's five candidates ``{a2 dKmin, a1 dKmin, 0, a1 dKmax,
+   a2 dKmax}`` for Kp and, when Kf is adjusted too, the same five for Kf; every
+   (dKp, dKf) pair whose command stays inside the eq. 2 interval is a candidate
+   (``0`` is replaced by the admissible increment nearest 0 when 0 itself is
+   not admissible);
+3. simulates every candidate of every axis over ``Np`` samples on the exact
+   nonlinear axis model from the current true state (axes are independent,
+   so each axis's windows are simulated once);
+4. scores every combination of the axes' candidates with
+   ``J = E'E + lam dK'dK`` (contour error E in um, increments in (m/min)/mm
+   and 1) and applies the least-cost one, advances the true state by one sample
+   and recedes.
+
+Scoring combinations
+--------------------
+The predicted contour error of sample ``j`` is the distance of the predicted
+point from the path. The candidates of one sample differ by fractions of a
+micrometre, so the nearest segment of the path is found once per predicted
+sample, for the prediction with no increment, and every combination is scored
+with its exact distance to that segment's line: ``|P (p - q)|^2`` with
+``P = I - t t'`` (``t`` the unit tangent, ``q`` the foot point). That squared
+distance is a quadratic form in the axes' predicted positions, so it splits
+into per-axis terms and pairwise cross terms: all combinations of two axes cost
+one small matrix product, and three adjusted axes are searched by coordinate
+descent over the axes. The verification (:mod:`oga.verify`) replays the chosen
+schedule and measures the true point-to-polyline contour error.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from oga.contour import nearest_segment
+from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.simulate import step, window
+
+__all__ = ["search_chunk", "MAX_CANDIDATES", "STAT_FALLBACK", "STAT_WINDOWS"]
+
+#: Largest number of candidates per axis and sample (5 Kp x 5 Kf).
+MAX_CANDIDATES = 25
+#: Index in ``stats``: samples where no candidate met eq. 2 and the least violating was taken.
+STAT_FALLBACK = 0
+#: Index in ``stats``: windows simulated.
+STAT_WINDOWS = 1
+
+_C = KP_SI_PER_M_MIN_PER_MM
+_M2_TO_UM2 = 1e12
+#: Largest number of full combinations enumerated before switching to coordinate descent.
+_MAX_ENUM = 4096
+#: Relative slack of the eq. 2 checks (float64 rounding).
+_SLACK = 1e-9
+
+
+@njit(cache=True)
+def _fractions(lo, hi, a1, a2, out):
+    """The paper's five increments of the interval [lo, hi]; returns how many (deduplicated)."""
+    zero = min(max(0.0, lo), hi)
+    vals = (a2 * lo, a1 * lo, zero, a1 * hi, a2 * hi)
+    n = 0
+    for v in vals:
+        v = min(max(v, lo), hi)
+        dup = False
+        for i in range(n):
+            if out[i] == v:
+                dup = True
+                break
+        if not dup:
+            out[n] = v
+            n += 1
+    return n
+
+
+@njit(cache=True)
+def _interval(lo, hi, num_lo, num_hi, den):
+    """Intersect [lo, hi] with {x : num_lo <= den * x <= num_hi}; void when den ~ 0."""
+    if abs(den) > 1e-12:
+        a = num_lo / den
+        b = num_hi / den
+        if den < 0.0:
+            a, b = b, a
+        lo = max(lo, a)
+        hi = min(hi, b)
+    return lo, hi
+
+
+@njit(cache=True)
+def _candidates(
+    e, vd, kp, kf, kp_lo, kp_hi, kf_lo, kf_hi, adj_kp, adj_kf, ulo, uhi, a1, a2, out_dkp, out_dkf
+):
+    """Admissible (dKp, dKf) candidates of one axis; returns (count, fallback_used)."""
+    c = _C
+    fr_p = np.empty(5)
+    fr_f = np.empty(5)
+    # Kp interval: stability, then kinematic through u = (kp + dkp) c e + kf vd
+    if adj_kp:
+        lo, hi = _interval(kp_lo - kp, kp_hi - kp, ulo - kf * vd - kp * c * e,
+                           uhi - kf * vd - kp * c * e, c * e)
+        if lo > hi:  # kinematics and stability disagree: stay within stability only
+            lo, hi = kp_lo - kp, kp_hi - kp
+        n_p = _fractions(lo, hi, a1, a2, fr_p)
+    else:
+        fr_p[0] = 0.0
+        n_p = 1
+    if adj_kf:
+        lo, hi = _interval(kf_lo - kf, kf_hi - kf, ulo - kp * c * e - kf * vd,
+                           uhi - kp * c * e - kf * vd, vd)
+        if lo > hi:
+            lo, hi = kf_lo - kf, kf_hi - kf
+        n_f = _fractions(lo, hi, a1, a2, fr_f)
+    else:
+        fr_f[0] = 0.0
+        n_f = 1
+    tol = 1e-12 * (1.0 + abs(ulo) + abs(uhi))
+    n = 0
+    best_v = np.inf
+    best_i = 0
+    best_j = 0
+    for i in range(n_p):
+        for j in range(n_f):
+            u = (kp + fr_p[i]) * c * e + (kf + fr_f[j]) * vd
+            viol = max(ulo - u, u - uhi, 0.0)
+            if viol <= tol:
+                out_dkp[n] = fr_p[i]
+                out_dkf[n] = fr_f[j]
+                n += 1
+            elif viol < best_v:
+                best_v = viol
+                best_i = i
+                best_j = j
+    if n == 0:
+        out_dkp[0] = fr_p[best_i]
+        out_dkf[0] = fr_f[best_j]
+        return 1, True
+    return n, False
+
+
+@njit(cache=True)
+def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te):
+    """Largest excess over 1 of the predicted command's |u|/V, |du|/(A Te), |d2u|/(J Te^2).
+
+    The command of the window's samples ``k .. k+n-1`` is rebuilt from the predicted
+    positions (``p_now`` at k, then ``pred[m-1]``) with the candidate gains held; 0
+    means eq. 2 holds over the whole window.
+    """
+    last = pd.shape[0] - 1
+    worst = 0.0
+    a_lim = amax * te
+    j_lim = jmax * te * te
+    for m in range(n):
+        i = k + m
+        p = p_now if m == 0 else pred[m - 1]
+        if i <= last:
+            u = kp_si * (pd[i] - p) + kf * vd[i]
+        else:
+            u = kp_si * (pd[last] - p)
+        worst = max(worst, abs(u) / vmax - 1.0, abs(u - u1) / a_lim - 1.0,
+                    abs(u - 2.0 * u1 + u2) / j_lim - 1.0)
+        u2 = u1
+        u1 = u
+    return worst
+
+
+@njit(cache=True)
+def search_chunk(
+    k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
+    vmax, amax, jmax, te, u_hist, n_pred, lam, mu, kp_base, kf_base, a1, a2, ce_window, moving,
+    kp_out, kf_out, u_out, stats,
+):
+    """Run the receding-horizon search over samples ``k0 .. k1 - 1`` in place.
+
+    Parameters
+    ----------
+    k0, k1 : int
+        Sample range of this chunk (the caller loops over chunks for progress).
+    pd : ndarray, shape (N, 3)
+        Desired positions (the path), metres, C-contiguous.
+    pdT, vdT : ndarray, shape (3, N)
+        Desired positions (m) and velocities (m/s) per axis, contiguous rows.
+    params : ndarray, shape (3, P)
+        Packed axis parameters (:func:`oga.simulate.axis_params`).
+    states : ndarray, shape (3, S)
+        True axis states at sample k0 (advanced in place).
+    kp, kf : ndarray, shape (3,)
+        Current gains, Kp in (m/min)/mm (updated in place).
+    adj_kp, adj_kf : ndarray of bool, shape (3,)
+        Which gains of which axis the search may change.
+    kp_lo, kp_hi, kf_lo, kf_hi : ndarray, shape (3,)
+        Gain bounds, Kp in (m/min)/mm.
+    vmax, amax, jmax : ndarray, shape (3,)
+        Axis limits (m/s, m/s^2, m/s^3) applied to the velocity command (eq. 2).
+    te : float
+        Sample period, s.
+    u_hist : ndarray, shape (3, 2)
+        Previous velocity commands ``[u_{k-1}, u_{k-2}]`` per axis (updated in place).
+    n_pred : int
+        Prediction horizon Np, samples.
+    lam : float
+        Increment weight (um^2 per unit^2 of increment).
+    a1, a2 : float
+        Candidate fractions.
+    ce_window : int
+        Half-width of the index window searched for the nearest path point.
+    moving : ndarray of bool, shape (3,)
+        Axes that take part in the contour error.
+    kp_out, kf_out, u_out : ndarray, shape (N, 3)
+        Schedule and velocity commands, written for samples k0 .. k1 - 1.
+    stats : ndarray of int64, shape (2,)
+        Counters, see ``STAT_*``.
+    """
+    n_total = pd.shape[0]
+    ncand = np.ones(3, dtype=np.int64)
+    dkp = np.zeros((3, MAX_CANDIDATES))
+    dkf = np.zeros((3, MAX_CANDIDATES))
+    pred = np.empty((3, MAX_CANDIDATES, n_pred))
+    ref = np.empty((n_pred, 3))
+    q = np.empty((n_pred, 3))
+    tang = np.empty((n_pred, 3))
+    d = np.empty((3, MAX_CANDIDATES, n_pred))
+    diag = np.zeros((3, MAX_CANDIDATES))
+    cross = np.zeros((3, 3, MAX_CANDIDATES, MAX_CANDIDATES))
+    choice = np.zeros(3, dtype=np.int64)
+    viol = np.zeros((3, MAX_CANDIDATES))
+    allowed = np.ones((3, MAX_CANDIDATES), dtype=np.bool_)
+    te2 = te * te
+    for k in range(k0, k1):
+        # 1-2: candidates per axis
+        for a in range(3):
+            u1 = u_hist[a, 0]
+            u2 = u_hist[a, 1]
+            ulo = max(-vmax[a], u1 - amax[a] * te, 2.0 * u1 - u2 - jmax[a] * te2)
+            uhi = min(vmax[a], u1 + amax[a] * te, 2.0 * u1 - u2 + jmax[a] * te2)
+            if moving[a] and (adj_kp[a] or adj_kf[a]):
+                e = pdT[a, k] - states[a, 0]
+                n, fb = _candidates(
+                    e, vdT[a, k], kp[a], kf[a], kp_lo[a], kp_hi[a], kf_lo[a], kf_hi[a],
+                    adj_kp[a], adj_kf[a], ulo, uhi, a1, a2, dkp[a], dkf[a],
+                )
+                if fb:
+                    stats[STAT_FALLBACK] += 1
+            else:
+                dkp[a, 0] = 0.0
+                dkf[a, 0] = 0.0
+                n = 1
+            ncand[a] = n
+        # 3: predicted positions of every candidate window (moving axes only)
+        for a in range(3):
+            if not moving[a]:
+                continue
+            least = np.inf
+            for c in range(ncand[a]):
+                kp_si = (kp[a] + dkp[a, c]) * _C
+                window(states[a], params[a], pdT[a], vdT[a], k, n_pred, kp_si,
+                       kf[a] + dkf[a, c], pred[a, c])
+                stats[STAT_WINDOWS] += 1
+                viol[a, c] = _window_violation(
+                    states[a, 0], pred[a, c], pdT[a], vdT[a], k, n_pred, kp_si,
+                    kf[a] + dkf[a, c], u_hist[a, 0], u_hist[a, 1], vmax[a], amax[a], jmax[a], te,
+                )
+                least = min(least, max(viol[a, c], _SLACK))
+            for c in range(ncand[a]):  # only the candidates that keep eq. 2 (or least violate it)
+                allowed[a, c] = viol[a, c] <= least
+        # the path's nearest point to the prediction nearest to "no change"
+        for a in range(3):
+            best_c = 0
+            best_m = np.inf
+            for c in range(ncand[a]):
+                m = abs(dkp[a, c]) + abs(dkf[a, c])
+                if m < best_m:
+                    best_m = m
+                    best_c = c
+            for j in range(n_pred):
+                ref[j, a] = pred[a, best_c, j] if moving[a] else states[a, 0]
+        idx = min(k + 1, n_total - 1)
+        for j in range(n_pred):
+            centre = min(k + 1 + j, n_total - 1)
+            if j == 0:
+                lo = max(centre - ce_window, 0)
+                hi = min(centre + ce_window, n_total - 1)
+            else:
+                lo = max(idx - 3, 0)
+                hi = min(max(idx + 4, centre + 1), n_total - 1)
+                lo = min(lo, hi)
+            i, t, _d2 = nearest_segment(pd, lo, hi, ref[j, 0], ref[j, 1], ref[j, 2])
+            if i < 0:  # the path stands still over the window: distance to the point
+                idx = lo
+                for a in range(3):
+                    q[j, a] = pd[lo, a]
+                    tang[j, a] = 0.0
+                continue
+            idx = i
+            inv = 0.0
+            for a in range(3):
+                inv += (pd[i + 1, a] - pd[i, a]) ** 2
+            inv = 1.0 / np.sqrt(inv)
+            for a in range(3):
+                q[j, a] = pd[i, a] + t * (pd[i + 1, a] - pd[i, a])
+                tang[j, a] = (pd[i + 1, a] - pd[i, a]) * inv
+        # 4: quadratic-form terms, M = I - t t'
+        for a in range(3):
+            if not moving[a]:
+                continue
+            for c in range(ncand[a]):
+                s = 0.0
+                for j in range(n_pred):
+                    dv = pred[a, c, j] - q[j, a]
+                    d[a, c, j] = dv
+                    s += (1.0 - tang[j, a] * tang[j, a]) * dv * dv
+                if not allowed[a, c]:
+                    diag[a, c] = np.inf
+                    continue
+                diag[a, c] = (s * _M2_TO_UM2 + lam * (dkp[a, c] ** 2 + dkf[a, c] ** 2)
+                              + mu * ((kp[a] + dkp[a, c] - kp_base[a]) ** 2
+                                      + (kf[a] + dkf[a, c] - kf_base[a]) ** 2))
+        for a in range(3):
+            for b in range(a + 1, 3):
+                if not (moving[a] and moving[b]):
+                    continue
+                for ca in range(ncand[a]):
+                    for cb in range(ncand[b]):
+                        s = 0.0
+                        for j in range(n_pred):
+                            s -= tang[j, a] * tang[j, b] * d[a, ca, j] * d[b, cb, j]
+                        cross[a, b, ca, cb] = 2.0 * s * _M2_TO_UM2
+        # choose the least-cost combination
+        n_combo = ncand[0] * ncand[1] * ncand[2]
+        if n_combo <= _MAX_ENUM:
+            best = np.inf
+            for c0 in range(ncand[0]):
+                for c1 in range(ncand[1]):
+                    for c2 in range(ncand[2]):
+                        j_ = diag[0, c0] * moving[0] + diag[1, c1] * moving[1] + diag[2, c2] * moving[2]
+                        if moving[0] and moving[1]:
+                            j_ += cross[0, 1, c0, c1]
+                        if moving[0] and moving[2]:
+                            j_ += cross[0, 2, c0, c2]
+                        if moving[1] and moving[2]:
+                            j_ += cross[1, 2, c1, c2]
+                        if j_ < best:
+                            best = j_
+                            choice[0], choice[1], choice[2] = c0, c1, c2
+        else:  # coordinate descent from each axis's own best
+            for a in range(3):
+                choice[a] = np.argmin(diag[a, : ncand[a]])
+            for _sweep in range(4):
+                changed = False
+                for a in range(3):
+                    if not moving[a]:
+                        continue
+                    best = np.inf
+                    bc = choice[a]
+                    for c in range(ncand[a]):
+                        j_ = diag[a, c]
+                        for b in range(3):
+                            if b == a or not moving[b]:
+                                continue
+                            if a < b:
+                                j_ += cross[a, b, c, choice[b]]
+                            else:
+                                j_ += cross[b, a, choice[b], c]
+                        if j_ < best:
+                            best = j_
+                            bc = c
+                    if bc != choice[a]:
+                        choice[a] = bc
+                        changed = True
+                if not changed:
+                    break
+        # apply, advance the true state, recede
+        for a in range(3):
+            kp[a] += dkp[a, choice[a]]
+            kf[a] += dkf[a, choice[a]]
+            kp_out[k, a] = kp[a]
+            kf_out[k, a] = kf[a]
+            u = step(states[a], params[a], pdT[a, k], vdT[a, k], kp[a] * _C, kf[a])
+            u_out[k, a] = u
+            u_hist[a, 1] = u_hist[a, 0]
+            u_hist[a, 0] = u

@@ -1,0 +1,215 @@
+"""The gain search: options, verification, paper mode, full mode, export of the table.
+
+References are independent of the code under test: eq. 2 by plain numpy
+differences, the contour error of the replays recomputed from a fresh
+simulation, and the paper's candidate rule checked by exact brute force.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from feedplan.plan import plan
+from feedplan.read import load_toolpath
+from oga.contour import ce_point, contour_error_of
+from oga.errors import OptimizeError, OptionError
+from oga.export import table_csv
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.optimize import optimize
+from oga.options import options_from_dict
+from oga.simulate import simulate
+from oga.verify import command_ratios, verify
+
+DATA = Path(__file__).parent / "data"
+PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7")
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine("ucp710")
+
+
+@pytest.fixture(scope="module")
+def short(machine):
+    """A short XZ contour (line, concave and convex arc, line) planned for ucp710."""
+    return plan(load_toolpath(DATA / "short_xz.ngc"), machine.planning_limits())
+
+
+def eq2_peaks(u, te, mask):
+    """|u|, |du|/Te, |d2u|/Te^2 peaks by plain numpy, at rest before the start."""
+    up = np.concatenate([[0.0, 0.0], u])
+    v = np.abs(up[2:])
+    a = np.abs(np.diff(up))[1:] / te
+    j = np.abs(up[2:] - 2 * up[1:-1] + up[:-2]) / te**2
+    return v[mask].max(), a[mask].max(), j[mask].max()
+
+
+# --- options --------------------------------------------------------------------------
+
+
+def test_options_parse_cli_strings():
+    o = options_from_dict(PAPER)
+    assert o.baseline == (1.6, 0.9) and o.adjust == ("z",) and o.gains == ("kp",)
+    assert o.kp_range == (1.0, 2.7) and o.mode == "paper"
+    assert o.lam_value == 0.01 and o.anchor_value == 0.0  # the paper's cost
+
+
+@pytest.mark.parametrize(
+    "bad, field",
+    [({"npp": 3}, "npp"), ({"np": 0}, "np"), ({"baseline": "x"}, "baseline"),
+     ({"gains": "kp,kq"}, "gains"), ({"feed": float("nan")}, "feed"),
+     ({"baseline": "1.6,1.5"}, "baseline"), ({"kp_range": "2,1"}, "kp_range"),
+     ({"mode": "fast"}, "mode")],
+)
+def test_options_refused_naming_the_field(bad, field):
+    with pytest.raises(OptionError, match=field):
+        options_from_dict(bad)
+
+
+# --- verification ---------------------------------------------------------------------
+
+
+def test_command_ratios_match_numpy(short, machine):
+    sim = simulate(short, machine, 3.0, 0.8)
+    ratio = command_ratios(sim.u, short, machine)
+    lim = machine.axis_limits()
+    for k in (0, 2):
+        peaks = eq2_peaks(sim.u[:, k], short.dt, ~short.rapid)
+        expected = np.array(peaks) / [lim.vmax_m_s[k], lim.amax_m_s2[k], lim.jmax_m_s3[k]]
+        np.testing.assert_allclose(ratio[k], expected, rtol=1e-12)
+
+
+def test_verify_flags_a_gain_step_that_breaks_the_jerk_limit(short, machine):
+    n = len(short)
+    kp = np.full((n, 3), 3.0)
+    kf = np.full((n, 3), 0.8)
+    bounds = {"x": (1.0, 3.0), "z": (1.0, 3.0)}
+    assert verify(short, machine, kp, kf, bounds).ok
+    kp[n // 3:, 0] = 1.0  # an abrupt drop of X's Kp while X lags by ~0.1 mm
+    v = verify(short, machine, kp, kf, bounds)
+    assert not v.limits_ok and any("axis x" in s and "jerk" in s for s in v.violations)
+    kp[:, 0] = 3.5  # outside the stable range
+    assert not verify(short, machine, kp, kf, bounds).stability_ok
+
+
+# --- paper mode -----------------------------------------------------------------------
+
+
+def test_paper_mode_follows_the_published_rules(short, machine):
+    r = optimize(short, machine, PAPER)
+    assert r.status == "ok" and r.optimized.ok
+    kp = r.schedule.kp_m_min_per_mm
+    assert np.all(kp[:, 0] == 1.6) and np.all(r.schedule.kf == 0.9)  # X fixed, Kf fixed
+    assert kp[:, 2].min() >= 1.0 - 1e-12 and kp[:, 2].max() <= 2.7 + 1e-12
+    assert np.ptp(kp[:, 2]) > 0.1  # Z's gain really is adjusted
+    # every increment is one of the five candidates: at most a2 of the interval per sample
+    lo, hi = 1.0, 2.7
+    dk = np.diff(kp[:, 2])
+    prev = kp[:-1, 2]
+    assert np.all(dk <= 0.05 * (hi - prev) + 1e-12) and np.all(dk >= 0.05 * (lo - prev) - 1e-12)
+
+
+def test_paper_mode_picks_the_least_cost_candidate(short, machine):
+    """Replays the search to sample k and checks its choice by exact brute force."""
+    from oga import defaults
+    from oga.search import _candidates
+    from oga.simulate import axis_params, rest_state, step, window
+
+    r = optimize(short, machine, PAPER)
+    kpz = r.schedule.kp_m_min_per_mm[:, 2]
+    n_pred = 50
+    pd = np.ascontiguousarray(short.pos)
+    px, pz = axis_params(machine, "x"), axis_params(machine, "z")
+    sx, sz = rest_state(px, pd[0, 0]), rest_state(pz, pd[0, 2])
+    vx, vz = (np.ascontiguousarray(short.vel[:, c]) for c in (0, 2))
+    xd, zd = np.ascontiguousarray(pd[:, 0]), np.ascontiguousarray(pd[:, 2])
+    lim = machine.axis_limits()
+    c = KP_SI_PER_M_MIN_PER_MM
+    u1 = u2 = 0.0
+    checked = 0
+    for k in range(len(short) - n_pred):
+        moving_z = abs(short.vel[k, 2]) > 1e-3
+        if moving_z and k % 37 == 0:
+            prev = kpz[k - 1] if k else 1.6
+            te = short.dt
+            ulo = max(-lim.vmax_m_s[2], u1 - lim.amax_m_s2[2] * te, 2 * u1 - u2 - lim.jmax_m_s3[2] * te**2)
+            uhi = min(lim.vmax_m_s[2], u1 + lim.amax_m_s2[2] * te, 2 * u1 - u2 + lim.jmax_m_s3[2] * te**2)
+            dkp, dkf = np.zeros(25), np.zeros(25)
+            nc, _ = _candidates(zd[k] - sz[0], vz[k], prev, 0.9, 1.0, 2.7, 0.0, 1.0, True, False,
+                                ulo, uhi, defaults.A1, defaults.A2, dkp, dkf)
+            xs = np.empty(n_pred)
+            window(sx, px, xd, vx, k, n_pred, 1.6 * c, 0.9, xs)
+            costs = []
+            for i in range(nc):
+                zs = np.empty(n_pred)
+                window(sz, pz, zd, vz, k, n_pred, (prev + dkp[i]) * c, 0.9, zs)
+                e = [ce_point(pd, max(k + 1 + j - 150, 0), min(k + 1 + j + 150, len(pd) - 1),
+                              xs[j], pd[0, 1], zs[j], 2, 0, True) for j in range(n_pred)]
+                costs.append(np.sum(np.square(e)) * 1e12 + 0.01 * dkp[i] ** 2)
+            chosen = kpz[k] - prev
+            best = dkp[int(np.argmin(costs))]
+            # the search scores with the exact distance to the nearest segment's line
+            assert chosen == pytest.approx(best, abs=1e-12) or \
+                costs[list(dkp[:nc]).index(chosen)] <= min(costs) * (1 + 1e-6)
+            checked += 1
+        uz = step(sz, pz, zd[k], vz[k], kpz[k] * c, 0.9)
+        step(sx, px, xd[k], vx[k], 1.6 * c, 0.9)
+        u2, u1 = u1, uz
+    assert checked >= 5
+
+
+# --- full mode ------------------------------------------------------------------------
+
+
+def test_full_mode_beats_the_fixed_baseline_within_every_limit(short, machine):
+    r = optimize(short, machine, {"baseline": "3.0,0.8"})
+    assert r.status == "ok"
+    assert r.ratio_mse < 0.9
+    kp, kf = r.schedule.kp_m_min_per_mm, r.schedule.kf
+    assert kp[:, [0, 2]].min() >= 1.0 - 1e-12 and kp[:, [0, 2]].max() <= 3.0 + 1e-12
+    assert kf.min() >= 0.0 and kf.max() <= 1.0
+    # independent replay: simulate the table again, recompute CE, eq. 2 and the ratio
+    sim = simulate(short, machine, kp, kf)
+    ce = contour_error_of(short, sim.pos)
+    base = simulate(short, machine, 3.0, 0.8)
+    ce0 = contour_error_of(short, base.pos)
+    assert np.mean(ce**2) / np.mean(ce0**2) == pytest.approx(r.ratio_mse, rel=1e-9)
+    lim = machine.axis_limits()
+    for k in (0, 2):
+        v, a, j = eq2_peaks(sim.u[:, k], short.dt, ~short.rapid)
+        assert v <= lim.vmax_m_s[k] and a <= lim.amax_m_s2[k] and j <= lim.jmax_m_s3[k] * (1 + 1e-9)
+
+
+def test_unknown_axis_or_range_outside_stability_refused(short, machine):
+    with pytest.raises(OptionError, match="adjust"):
+        optimize(short, machine, {"adjust": "y", "baseline": "3.0,0.8"})
+    with pytest.raises(OptionError, match="stable range"):
+        optimize(short, machine, {"kp_range": "1.0,3.5", "baseline": "3.0,0.8"})
+
+
+# --- export ---------------------------------------------------------------------------
+
+
+def test_table_csv_columns_and_precision(short, machine):
+    r = optimize(short, machine, PAPER)
+    text = table_csv(r)
+    header = text.splitlines()[0].split(",")
+    assert header[:2] == ["t_s", "s_m"]
+    assert header[2:6] == ["x_pos_m", "x_vel_m_s", "x_kp_m_min_per_mm", "x_kf"]
+    data = np.loadtxt(io.StringIO(text), delimiter=",", skiprows=1)
+    assert data.shape == (len(short), 14)
+    np.testing.assert_array_equal(data[:, 2], short.pos[:, 0])  # full precision round trip
+    np.testing.assert_array_equal(data[:, 12], r.schedule.kp_m_min_per_mm[:, 2])
+
+
+def test_failed_schedule_is_never_exported(short, machine):
+    import dataclasses
+
+    r = optimize(short, machine, PAPER)
+    failed = dataclasses.replace(r, status="failed")
+    with pytest.raises(OptimizeError, match="not exported"):
+        table_csv(failed)
