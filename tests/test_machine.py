@@ -1,0 +1,100 @@
+"""The machine description: the ucp710 preset as DESIGN.md states it, files, refusals naming the field."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from oga.errors import MachineError
+from oga.machine import PRESETS, load_machine, machine_from_dict
+
+PRESET = Path(__file__).parents[1] / "oga" / "presets" / "ucp710.toml"
+
+
+def test_ucp710_numbers_as_designed():
+    m = load_machine("ucp710")
+    assert "ucp710" in PRESETS and set(m.axes) == {"x", "y", "z"}
+    x, z = m.axes["x"], m.axes["z"]
+    # paper Table 1: 30 m/min, 2.5 / 2.1 m/s^2, 10 / 100 m/s^3
+    assert x.limits.vmax_m_s == pytest.approx(30 / 60) and z.limits.vmax_m_s == pytest.approx(30 / 60)
+    assert (x.limits.amax_m_s2, x.limits.jmax_m_s3) == (2.5, 10.0)
+    assert (z.limits.amax_m_s2, z.limits.jmax_m_s3) == (2.1, 100.0)
+    assert m.axes["y"] == x  # Y takes X's limits and dynamics
+    # DESIGN.md dynamics; Kv = m * 2 pi * 25 Hz
+    assert (x.cascade.mass_kg, z.cascade.mass_kg) == (600.0, 450.0)
+    assert (x.cascade.coulomb_n, x.cascade.static_n, x.cascade.viscous_n_s_m) == (60.0, 80.0, 600.0)
+    assert (z.cascade.coulomb_n, z.cascade.static_n, z.cascade.viscous_n_s_m) == (90.0, 120.0, 900.0)
+    for a in (x, z):
+        assert a.cascade.kv_n_s_m == pytest.approx(a.cascade.mass_kg * 2 * math.pi * 25, rel=1e-12)
+        assert (a.cascade.tn_s, a.cascade.force_lag_s, a.cascade.force_limit_n) == (0.014, 0.0004, 12000.0)
+        assert a.cascade.stribeck_m_s == 0.001 and a.cascade.friction_smoothing_m_s == 1e-4
+    assert (m.timing.te_s, m.timing.substeps, m.timing.dead_time_samples) == (0.001, 8, 2)
+    assert m.gains.kp_bounds_m_min_per_mm[0] == 1.0
+    assert (m.gains.pm_min_deg, m.gains.gm_min_db) == (70.0, 10.0)
+
+
+def test_json_and_toml_files_load_the_same(tmp_path):
+    data = tomllib.loads(PRESET.read_text())
+    (tmp_path / "m.json").write_text(json.dumps(data))
+    (tmp_path / "m.toml").write_text(PRESET.read_text())
+    a, b = load_machine(tmp_path / "m.json"), load_machine(tmp_path / "m.toml")
+    assert a == b == load_machine("ucp710")
+    assert a.digest() == load_machine("ucp710").digest()
+    data["axes"]["x"]["cascade"]["mass_kg"] = 601.0
+    assert machine_from_dict(data).digest() != a.digest()
+
+
+@pytest.mark.parametrize(
+    "path, value, field",
+    [
+        (("axes", "x", "cascade", "mass_kg"), -600.0, "axes.x.cascade.mass_kg"),
+        (("axes", "z", "cascade", "tn_s"), 0.0, "axes.z.cascade.tn_s"),
+        (("axes", "x", "limits", "vmax_m_s"), 0.0, "axes.x.limits.vmax_m_s"),
+        (("axes", "x", "cascade", "static_n"), 10.0, "static_n"),
+        (("timing", "substeps"), 0, "timing.substeps"),
+        (("gains", "kp_bounds_m_min_per_mm"), [3.0, 1.0], "kp_bounds_m_min_per_mm"),
+        (("axes", "x", "limits", "jmax_m_s3"), float("nan"), "axes.x.limits.jmax_m_s3"),
+    ],
+)
+def test_invalid_values_refused_naming_the_field(path, value, field):
+    data = tomllib.loads(PRESET.read_text())
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    with pytest.raises(MachineError, match=field.replace(".", r"\.")):
+        machine_from_dict(data, where="m.toml")
+
+
+def test_unknown_keys_and_axes_refused():
+    data = tomllib.loads(PRESET.read_text())
+    data["axes"]["x"]["cascade"]["masss_kg"] = 1.0
+    with pytest.raises(MachineError, match=r"axes\.x\.cascade\.masss_kg: unknown field"):
+        machine_from_dict(data)
+    data = tomllib.loads(PRESET.read_text())
+    data["axes"]["a"] = data["axes"]["x"]
+    with pytest.raises(MachineError, match="unknown axis"):
+        machine_from_dict(data)
+
+
+def test_bad_files_refused(tmp_path):
+    with pytest.raises(MachineError, match="nosuch"):
+        load_machine("nosuch")
+    bad = tmp_path / "m.toml"
+    bad.write_text("name = [unclosed")
+    with pytest.raises(MachineError, match="not valid TOML"):
+        load_machine(bad)
+    with pytest.raises(MachineError, match="cannot read"):
+        load_machine(tmp_path / "missing.json")
+
+
+def test_planning_limits_keep_the_loop_reserve():
+    m = load_machine("ucp710")
+    full, planned = m.axis_limits(), m.planning_limits()
+    assert list(planned.vmax_m_s) == list(full.vmax_m_s)
+    assert list(planned.jmax_m_s3) == pytest.approx(list(full.jmax_m_s3 * m.planner.jerk_fraction))
+    assert list(planned.amax_m_s2) == pytest.approx(list(full.amax_m_s2 * m.planner.accel_fraction))
