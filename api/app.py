@@ -1,0 +1,204 @@
+"""The FastAPI application: settings, lifespan (store and worker pool), guards, error bodies.
+
+Every error answer is an :class:`api.schemas.ErrorBody` (``{"message", ...}``):
+bad input is 4xx (422 naming field, line and column; 400 for malformed JSON;
+413 for an oversized body), never 5xx. The API key, when set, is required by
+every route but ``/healthz`` (header ``X-API-Key`` or ``Authorization: Bearer``).
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+import os
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException
+
+from api import routes
+from api.schemas import Health, error_body
+from api.storage import Store
+from api.workers import WorkerPool
+from oga import __version__, defaults
+from oga.errors import InputError
+
+__all__ = ["Settings", "create_app", "default_workers"]
+
+log = logging.getLogger("oga.api")
+
+
+def default_workers() -> int:
+    """One worker per CPU available to this process."""
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+               else os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How a server runs.
+
+    Attributes
+    ----------
+    db_path : str
+        SQLite database of jobs and results.
+    workers : int
+        Worker processes (jobs optimised at once); 0 starts none (the API only queues).
+    api_key : str or None
+        Required by every route but ``/healthz`` when set.
+    max_upload_bytes : int
+        Largest request body, bytes.
+    sync_max_motion_s, sync_timeout_s : float
+        Limits of ``POST /v1/gain-table`` (motion time of the toolpath, wait), s.
+    """
+
+    db_path: str
+    workers: int = field(default_factory=default_workers)
+    api_key: str | None = None
+    max_upload_bytes: int = defaults.API_MAX_UPLOAD_BYTES
+    sync_max_motion_s: float = defaults.API_SYNC_MAX_MOTION_S
+    sync_timeout_s: float = defaults.API_SYNC_TIMEOUT_S
+
+
+def _message_of(err: dict) -> str:
+    loc = ".".join(str(x) for x in err.get("loc", ()) if x != "body") or "body"
+    msg = "unknown field" if err.get("type") == "extra_forbidden" else err.get("msg", "invalid")
+    return f"{loc}: {msg}"
+
+
+async def _send_json(send, status: int, body: dict, headers: tuple = ()) -> None:
+    data = json.dumps(body).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"),
+                            (b"content-length", str(len(data)).encode()), *headers]})
+    await send({"type": "http.response.body", "body": data})
+
+
+class _Guard:
+    """ASGI middleware: the API key, then the body-size limit (read before the app sees it)."""
+
+    def __init__(self, app, api_key: str | None, max_bytes: int) -> None:
+        self.app = app
+        self.api_key = api_key.encode() if api_key else None
+        self.max_bytes = max_bytes
+
+    def _authorised(self, scope) -> bool:
+        if self.api_key is None or scope["path"] == "/healthz":
+            return True
+        headers = dict(scope["headers"])
+        given = headers.get(b"x-api-key")
+        auth = headers.get(b"authorization", b"")
+        if given is None and auth[:7].lower() == b"bearer ":
+            given = auth[7:].strip()
+        return given is not None and hmac.compare_digest(given, self.api_key)
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        if not self._authorised(scope):
+            return await _send_json(send, 401, {"message": "missing or wrong API key "
+                                                "(header X-API-Key)", "type": "Unauthorized"},
+                                    ((b"www-authenticate", b'ApiKey header="X-API-Key"'),))
+        too_big = {"message": f"request body larger than {self.max_bytes} bytes "
+                              "(the server's --max-upload-mb)", "type": "TooLarge"}
+        length = dict(scope["headers"]).get(b"content-length")
+        if length is not None and (not length.isdigit() or int(length) > self.max_bytes):
+            return await _send_json(send, 413, too_big)
+        chunks, size, more = [], 0, True
+        while more:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.max_bytes:
+                return await _send_json(send, 413, too_big)
+            chunks.append(chunk)
+            more = message.get("more_body", False)
+        body, replayed = b"".join(chunks), False
+
+        async def replay():
+            nonlocal replayed
+            if replayed:
+                return await receive()
+            replayed = True
+            return {"type": "http.request", "body": body, "more_body": False}
+
+        await self.app(scope, replay, send)
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """The API on ``settings.db_path``; workers start with the app's lifespan."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        pool = WorkerPool(settings.db_path, settings.workers) if settings.workers else None
+        app.state.pool = pool
+        if pool is not None:
+            await run_in_threadpool(pool.start)
+        try:
+            yield
+        finally:
+            if pool is not None:
+                await run_in_threadpool(pool.stop)
+
+    app = FastAPI(
+        title="oga",
+        version=__version__,
+        summary="Offline gain schedules for CNC machine tools",
+        description=(
+            "POST a toolpath, get a verified table of position-loop gains (Kp in (m/min)/mm "
+            "and Kf per axis, per sample). Jobs are durable (SQLite, WAL): they survive a "
+            "restart of the server. Limits of this server: request body "
+            f"{settings.max_upload_bytes} bytes (413 beyond); `POST /v1/gain-table` up to "
+            f"{settings.sync_max_motion_s:g} s of motion (413 beyond: use jobs). "
+            + ("Every route but /healthz needs the header `X-API-Key`." if settings.api_key
+               else "")),
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.store = Store(settings.db_path)
+    app.state.pool = None
+    app.include_router(routes.router)
+    app.add_middleware(_Guard, api_key=settings.api_key, max_bytes=settings.max_upload_bytes)
+
+    @app.exception_handler(InputError)
+    async def _input_error(request: Request, err: InputError):
+        return JSONResponse(error_body(err), status_code=422)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, err: RequestValidationError):
+        errors = err.errors()
+        bad_json = [e for e in errors if e.get("type") == "json_invalid"]
+        if bad_json:
+            ctx = bad_json[0].get("ctx", {})
+            return JSONResponse({"message": f"malformed JSON body: {ctx.get('error', 'invalid')}"
+                                 f" at character {bad_json[0]['loc'][-1]}",
+                                 "type": "MalformedJSON"}, status_code=400)
+        return JSONResponse({"message": "; ".join(_message_of(e) for e in errors),
+                             "type": "ValidationError"}, status_code=422)
+
+    @app.exception_handler(HTTPException)
+    async def _http(request: Request, err: HTTPException):
+        return JSONResponse({"message": str(err.detail)}, status_code=err.status_code,
+                            headers=getattr(err, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def _bug(request: Request, err: Exception):
+        log.exception("internal error on %s %s", request.method, request.url.path)
+        return JSONResponse({"message": "internal error", "type": "InternalError"},
+                            status_code=500)
+
+    @app.get("/healthz", response_model=Health, summary="Liveness (no API key needed)")
+    def healthz(request: Request) -> dict:
+        pool = request.app.state.pool
+        return {"status": "ok", "version": __version__,
+                "workers_alive": pool.alive() if pool else 0,
+                "jobs": request.app.state.store.counts()}
+
+    return app

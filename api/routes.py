@@ -1,0 +1,225 @@
+"""The ``/v1`` routes: jobs, their tables and summaries, the synchronous gain table, machines.
+
+Handlers are plain functions run in the thread pool (database and formatting
+work), except the synchronous gain table, which waits for its job without
+holding a thread. No handler optimises: the worker processes do.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import PurePath
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException
+
+from api.schemas import (
+    ErrorBody,
+    JobAccepted,
+    JobOut,
+    JobPage,
+    JobRequest,
+    MachineList,
+    TableFormat,
+    job_out,
+)
+from api.storage import FINISHED, STATUSES, JobRow, Store
+from oga.errors import MachineError, ToolpathError
+from oga.export import C_NAME, TABLE_FORMATS, render_table, table_from_npz
+from oga.machine import PRESETS, Machine, load_machine, machine_from_dict
+
+__all__ = ["router"]
+
+router = APIRouter(prefix="/v1")
+
+_ERRORS = {
+    404: {"model": ErrorBody, "description": "no such job or machine"},
+    409: {"model": ErrorBody, "description": "the job is not in a state that allows this"},
+    413: {"model": ErrorBody, "description": "upload too large"},
+    422: {"model": ErrorBody, "description": "invalid input (line and column for a toolpath)"},
+}
+
+
+def _store(request: Request) -> Store:
+    return request.app.state.store
+
+
+def _job(request: Request, job_id: str) -> JobRow:
+    row = _store(request).get(job_id)
+    if row is None:
+        raise HTTPException(404, f"no job {job_id!r}")
+    return row
+
+
+def _machine(spec: str | dict) -> Machine:
+    """A preset by name (never a server file) or a machine object."""
+    if isinstance(spec, str):
+        if spec not in PRESETS:
+            raise MachineError(f"machine: unknown preset {spec!r} (presets: {', '.join(PRESETS)})")
+        return load_machine(spec)
+    return machine_from_dict(spec)
+
+
+def _motion_time_s(path, machine, feed_m_s: float | None) -> float:
+    """Lower estimate of a toolpath's motion time: each move at its feed (or the override),
+    capped at the machine's slowest axis speed (rapids at that speed)."""
+    cap = min(a.limits.vmax_m_s for a in machine.axes.values())
+    return sum(seg.length / min(seg.feed_m_s if seg.rapid or feed_m_s is None else feed_m_s, cap)
+               for seg in path.segments)
+
+
+def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
+    """Validate a request (toolpath read, machine checked) and queue its job.
+
+    A synchronous job must stay within the motion-time limit and goes ahead of the queue.
+    """
+    from feedplan.read import read_toolpath
+
+    machine = _machine(body.machine)
+    tp = body.toolpath
+    path = read_toolpath(tp.content, tp.format, source=tp.name)
+    if not path.segments:
+        raise ToolpathError("toolpath: the program has no moves")
+    limit = request.app.state.settings.sync_max_motion_s
+    motion_s = _motion_time_s(path, machine, body.options.feed_m_s) if sync else 0.0
+    if motion_s > limit:
+        raise HTTPException(
+            413, f"toolpath too long for the synchronous endpoint: about {motion_s:.1f} s of "
+            f"motion, the limit is {limit:g} s; submit it with POST /v1/jobs instead")
+    row = _store(request).submit(
+        source=tp.name, toolpath_format=tp.format, toolpath=tp.content,
+        machine=machine.model_dump(mode="json"), options=body.options.as_dict(),
+        priority=1 if sync else 0)
+    return row
+
+
+def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Response:
+    blob = _store(request).table(row.id)
+    if row.status != "succeeded" or blob is None:
+        raise HTTPException(409, f"job {row.id} is {row.status}: no table")
+    data = render_table(table_from_npz(blob), fmt, name=name)
+    suffix, media = TABLE_FORMATS[fmt]
+    stem = PurePath(row.source).stem or row.id
+    return Response(data, media_type=media, headers={
+        "Content-Disposition": f'attachment; filename="{_ascii(stem)}{suffix}"',
+        "X-Oga-Job-Id": row.id})
+
+
+def _ascii(text: str) -> str:
+    return "".join(c if c.isascii() and c.isprintable() and c not in '"\\' else "_" for c in text)
+
+
+Name = Annotated[str, Query(max_length=63, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$",
+                            description="C identifier prefix (format c)")]
+
+
+@router.post("/jobs", status_code=202, response_model=JobAccepted, responses=_ERRORS,
+             summary="Submit a toolpath for optimisation")
+def submit_job(body: JobRequest, request: Request, response: Response) -> dict:
+    """Queue a job. The toolpath is read at once (422 naming line and column if it is
+    malformed); planning and the search run in a worker process. Poll ``GET /v1/jobs/{id}``."""
+    row = _accept(request, body, sync=False)
+    response.headers["Location"] = f"/v1/jobs/{row.id}"
+    return {"id": row.id, "status": row.status}
+
+
+@router.get("/jobs", response_model=JobPage, summary="List jobs, newest first")
+def list_jobs(
+    request: Request,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    offset: Annotated[int, Query(ge=0, le=2**62)] = 0,
+    status: Literal[STATUSES] | None = None,  # type: ignore[valid-type]
+) -> dict:
+    rows, total = _store(request).list(limit=limit, offset=offset, status=status)
+    nxt = offset + len(rows)
+    return {"items": [job_out(r) for r in rows], "total": total, "limit": limit,
+            "offset": offset, "next_offset": nxt if nxt < total else None}
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut, responses=_ERRORS, summary="A job")
+def get_job(job_id: str, request: Request) -> dict:
+    return job_out(_job(request, job_id))
+
+
+@router.delete("/jobs/{job_id}", response_model=JobOut, responses=_ERRORS, summary="Cancel a job")
+def cancel_job(job_id: str, request: Request) -> dict:
+    """Cancel a queued or running job (a running one stops at its next progress report).
+    Cancelling a cancelled job is a no-op; a finished job answers 409."""
+    row = _job(request, job_id)
+    if not _store(request).cancel(job_id):
+        row = _job(request, job_id)
+        if row.status != "cancelled":
+            raise HTTPException(409, f"job {job_id} has already {row.status}")
+    return job_out(_job(request, job_id))
+
+
+@router.get("/jobs/{job_id}/table", responses={
+    200: {"content": {m: {} for _, m in TABLE_FORMATS.values()},
+          "description": "the gain table"}, **_ERRORS}, response_class=Response,
+    summary="The gain table of a succeeded job")
+def get_table(job_id: str, request: Request, format: TableFormat = "csv",
+              name: Name = C_NAME) -> Response:
+    """``csv`` is byte-identical to ``oga optimize --out``; ``json`` holds the columns and
+    the metadata; ``npz`` one float64 array per column; ``c`` a C header for firmware."""
+    return _table_response(request, _job(request, job_id), format, name)
+
+
+@router.get("/jobs/{job_id}/summary", responses=_ERRORS, summary="The summary of a job")
+def get_summary(job_id: str, request: Request) -> dict:
+    """As ``oga optimize --summary``; also for a job whose schedule failed verification."""
+    row = _job(request, job_id)
+    if row.summary is None:
+        raise HTTPException(409, f"job {job_id} is {row.status}: no summary")
+    return row.summary
+
+
+@router.post("/gain-table", responses={
+    200: {"content": {m: {} for _, m in TABLE_FORMATS.values()}, "description": "the table"},
+    202: {"model": JobAccepted, "description": "not done in time: poll the job"},
+    **_ERRORS}, response_class=Response, summary="Optimise a short toolpath and return the table")
+async def gain_table(body: JobRequest, request: Request, format: TableFormat = "csv",
+                     name: Name = C_NAME) -> Response:
+    """Synchronous: for toolpaths up to the server's motion-time limit (default 10 s of
+    motion at the programmed feeds; 413 beyond it: use ``POST /v1/jobs``). The job runs in
+    a worker ahead of queued jobs; if it is not done within the server's wait limit the
+    answer is 202 with the job to poll. A schedule that fails verification answers 422
+    with the violations."""
+    row = await run_in_threadpool(_accept, request, body, True)
+    settings = request.app.state.settings
+    deadline = time.monotonic() + settings.sync_timeout_s
+    while row.status not in FINISHED and time.monotonic() < deadline:
+        await asyncio.sleep(0.1)
+        row = await run_in_threadpool(_job, request, row.id)
+    headers = {"X-Oga-Job-Id": row.id, "Location": f"/v1/jobs/{row.id}"}
+    if row.status == "succeeded":
+        return await run_in_threadpool(_table_response, request, row, format, name)
+    if row.status == "failed":
+        return JSONResponse(row.error, status_code=422, headers=headers)
+    if row.status == "cancelled":
+        raise HTTPException(409, f"job {row.id} was cancelled")
+    return JSONResponse({"id": row.id, "status": row.status}, status_code=202, headers=headers)
+
+
+@router.get("/machines", response_model=MachineList, summary="The machine presets")
+def list_machines() -> dict:
+    items = []
+    for name in PRESETS:
+        m = load_machine(name)
+        items.append({"name": m.name, "source": m.source, "axes": sorted(m.axes),
+                      "sha256": m.digest()})
+    return {"items": items}
+
+
+@router.get("/machines/{name}", responses=_ERRORS, summary="A machine preset, every field")
+def get_machine(name: str, response: Response) -> dict:
+    """The preset as a machine object, usable as the ``machine`` of a job (edited or not);
+    its SHA-256 (as in the tables' metadata) in the header ``X-Oga-Machine-Sha256``."""
+    if name not in PRESETS:
+        raise HTTPException(404, f"no machine preset {name!r} (presets: {', '.join(PRESETS)})")
+    m = load_machine(name)
+    response.headers["X-Oga-Machine-Sha256"] = m.digest()
+    return m.model_dump(mode="json")

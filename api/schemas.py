@@ -1,0 +1,156 @@
+"""Wire shapes of the REST API: request and response bodies, and the error body."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from api.storage import JobRow
+from oga.options import OptimizeOptions
+
+__all__ = [
+    "ToolpathIn",
+    "JobRequest",
+    "ErrorBody",
+    "JobAccepted",
+    "JobOut",
+    "JobPage",
+    "MachineInfo",
+    "MachineList",
+    "Health",
+    "TableFormat",
+    "error_body",
+    "job_out",
+    "json_safe",
+]
+
+#: Formats of ``GET /v1/jobs/{id}/table`` (``oga.export.TABLE_FORMATS``).
+TableFormat = Literal["csv", "json", "npz", "c"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ToolpathIn(_Strict):
+    """The program to optimise, as text."""
+
+    format: Literal["gcode", "csv", "json"] = Field(
+        description="gcode (RS274/LinuxCNC), csv or json polyline")
+    content: str = Field(description="the program text (UTF-8)")
+    name: str = Field("", max_length=255, description="program name, for messages and the summary")
+
+
+class JobRequest(_Strict):
+    """Body of ``POST /v1/jobs`` and ``POST /v1/gain-table``."""
+
+    toolpath: ToolpathIn
+    machine: str | dict[str, Any] = Field(
+        "ucp710", description="a preset name (GET /v1/machines) or a machine object "
+        "(the fields of GET /v1/machines/{name})")
+    options: OptimizeOptions = Field(
+        default_factory=OptimizeOptions,
+        description="the options of `oga optimize` (np, lam, anchor, adjust, gains, baseline, "
+        "kp_range, feed in mm/min, tolerance in mm), same defaults")
+
+
+class ErrorBody(BaseModel):
+    """Every 4xx/5xx answer, and the ``error`` of a failed job."""
+
+    message: str
+    type: str | None = Field(None, description="error class, e.g. GcodeError, OptionError")
+    line: int | None = Field(None, description="1-based line of the toolpath, when known")
+    column: int | None = Field(None, description="1-based column of the toolpath, when known")
+    violations: list[str] | None = Field(None, description="failed checks of a verification")
+
+
+class JobAccepted(BaseModel):
+    id: str
+    status: str
+
+
+class JobOut(BaseModel):
+    """A job as the API shows it."""
+
+    id: str
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    progress: float = Field(description="fraction of the search done, 0..1")
+    error: dict[str, Any] | None = Field(description="null, or an ErrorBody")
+    created_at: str
+    started_at: str | None
+    finished_at: str | None
+    source: str = Field(description="program name")
+    toolpath_format: str
+    machine: str = Field(description="machine name")
+    options: dict[str, Any]
+    attempts: int = Field(description="times a worker started this job")
+    links: dict[str, str]
+
+
+class JobPage(BaseModel):
+    items: list[JobOut]
+    total: int
+    limit: int
+    offset: int
+    next_offset: int | None = Field(description="offset of the next page, null on the last")
+
+
+class MachineInfo(BaseModel):
+    name: str
+    source: str
+    axes: list[str]
+    sha256: str
+
+
+class MachineList(BaseModel):
+    items: list[MachineInfo]
+
+
+class Health(BaseModel):
+    status: str
+    version: str
+    workers_alive: int
+    jobs: dict[str, int]
+
+
+def error_body(err: BaseException) -> dict:
+    """The error body of a project exception (line/column when the error has them)."""
+    body: dict[str, Any] = {"message": str(err), "type": type(err).__name__}
+    for key in ("line", "column"):
+        value = getattr(err, key, 0)
+        if value:
+            body[key] = int(value)
+    return body
+
+
+def job_out(row: JobRow) -> dict:
+    """The API view of a stored job."""
+    base = f"/v1/jobs/{row.id}"
+    return {
+        "id": row.id,
+        "status": row.status,
+        "progress": row.progress,
+        "error": row.error,
+        "created_at": row.created_at,
+        "started_at": row.started_at,
+        "finished_at": row.finished_at,
+        "source": row.source,
+        "toolpath_format": row.toolpath_format,
+        "machine": row.machine.get("name", ""),
+        "options": row.options,
+        "attempts": row.attempts,
+        "links": {"self": base, "table": f"{base}/table", "summary": f"{base}/summary"},
+    }
+
+
+def json_safe(value):
+    """``value`` with every non-finite float replaced by None (JSON has no inf/nan)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value

@@ -1,0 +1,353 @@
+"""The REST API in-process (FastAPI TestClient): jobs, tables, bad input, durability rules."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import socket
+import sqlite3
+import subprocess
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, Phase, settings
+
+from api import Settings, create_app
+from api.schemas import TableFormat
+from api.storage import Owner
+from api.workers import MAX_ATTEMPTS, WorkerPool, run_claimed
+from oga.export import TABLE_FORMATS, table_csv, table_from_npz, table_columns
+from oga.machine import load_machine, machine_from_dict
+from oga.options import options_from_dict
+from oga.pipeline import run_job
+
+#: A short XZ contour (line, arc, line; about 1 s of motion at F3000).
+PROGRAM = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nG2 X13 Z5 I0 K5\nG1 X25 Z5\nM2\n"
+OPTIONS: dict = {}  # the defaults of oga optimize
+
+
+def body(content: str = PROGRAM, fmt: str = "gcode", **extra) -> dict:
+    return {"toolpath": {"format": fmt, "content": content, "name": "short.ngc"},
+            "options": OPTIONS, **extra}
+
+
+def wait_job(client, job_id: str, timeout_s: float = 180.0) -> tuple[dict, list[str]]:
+    """Poll a job until it finishes; returns it and the statuses seen."""
+    seen, t_end = [], time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if not seen or seen[-1] != job["status"]:
+            seen.append(job["status"])
+        if job["status"] in ("succeeded", "failed", "cancelled"):
+            return job, seen
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} did not finish in {timeout_s} s (seen {seen})")
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """The same job run by the library in this process."""
+    job = run_job(PROGRAM, "gcode", load_machine("ucp710"), options_from_dict(OPTIONS),
+                  source="short.ngc")
+    assert job.result.status == "ok", job.result.optimized.violations
+    return job
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    """An app with one worker process."""
+    db = tmp_path_factory.mktemp("api") / "jobs.db"
+    with TestClient(create_app(Settings(db_path=str(db), workers=1))) as c:
+        yield c
+
+
+@pytest.fixture
+def queue_only(tmp_path):
+    """An app without workers: jobs stay queued unless a test runs them."""
+    app = create_app(Settings(db_path=str(tmp_path / "q.db"), workers=0, sync_timeout_s=0.3,
+                              max_upload_bytes=4096))
+    with TestClient(app) as c:
+        yield c
+
+
+# -- the happy path ------------------------------------------------------------------------------
+
+def test_job_runs_in_a_worker_to_the_library_table(client, reference):
+    r = client.post("/v1/jobs", json=body())
+    assert r.status_code == 202
+    assert r.json()["status"] == "queued"
+    job_id = r.json()["id"]
+    assert r.headers["location"] == f"/v1/jobs/{job_id}"
+    job, seen = wait_job(client, job_id)
+    assert job["status"] == "succeeded" and seen[-1] == "succeeded", job
+    assert set(seen) <= {"queued", "running", "succeeded"}
+    assert job["progress"] == 1.0 and job["error"] is None and job["attempts"] == 1
+    assert job["created_at"] <= job["started_at"] <= job["finished_at"]
+    assert job["options"] == options_from_dict(OPTIONS).as_dict()
+
+    csv = client.get(f"/v1/jobs/{job_id}/table")
+    assert csv.status_code == 200 and csv.headers["content-type"].startswith("text/csv")
+    assert csv.text == table_csv(reference.result)  # byte-identical to oga optimize --out
+
+    summary = client.get(f"/v1/jobs/{job_id}/summary").json()
+    expected = json.loads(json.dumps(reference.summary()))
+    for key in ("optimize_time_s",):  # wall time differs between runs
+        summary.pop(key), expected.pop(key)
+    assert summary == expected
+
+    header, cols = table_columns(reference.result)
+    npz = client.get(f"/v1/jobs/{job_id}/table", params={"format": "npz"})
+    table = table_from_npz(npz.content)
+    assert table.header == tuple(header) and np.array_equal(table.data, np.column_stack(cols))
+    assert table.meta["toolpath_sha256"] == reference.toolpath_sha256
+    for fmt in ("json", "c"):
+        r = client.get(f"/v1/jobs/{job_id}/table", params={"format": fmt, "name": "part_1"})
+        assert r.status_code == 200
+        assert r.headers["content-type"].split(";")[0] == TABLE_FORMATS[fmt][1].split(";")[0]
+    assert "static const double part_1_kp_m_min_per_mm" in r.text
+    assert client.get(f"/v1/jobs/{job_id}/table", params={"format": "xlsx"}).status_code == 422
+    assert client.get(f"/v1/jobs/{job_id}/table",
+                      params={"format": "c", "name": "1x"}).status_code == 422
+
+
+def test_synchronous_gain_table_matches_the_job_table(client, reference):
+    r = client.post("/v1/gain-table", json=body())
+    assert r.status_code == 200, r.text
+    assert r.text == table_csv(reference.result)
+    job = client.get(f"/v1/jobs/{r.headers['x-oga-job-id']}").json()
+    assert job["status"] == "succeeded"
+
+
+def test_synchronous_gain_table_refuses_long_toolpaths_with_a_hint(client):
+    before = client.get("/v1/jobs").json()["total"]
+    long = "G21 G90\nG1 X0 Y0 F3000\nG1 X1000\nM2\n"  # 20 s at 3 m/min
+    r = client.post("/v1/gain-table", json=body(long))
+    assert r.status_code == 413
+    assert "POST /v1/jobs" in r.json()["message"] and "20.0 s" in r.json()["message"]
+    assert client.get("/v1/jobs").json()["total"] == before
+
+
+def test_machines_and_health(client):
+    preset = load_machine("ucp710")
+    items = client.get("/v1/machines").json()["items"]
+    assert {"name": "ucp710", "source": preset.source, "axes": ["x", "y", "z"],
+            "sha256": preset.digest()} in items
+    r = client.get("/v1/machines/ucp710")
+    assert machine_from_dict(r.json()) == preset
+    assert r.headers["x-oga-machine-sha256"] == preset.digest()
+    assert client.get("/v1/machines/nope").status_code == 404
+    health = client.get("/healthz").json()
+    assert health["status"] == "ok" and health["workers_alive"] == 1
+
+
+# -- bad input: 4xx, never 5xx -------------------------------------------------------------------
+
+def _bad_machine():
+    m = load_machine("ucp710").model_dump(mode="json")
+    m["axes"]["x"]["limits"]["vmax_m_s"] = -1.0
+    return m
+
+
+BAD_GCODE = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X10 Q\nM2\n"
+
+BAD = {
+    "unknown machine": (body(machine="nope"), 422, "unknown preset 'nope'"),
+    "machine file path": (body(machine="/etc/passwd.json"), 422, "unknown preset"),
+    "invalid machine field": (body(machine=_bad_machine()), 422, "axes.x.limits.vmax_m_s"),
+    "option out of range": ({**body(), "options": {"np": 0}}, 422, "options.np"),
+    "unknown option": ({**body(), "options": {"bogus": 1}}, 422, "options.bogus: unknown field"),
+    "inconsistent baseline": ({**body(), "options": {"baseline": [2.0, 7.0]}}, 422, "Kf"),
+    "unknown toolpath format": (body(fmt="dxf"), 422, "toolpath.format"),
+    "missing content": ({"toolpath": {"format": "gcode"}}, 422, "toolpath.content"),
+    "not an object": ([1, 2], 422, "body"),
+    "empty toolpath": (body("G21\nM2\n"), 422, "no moves"),
+    "nan in a csv polyline": (body("x,y,z\n0,0,0\nnan,1,0\n", fmt="csv"), 422, ""),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_input_answers_4xx_naming_what_is_wrong(queue_only, case):
+    payload, status, words = BAD[case]
+    r = queue_only.post("/v1/jobs", json=payload)
+    assert r.status_code == status, r.text
+    assert words in r.json()["message"] and r.json()["message"]
+
+
+def test_malformed_gcode_names_line_and_column(queue_only):
+    r = queue_only.post("/v1/jobs", json=body(BAD_GCODE))
+    assert r.status_code == 422
+    err = r.json()
+    line = BAD_GCODE.splitlines()[2]
+    assert (err["line"], err["column"], err["type"]) == (3, line.index("Q") + 1, "GcodeError")
+
+
+@pytest.mark.parametrize("raw", [
+    b'{"toolpath": {"format": "gcode", "content": "G1 X1"}, "options": {"lam": NaN}}',
+    b'{"toolpath": {"format": "gcode", "content": "G1 X1"}, "options": {"feed": Infinity}}',
+    b'{"toolpath": {"format": "gcode", "content": "G1 X1"}, "options": {"kp_range": [1, 1e999]}}',
+])
+def test_non_finite_numbers_are_refused(queue_only, raw):
+    r = queue_only.post("/v1/jobs", content=raw, headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "options." in r.json()["message"]
+
+
+def test_broken_json_is_400(queue_only):
+    r = queue_only.post("/v1/jobs", content=b'{"toolpath": {', headers={"content-type": "application/json"})
+    assert r.status_code == 400 and "malformed JSON" in r.json()["message"]
+
+
+def test_oversized_uploads_are_413_with_or_without_length(queue_only):
+    big = "G1 X1\n" * 1000  # 6000 bytes > the 4096 of this app
+    assert queue_only.post("/v1/jobs", json=body(big)).status_code == 413
+
+    def chunks():
+        yield b'{"toolpath": {"format": "gcode", "content": "'
+        for _ in range(100):
+            yield b"G1 X1 " * 10
+        yield b'"}}'
+
+    r = queue_only.post("/v1/jobs", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413 and "4096" in r.json()["message"]
+    assert queue_only.post("/v1/jobs", json=body()).status_code == 202
+
+
+def test_unknown_jobs_and_routes_are_404(queue_only):
+    for path in ("/v1/jobs/nope", "/v1/jobs/nope/table", "/v1/jobs/nope/summary", "/v2"):
+        r = queue_only.get(path)
+        assert r.status_code == 404 and r.json()["message"]
+    assert queue_only.delete("/v1/jobs/nope").status_code == 404
+
+
+# -- job life: cancel, pages, failed verification, recovery --------------------------------------
+
+def test_cancel_a_queued_job(queue_only):
+    job_id = queue_only.post("/v1/jobs", json=body()).json()["id"]
+    assert queue_only.get(f"/v1/jobs/{job_id}/table").status_code == 409
+    r = queue_only.delete(f"/v1/jobs/{job_id}")
+    assert r.status_code == 200 and r.json()["status"] == "cancelled"
+    assert queue_only.delete(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
+    assert queue_only.get(f"/v1/jobs/{job_id}/table").status_code == 409
+    assert queue_only.get(f"/v1/jobs/{job_id}/summary").status_code == 409
+
+
+def test_jobs_are_listed_newest_first_in_pages(queue_only):
+    ids = [queue_only.post("/v1/jobs", json=body()).json()["id"] for _ in range(3)]
+    queue_only.delete(f"/v1/jobs/{ids[0]}")
+    page = queue_only.get("/v1/jobs", params={"limit": 2}).json()
+    assert [j["id"] for j in page["items"]] == ids[::-1][:2]
+    assert (page["total"], page["next_offset"]) == (3, 2)
+    last = queue_only.get("/v1/jobs", params={"limit": 2, "offset": 2}).json()
+    assert [j["id"] for j in last["items"]] == [ids[0]] and last["next_offset"] is None
+    queued = queue_only.get("/v1/jobs", params={"status": "queued"}).json()
+    assert {j["id"] for j in queued["items"]} == set(ids[1:])
+    assert queue_only.get("/v1/jobs", params={"limit": 0}).status_code == 422
+    assert queue_only.get("/v1/jobs", params={"status": "done"}).status_code == 422
+
+
+def _owner(pid: int, instance: str = "test", host: str | None = None) -> Owner:
+    return Owner(host or socket.gethostname(), pid, instance, pid)
+
+
+def test_a_schedule_failing_verification_fails_the_job_without_a_table(queue_only, reference,
+                                                                        monkeypatch):
+    store = queue_only.app.state.store
+    job_id = queue_only.post("/v1/jobs", json=body()).json()["id"]
+    violation = "axis x: velocity command jerk reaches 1.500x its limit"
+    result = dataclasses.replace(
+        reference.result, status="failed",
+        optimized=dataclasses.replace(reference.result.optimized, violations=(violation,)))
+    monkeypatch.setattr("oga.pipeline.run_job",
+                        lambda *a, **k: dataclasses.replace(reference, result=result))
+    run_claimed(store, store.claim(_owner(12345)))
+    job = queue_only.get(f"/v1/jobs/{job_id}").json()
+    assert job["status"] == "failed"
+    assert job["error"]["violations"] == [violation] and violation in job["error"]["message"]
+    assert queue_only.get(f"/v1/jobs/{job_id}/table").status_code == 409
+    assert queue_only.get(f"/v1/jobs/{job_id}/summary").json()["status"] == "failed"
+
+
+def test_a_job_cancelled_while_running_stores_no_result(queue_only):
+    store = queue_only.app.state.store
+    job_id = queue_only.post("/v1/jobs", json=body()).json()["id"]
+    claimed = store.claim(_owner(12345))
+    assert queue_only.delete(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
+    run_claimed(store, claimed)  # the real engine; its writes are fenced off
+    assert queue_only.get(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
+    assert store.table(job_id) is None
+
+
+def _dead_pid() -> int:
+    p = subprocess.Popen(["true"])
+    p.wait()
+    return p.pid
+
+
+def test_jobs_of_a_dead_server_or_worker_are_requeued(queue_only):
+    store = queue_only.app.state.store
+    pool = WorkerPool(store.path, 1)
+    dead = _dead_pid()
+    ids = [queue_only.post("/v1/jobs", json=body()).json()["id"] for _ in range(3)]
+    # server on this host gone; server elsewhere silent for an hour; server elsewhere alive
+    store.claim(_owner(dead, "old"))
+    store.claim(_owner(4242, "far", host="elsewhere"))
+    store.claim(_owner(4243, "near", host="elsewhere"))
+    with sqlite3.connect(store.path) as db:
+        db.execute("UPDATE jobs SET heartbeat = heartbeat - 3600 WHERE owner_instance = 'far'")
+    assert sorted(pool.recover()) == sorted(ids[:2])
+    statuses = [queue_only.get(f"/v1/jobs/{i}").json()["status"] for i in ids]
+    assert statuses == ["queued", "queued", "running"]
+
+
+def test_a_job_that_keeps_killing_its_worker_fails(queue_only):
+    store = queue_only.app.state.store
+    pool = WorkerPool(store.path, 1)
+    dead = _dead_pid()
+    job_id = queue_only.post("/v1/jobs", json=body()).json()["id"]
+    for attempt in range(1, MAX_ATTEMPTS + 1):
+        assert store.claim(_owner(dead, pool.instance)).attempts == attempt
+        assert pool.recover({dead}) == [job_id]
+    job = queue_only.get(f"/v1/jobs/{job_id}").json()
+    assert job["status"] == "failed" and job["error"]["type"] == "WorkerLost"
+
+
+# -- API key --------------------------------------------------------------------------------------
+
+def test_api_key_guards_every_route_but_healthz(tmp_path):
+    app = create_app(Settings(db_path=str(tmp_path / "k.db"), workers=0, api_key="s3cret"))
+    with TestClient(app) as c:
+        assert c.get("/healthz").status_code == 200
+        for path in ("/v1/machines", "/v1/jobs", "/docs", "/openapi.json", "/v1/jobs/x"):
+            assert c.get(path).status_code == 401, path
+        assert c.get("/v1/machines", headers={"X-API-Key": "wrong"}).status_code == 401
+        assert c.post("/v1/jobs", json=body()).status_code == 401
+        assert c.get("/v1/machines", headers={"X-API-Key": "s3cret"}).status_code == 200
+        assert c.get("/v1/machines", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+
+
+# -- the OpenAPI schema, fuzzed --------------------------------------------------------------------
+
+def test_table_formats_of_the_api_are_the_export_formats():
+    assert set(TableFormat.__args__) == set(TABLE_FORMATS)
+
+
+def test_openapi_operations_never_answer_5xx(tmp_path):
+    """schemathesis generates requests from the OpenAPI schema (a few per operation)."""
+    import schemathesis
+    from hypothesis import given
+    from schemathesis.checks import not_a_server_error
+
+    app = create_app(Settings(db_path=str(tmp_path / "f.db"), workers=0, sync_timeout_s=0.2))
+    schema = schemathesis.openapi.from_asgi("/openapi.json", app)
+    operations = [r.ok() for r in schema.get_all_operations()]
+    assert len(operations) >= 9
+
+    for op in operations:
+        @given(case=op.as_strategy())
+        @settings(max_examples=8, deadline=None, derandomize=True, database=None,
+                  phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
+        def check(case):
+            case.call_and_validate(checks=[not_a_server_error])
+
+        check()

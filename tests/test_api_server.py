@@ -1,0 +1,151 @@
+"""A real ``oga serve`` on 127.0.0.1: a job end to end, and a SIGKILL of the server mid-job."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+import httpx
+import pytest
+
+DATA = Path(__file__).parent / "data"
+REFERENCE = (DATA / "reference_xz.ngc").read_text()
+SHORT = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nG2 X13 Z5 I0 K5\nG1 X25 Z5\nM2\n"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """``oga serve`` in a subprocess on a free loopback port."""
+
+    def __init__(self, db: Path, workers: int, log: Path) -> None:
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = open(log, "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "oga", "serve", "--port", str(self.port), "--db", str(db),
+             "--workers", str(workers)], stdout=self.log, stderr=subprocess.STDOUT)
+        self.http = httpx.Client(base_url=self.url, timeout=30.0)
+        t_end = time.monotonic() + 90
+        while time.monotonic() < t_end:
+            assert self.proc.poll() is None, f"oga serve exited: see {log}"
+            try:
+                if self.http.get("/healthz").json()["workers_alive"] == workers:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError("oga serve did not come up")
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> None:
+        self.http.close()
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(30)
+        self.log.close()
+
+
+def submit(server: Server, program: str, name: str) -> str:
+    r = server.http.post("/v1/jobs", json={"toolpath": {"format": "gcode", "content": program,
+                                                        "name": name}, "machine": "ucp710"})
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def wait_for(server: Server, job_id: str, statuses, timeout_s: float = 240) -> tuple[dict, list]:
+    seen, t_end = [], time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        job = server.http.get(f"/v1/jobs/{job_id}").json()
+        if not seen or seen[-1] != job["status"]:
+            seen.append(job["status"])
+        if job["status"] in statuses:
+            return job, seen
+        time.sleep(0.05)
+    raise AssertionError(f"job {job_id} never reached {statuses} (seen {seen})")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def cli_table(tmp_path_factory) -> str:
+    """``oga optimize --out`` on reference_xz.ngc: the table the API must reproduce byte for byte."""
+    out = tmp_path_factory.mktemp("cli") / "table.csv"
+    subprocess.run([sys.executable, "-m", "oga", "optimize", str(DATA / "reference_xz.ngc"),
+                    "--machine", "ucp710", "--out", str(out)], check=True, capture_output=True)
+    return out.read_text()
+
+
+def _seconds(job: dict, a: str, b: str) -> float:
+    t = {k: datetime.fromisoformat(job[k].replace("Z", "+00:00")) for k in (a, b)}
+    return (t[b] - t[a]).total_seconds()
+
+
+def test_reference_job_on_loopback(tmp_path, cli_table):
+    server = Server(tmp_path / "oga.db", workers=1, log=tmp_path / "serve.log")
+    try:
+        job_id = submit(server, REFERENCE, "reference_xz.ngc")
+        job, seen = wait_for(server, job_id, ("succeeded", "failed", "cancelled"))
+        assert job["status"] == "succeeded", job
+        assert seen[0] in ("queued", "running") and "running" in seen
+        print(f"\nreference_xz.ngc: queued -> succeeded in "
+              f"{_seconds(job, 'created_at', 'finished_at'):.1f} s "
+              f"(running {_seconds(job, 'started_at', 'finished_at'):.1f} s)")
+        assert server.http.get(f"/v1/jobs/{job_id}/table").text == cli_table
+        summary = server.http.get(f"/v1/jobs/{job_id}/summary").json()
+        assert summary["status"] == "ok" and summary["toolpath"] == "reference_xz.ngc"
+
+        bad = server.http.post("/v1/jobs", json={"toolpath": {"format": "gcode",
+                                                               "content": "G1 X1 Y\n"}})
+        assert bad.status_code == 422 and (bad.json()["line"], bad.json()["column"]) == (1, 7)
+    finally:
+        server.stop()
+
+
+def test_a_job_survives_sigkill_of_the_server(tmp_path, cli_table):
+    db, log = tmp_path / "oga.db", tmp_path / "serve.log"
+    server = Server(db, workers=1, log=log)
+    try:
+        first = submit(server, REFERENCE, "reference_xz.ngc")
+        second = submit(server, SHORT, "short.ngc")  # still queued when the server dies
+        wait_for(server, first, ("running",))
+    finally:
+        server.kill()
+    with sqlite3.connect(db) as con:
+        worker = con.execute("SELECT worker_pid FROM jobs WHERE id = ?", (first,)).fetchone()[0]
+        statuses = dict(con.execute("SELECT id, status FROM jobs"))
+    assert statuses == {first: "running", second: "queued"}
+    t_end = time.monotonic() + 10
+    while _alive(worker) and time.monotonic() < t_end:  # the worker dies with its server
+        time.sleep(0.05)
+    assert not _alive(worker)
+
+    server = Server(db, workers=1, log=log)
+    try:
+        job, _ = wait_for(server, first, ("succeeded", "failed", "cancelled"))
+        assert job["status"] == "succeeded" and job["attempts"] == 2, job
+        assert server.http.get(f"/v1/jobs/{first}/table").text == cli_table
+        job, _ = wait_for(server, second, ("succeeded", "failed", "cancelled"))
+        assert job["status"] == "succeeded" and job["attempts"] == 1, job
+    finally:
+        server.stop()
