@@ -50,7 +50,7 @@ def main() -> None:
         "reference_xz", "short_xz", "circle_r50_f3000", "freeform_xz", "helix_r20"]
     planned = {n: plan(load_toolpath(DATA / f"{n}.ngc"), machine.planning_limits()) for n in names}
     optimize(planned["reference_xz"], machine, {**PAPER, "np": 5})  # compile / load caches
-    optimize(planned["reference_xz"], machine, {"np": 5})
+    optimize(planned["reference_xz"], machine, {"np": 20})
     print(f"{'toolpath':18s} {'mode':6s} {'samples':>7s} {'base':>7s} {'rms0 um':>8s} "
           f"{'rms um':>8s} {'max0 um':>8s} {'max um':>8s} {'ratio':>7s} {'RT':>8s}  status")
     for name, sp in planned.items():

@@ -406,7 +406,7 @@ def _plan_feed(
     ceil0, tan, kappa, feed = _static_limits(fb)
     ax = limits.present
     jmax, amax = limits.jmax_m_s3[ax], limits.amax_m_s2[ax]
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):  # a tangent component of 0 or ~1e-300
         j_path = np.min(jmax / tan[:, ax], axis=1)
         a_path = np.min(0.5 * amax / tan[:, ax], axis=1)
     moving = np.any(tan[:, ax] > 1e-12, axis=0)

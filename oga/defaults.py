@@ -9,6 +9,7 @@ __all__ = [
     "LAMBDA",
     "ANCHOR",
     "MPC_BLOCKS",
+    "MPC_MIN_NP",
     "MPC_REPLAN",
     "A1",
     "A2",
@@ -33,6 +34,8 @@ LAMBDA = {"paper": 0.01, "full": 100.0}
 ANCHOR = {"paper": 0.0, "full": 300.0}
 #: Full mode: move blocks over the horizon (the gain trajectory may step at each block start).
 MPC_BLOCKS = 5
+#: Full mode: shortest horizon accepted, samples (dead time plus the loop's settling).
+MPC_MIN_NP = 20
 #: Full mode: samples between two plans (longer intervals were measured to lose the gain).
 MPC_REPLAN = 1
 #: Candidate fractions of the admissible increment interval (paper: a1 = 0.01, a2 = 0.05).

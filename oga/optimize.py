@@ -228,6 +228,11 @@ def optimize(
     if not isinstance(options, OptimizeOptions):
         options = options_from_dict(options)
     t0 = time.perf_counter()
+    if options.mode == "full" and options.np < defaults.MPC_MIN_NP:
+        raise OptionError(
+            f"np: full mode needs a horizon of at least {defaults.MPC_MIN_NP} samples "
+            f"(got {options.np}); a shorter one cannot see the jerk limit coming"
+        )
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")

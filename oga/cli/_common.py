@@ -10,7 +10,14 @@ from pathlib import Path as FilePath
 
 from oga.errors import InputError
 
-__all__ = ["add_toolpath_args", "load_inputs", "write_text", "write_json"]
+__all__ = [
+    "add_search_args",
+    "add_toolpath_args",
+    "load_inputs",
+    "options_from_args",
+    "write_json",
+    "write_text",
+]
 
 
 def add_toolpath_args(p: argparse.ArgumentParser, *, toolpath_required: bool = True) -> None:
@@ -23,6 +30,35 @@ def add_toolpath_args(p: argparse.ArgumentParser, *, toolpath_required: bool = T
                    help="feed override in mm/min (default: the program's F)")
     p.add_argument("--tolerance", type=float, default=None, metavar="MM",
                    help="interpolation tolerance in mm (default 0.02)")
+
+
+def add_search_args(p: argparse.ArgumentParser) -> None:
+    """The search flags of ``oga optimize`` (names and meaning of the API's options)."""
+    p.add_argument("--mode", default=None, choices=("full", "paper"),
+                   help="full (default): gain trajectories planned over the horizon; "
+                        "paper: the published five-candidate search")
+    p.add_argument("--baseline", default=None, metavar="best|KP,KF",
+                   help="fixed gains to start from and compare with (default best)")
+    p.add_argument("--adjust", default=None, metavar="AXES",
+                   help="axes to adjust, e.g. x,z (default every contouring axis)")
+    p.add_argument("--gains", default=None, metavar="kp|kp,kf", help="gains to adjust (default kp,kf)")
+    p.add_argument("--kp-range", default=None, metavar="LO,HI",
+                   help="Kp bounds in (m/min)/mm for adjusted axes (default the stable range)")
+    p.add_argument("--np", type=int, default=None, metavar="N", help="prediction horizon, samples")
+    p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
+    p.add_argument("--anchor", type=float, default=None, metavar="MU",
+                   help="weight pulling the gains back to the baseline (0: the paper's cost)")
+
+
+def options_from_args(args: argparse.Namespace):
+    """OptimizeOptions from the search flags and --feed/--tolerance (OptionError if bad)."""
+    from oga.options import options_from_dict
+
+    return options_from_dict(
+        None, mode=args.mode, baseline=args.baseline, adjust=args.adjust, gains=args.gains,
+        kp_range=args.kp_range, np=args.np, lam=args.lam, anchor=args.anchor,
+        feed=args.feed, tolerance=args.tolerance,
+    )
 
 
 def load_inputs(args: argparse.Namespace):
@@ -51,6 +87,9 @@ def write_text(target: str | os.PathLike, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
         os.replace(tmp, target)
     except BaseException:
         try:

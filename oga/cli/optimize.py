@@ -6,7 +6,13 @@ import argparse
 import sys
 from pathlib import Path as FilePath
 
-from oga.cli._common import add_toolpath_args, write_json, write_text
+from oga.cli._common import (
+    add_search_args,
+    add_toolpath_args,
+    options_from_args,
+    write_json,
+    write_text,
+)
 from oga.cli._progress import ProgressBar
 
 __all__ = ["register", "run"]
@@ -20,20 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "verify it by replay and write the gain table.",
     )
     add_toolpath_args(p)
-    p.add_argument("--mode", default=None, choices=("full", "paper"),
-                   help="full (default): gain trajectories planned over the horizon; "
-                        "paper: the published five-candidate search")
-    p.add_argument("--baseline", default=None, metavar="best|KP,KF",
-                   help="fixed gains to start from and compare with (default best)")
-    p.add_argument("--adjust", default=None, metavar="AXES",
-                   help="axes to adjust, e.g. x,z (default every contouring axis)")
-    p.add_argument("--gains", default=None, metavar="kp|kp,kf", help="gains to adjust (default kp,kf)")
-    p.add_argument("--kp-range", default=None, metavar="LO,HI",
-                   help="Kp bounds in (m/min)/mm for adjusted axes (default the stable range)")
-    p.add_argument("--np", type=int, default=None, metavar="N", help="prediction horizon, samples")
-    p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
-    p.add_argument("--anchor", type=float, default=None, metavar="MU",
-                   help="weight pulling the gains back to the baseline (0: the paper's cost)")
+    add_search_args(p)
     p.add_argument("--out", required=True, metavar="TABLE.csv", help="gain table CSV to write")
     p.add_argument("--summary", metavar="SUMMARY.json", help="summary JSON to write")
     p.set_defaults(func=run)
@@ -42,16 +35,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from oga.export import table_csv
     from oga.machine import load_machine
-    from oga.options import options_from_dict
     from oga.pipeline import run_job
     from feedplan.read import read_file
 
     machine = load_machine(args.machine)
-    options = options_from_dict(
-        None,
-        mode=args.mode, baseline=args.baseline, adjust=args.adjust, gains=args.gains, kp_range=args.kp_range,
-        np=args.np, lam=args.lam, anchor=args.anchor, feed=args.feed, tolerance=args.tolerance,
-    )
+    options = options_from_args(args)
     text, fmt = read_file(args.toolpath)
     with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
         job = run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
