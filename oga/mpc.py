@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from oga.contour import nearest_segment
+from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.simulate import run, step
 
@@ -195,19 +196,6 @@ def _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_l
         plan_kf[a, i] = min(max(plan_kf[a, i], kf_lo[a]), kf_hi[a])
         kpa[i] = plan_kp[a, i] * _C
         kfa[i] = plan_kf[a, i]
-
-
-@njit(cache=True)
-def _eq2_excess(u, u1, u2, vmax, amax, jmax, te, n):
-    """Largest excess over 1 of |u|/V, |du|/(A Te), |d2u|/(J Te^2) over n samples (0: within)."""
-    worst = 0.0
-    for i in range(n):
-        v = u[i]
-        worst = max(worst, abs(v) / vmax - 1.0, abs(v - u1) / (amax * te) - 1.0,
-                    abs(v - 2.0 * u1 + u2) / (jmax * te * te) - 1.0)
-        u2 = u1
-        u1 = v
-    return worst
 
 
 @njit(cache=True)
@@ -410,7 +398,7 @@ def mpc_chunk(
                 stats[STAT_WINDOWS] += 1
                 for i in range(n_pred):
                     trial[a, i] = tmp_p[i]
-                worst = max(worst, _eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
+                worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
                                                amax[a], jmax[a], te, n_pred))
             for a in range(3):
                 if not moving[a]:

@@ -39,10 +39,10 @@ from oga.errors import InputError, OptionError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.metrics import ContourMetrics, contour_metrics
 from oga.simulate import axis_params, simulate, simulate_axis
+from oga.kinematics import command_peaks
 from oga.stability import decimal_grid
 
 __all__ = [
-    "command_peaks",
     "KinematicRange",
     "BestFixed",
     "Ranges",
@@ -53,40 +53,6 @@ __all__ = [
 
 #: Decimals kept on grid values (removes float noise of lo + i * step).
 _UM2 = 1e12
-
-
-@njit(cache=True)
-def command_peaks(u, check, te):
-    """Largest ``|u|``, ``|du|/Te`` and ``|d2u|/Te^2`` over the samples to check.
-
-    Parameters
-    ----------
-    u : ndarray, shape (N,)
-        Velocity commands, m/s; the axis is at rest before sample 0.
-    check : ndarray of bool, shape (N,)
-        Samples where eq. 2 applies.
-    te : float
-        Sample period, s.
-
-    Returns
-    -------
-    (float, float, float)
-        Peaks in m/s, m/s^2, m/s^3 (zero when no sample is checked).
-    """
-    v_pk = 0.0
-    a_pk = 0.0
-    j_pk = 0.0
-    u1 = 0.0  # u_{k-1}
-    u2 = 0.0  # u_{k-2}
-    for k in range(u.shape[0]):
-        uk = u[k]
-        if check[k]:
-            v_pk = max(v_pk, abs(uk))
-            a_pk = max(a_pk, abs(uk - u1) / te)
-            j_pk = max(j_pk, abs(uk - 2.0 * u1 + u2) / (te * te))
-        u2 = u1
-        u1 = uk
-    return v_pk, a_pk, j_pk
 
 
 @dataclass(frozen=True, eq=False)

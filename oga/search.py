@@ -41,6 +41,7 @@ import numpy as np
 from numba import njit
 
 from oga.contour import nearest_segment
+from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.simulate import step, window
 
@@ -145,29 +146,19 @@ def _candidates(
 
 
 @njit(cache=True)
-def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te):
-    """Largest excess over 1 of the predicted command's |u|/V, |du|/(A Te), |d2u|/(J Te^2).
+def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te, u):
+    """Eq. 2 excess (:func:`oga.kinematics.eq2_excess`) of a candidate's predicted commands.
 
-    The command of the window's samples ``k .. k+n-1`` is rebuilt from the predicted
-    positions (``p_now`` at k, then ``pred[m-1]``) with the candidate gains held; 0
-    means eq. 2 holds over the whole window.
+    The commands of the window's samples ``k .. k+n-1`` are rebuilt into ``u`` from
+    the predicted positions (``p_now`` at k, then ``pred[m-1]``) with the candidate
+    gains held.
     """
     last = pd.shape[0] - 1
-    worst = 0.0
-    a_lim = amax * te
-    j_lim = jmax * te * te
     for m in range(n):
-        i = k + m
+        i = min(k + m, last)
         p = p_now if m == 0 else pred[m - 1]
-        if i <= last:
-            u = kp_si * (pd[i] - p) + kf * vd[i]
-        else:
-            u = kp_si * (pd[last] - p)
-        worst = max(worst, abs(u) / vmax - 1.0, abs(u - u1) / a_lim - 1.0,
-                    abs(u - 2.0 * u1 + u2) / j_lim - 1.0)
-        u2 = u1
-        u1 = u
-    return worst
+        u[m] = kp_si * (pd[i] - p) + (kf * vd[i] if k + m <= last else 0.0)
+    return eq2_excess(u, u1, u2, vmax, amax, jmax, te, n)
 
 
 @njit(cache=True)
@@ -230,6 +221,7 @@ def search_chunk(
     cross = np.zeros((3, 3, MAX_CANDIDATES, MAX_CANDIDATES))
     choice = np.zeros(3, dtype=np.int64)
     viol = np.zeros((3, MAX_CANDIDATES))
+    u_scratch = np.empty(n_pred)
     allowed = np.ones((3, MAX_CANDIDATES), dtype=np.bool_)
     te2 = te * te
     for k in range(k0, k1):
@@ -265,6 +257,7 @@ def search_chunk(
                 viol[a, c] = _window_violation(
                     states[a, 0], pred[a, c], pdT[a], vdT[a], k, n_pred, kp_si,
                     kf[a] + dkf[a, c], u_hist[a, 0], u_hist[a, 1], vmax[a], amax[a], jmax[a], te,
+                    u_scratch,
                 )
                 least = min(least, max(viol[a, c], _SLACK))
             for c in range(ncand[a]):  # only the candidates that keep eq. 2 (or least violate it)

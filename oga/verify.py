@@ -21,7 +21,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of
 from oga.machine import Machine
 from oga.metrics import ContourMetrics, contour_metrics
-from oga.ranges import command_peaks
+from oga.kinematics import command_peaks
 from oga.simulate import simulate
 
 __all__ = ["Verification", "command_ratios", "verify"]

@@ -213,3 +213,19 @@ def test_failed_schedule_is_never_exported(short, machine):
     failed = dataclasses.replace(r, status="failed")
     with pytest.raises(OptimizeError, match="not exported"):
         table_csv(failed)
+
+
+def test_eq2_excess_matches_numpy():
+    from oga.kinematics import eq2_excess
+
+    rng = np.random.default_rng(3)
+    te = 1e-3
+    for _ in range(20):
+        u = np.cumsum(np.cumsum(rng.normal(0, 2e-6, 60)))
+        u1, u2 = rng.normal(0, 1e-5, 2)
+        ext = np.concatenate([[u2, u1], u])
+        v = np.abs(u) / 0.5
+        a = np.abs(np.diff(ext)[1:]) / te / 2.5
+        j = np.abs(np.diff(ext, 2)) / te**2 / 10.0
+        expected = max(0.0, (np.maximum(np.maximum(v, a), j) - 1.0).max())
+        assert eq2_excess(u, u1, u2, 0.5, 2.5, 10.0, te, len(u)) == pytest.approx(expected, abs=1e-12)

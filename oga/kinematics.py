@@ -1,0 +1,79 @@
+"""Paper eq. 2 on the velocity command: the kinematic limits a gain choice must keep.
+
+With the velocity loop taken as ideal, an axis moves at its velocity command
+``u``; so ``u`` must keep ``|u| <= Vmax``, ``|u_k - u_{k-1}| / Te <= Amax`` and
+``|u_k - 2 u_{k-1} + u_{k-2}| / Te^2 <= Jmax``. These compiled helpers are the
+one implementation used by the kinematic range, the searches and the verification.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+__all__ = ["command_peaks", "eq2_excess"]
+
+
+@njit(cache=True)
+def command_peaks(u, check, te):
+    """Largest ``|u|``, ``|du|/Te`` and ``|d2u|/Te^2`` over the samples to check.
+
+    Parameters
+    ----------
+    u : ndarray, shape (N,)
+        Velocity commands, m/s; the axis is at rest before sample 0.
+    check : ndarray of bool, shape (N,)
+        Samples where eq. 2 applies.
+    te : float
+        Sample period, s.
+
+    Returns
+    -------
+    (float, float, float)
+        Peaks in m/s, m/s^2, m/s^3 (zero when no sample is checked).
+    """
+    v_pk = 0.0
+    a_pk = 0.0
+    j_pk = 0.0
+    u1 = 0.0  # u_{k-1}
+    u2 = 0.0  # u_{k-2}
+    for k in range(u.shape[0]):
+        uk = u[k]
+        if check[k]:
+            v_pk = max(v_pk, abs(uk))
+            a_pk = max(a_pk, abs(uk - u1) / te)
+            j_pk = max(j_pk, abs(uk - 2.0 * u1 + u2) / (te * te))
+        u2 = u1
+        u1 = uk
+    return v_pk, a_pk, j_pk
+
+
+@njit(cache=True)
+def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n):
+    """Largest excess over 1 of ``|u|/V``, ``|du|/(A Te)``, ``|d2u|/(J Te^2)`` over ``u[:n]``.
+
+    Parameters
+    ----------
+    u : ndarray, shape (>= n,)
+        Velocity commands of consecutive samples, m/s.
+    u1, u2 : float
+        The two commands before ``u[0]`` (``u_{-1}``, ``u_{-2}``), m/s.
+    vmax, amax, jmax : float
+        The axis limits (m/s, m/s^2, m/s^3).
+    te : float
+        Sample period, s.
+    n : int
+        Samples to check.
+
+    Returns
+    -------
+    float
+        0 when eq. 2 holds at every sample, else the largest relative excess.
+    """
+    worst = 0.0
+    for i in range(n):
+        v = u[i]
+        worst = max(worst, abs(v) / vmax - 1.0, abs(v - u1) / (amax * te) - 1.0,
+                    abs(v - 2.0 * u1 + u2) / (jmax * te * te) - 1.0)
+        u2 = u1
+        u1 = v
+    return worst
