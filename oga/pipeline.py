@@ -17,7 +17,7 @@ from oga.machine import Machine
 from oga.optimize import OptimizeResult, optimize
 from oga.options import OptimizeOptions
 
-__all__ = ["Job", "run_job"]
+__all__ = ["Job", "plan_toolpath", "run_job"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +44,21 @@ class Job:
     def summary(self) -> dict:
         """The summary JSON of ``oga optimize --summary``."""
         return self.result.summary(toolpath=self.path.source, toolpath_sha256=self.toolpath_sha256)
+
+
+def plan_toolpath(
+    path: Path, machine: Machine, *, feed_m_s: float | None, tol_m: float, dt: float | None = None
+) -> Setpoints:
+    """Setpoints of ``path`` on ``machine``: planned within its planning limits.
+
+    The interpolator keeps the machine's reserve (:meth:`Machine.planning_limits`) so that
+    the position loop's velocity command can meet the full axis limits (paper eq. 2).
+    ``dt`` defaults to the machine's Te.
+    """
+    from feedplan.plan import plan
+
+    return plan(path, machine.planning_limits(), feed_m_s=feed_m_s, tol_m=tol_m,
+                dt=machine.te if dt is None else dt)
 
 
 def run_job(
@@ -79,11 +94,8 @@ def run_job(
     PlanError, OptimizeError
         Planning or search failed.
     """
-    from feedplan.plan import plan
-
     path = read_toolpath(text, fmt, source=source)
-    sp = plan(path, machine.planning_limits(), feed_m_s=options.feed_m_s, tol_m=options.tol_m,
-              dt=machine.te)
+    sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m)
     result = optimize(sp, machine, options, progress=progress)
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()
     return Job(path=path, setpoints=sp, result=result, toolpath_sha256=digest)

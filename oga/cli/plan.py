@@ -26,14 +26,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from feedplan.check import check_setpoints
-    from feedplan.plan import plan
+    from oga.pipeline import plan_toolpath
     from oga.export import setpoints_csv
 
     path, machine, feed_m_s, tol_m = load_inputs(args)
     dt = machine.te if args.dt is None else args.dt
     limits = machine.axis_limits()
     t0 = time.perf_counter()
-    sp = plan(path, machine.planning_limits(), feed_m_s=feed_m_s, tol_m=tol_m, dt=dt)
+    sp = plan_toolpath(path, machine, feed_m_s=feed_m_s, tol_m=tol_m, dt=dt)
     planning_time = time.perf_counter() - t0
     check = check_setpoints(sp, path, limits, feed_m_s=feed_m_s, tol_m=tol_m)
     write_text(args.out, setpoints_csv(sp))

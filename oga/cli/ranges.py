@@ -99,10 +99,10 @@ def run(args: argparse.Namespace) -> int:
             "axes": {a: {"stability": stability_to_dict(r)} for a, r in stability.items()},
         }
     else:
-        from feedplan.plan import plan
+        from oga.pipeline import plan_toolpath
 
         path, machine, feed_m_s, tol_m = load_inputs(args)
-        setpoints = plan(path, machine.axis_limits(), feed_m_s=feed_m_s, tol_m=tol_m, dt=machine.te)
+        setpoints = plan_toolpath(path, machine, feed_m_s=feed_m_s, tol_m=tol_m)
         ranges = gain_ranges(setpoints, machine)
         print("\n".join(_stability_table(machine, ranges.stability)))
         print("\n".join(_ranges_table(ranges, setpoints)))
