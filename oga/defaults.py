@@ -33,7 +33,7 @@ LAMBDA = {"paper": 0.01, "full": 100.0}
 #: Weight pulling the gains back to the baseline per mode, um^2 per unit^2 (paper: none).
 ANCHOR = {"paper": 0.0, "full": 300.0}
 #: Full mode: move blocks over the horizon (the gain trajectory may step at each block start).
-MPC_BLOCKS = 5
+MPC_BLOCKS = 10
 #: Full mode: shortest horizon accepted, samples (dead time plus the loop's settling).
 MPC_MIN_NP = 20
 #: Full mode: samples between two plans (longer intervals were measured to lose the gain).

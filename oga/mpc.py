@@ -55,8 +55,8 @@ _H = 1e-3
 #: Share of the eq. 2 limits the linearised constraints may use (the exact check uses 1).
 _LIN_MARGIN = 0.95
 #: Trust region of one block step, (m/min)/mm for Kp and 1 for Kf (the linearisation holds there).
-_TRUST_KP = 0.1
-_TRUST_KF = 0.02
+_TRUST_KP = 0.3
+_TRUST_KF = 0.05
 
 
 @njit(cache=True)

@@ -60,11 +60,19 @@ class OptimizeResult:
     options : OptimizeOptions
         The options used.
     schedule : GainSchedule
-        The optimised gains.
+        The gains to export: the searched schedule when it passed verification and
+        beat the baseline, else the baseline's fixed gains (``kept_baseline``).
     baseline_kp, baseline_kf : dict
         The fixed gains per machine axis it starts from and is compared with.
     baseline, optimized : Verification
-        Replays of the fixed baseline and of the schedule.
+        Replays of the fixed baseline and of ``schedule``.
+    searched_schedule : GainSchedule
+        What the search found (equal to ``schedule`` unless ``kept_baseline``).
+    searched : Verification
+        Its replay.
+    kept_baseline : bool
+        True when the searched schedule failed verification or did not lower
+        MSE(CE): then the table holds the fixed baseline gains, never worse gains.
     adjusted : tuple of str
         Axes whose gains the search moved.
     kp_bounds : dict
@@ -86,6 +94,9 @@ class OptimizeResult:
     baseline_kf: dict[str, float]
     baseline: Verification
     optimized: Verification
+    searched_schedule: GainSchedule
+    searched: Verification
+    kept_baseline: bool
     adjusted: tuple[str, ...]
     kp_bounds: dict[str, tuple[float, float]]
     optimize_time_s: float
@@ -94,8 +105,13 @@ class OptimizeResult:
 
     @property
     def ratio_mse(self) -> float:
-        """MSE(CE) of the schedule over MSE(CE) of the baseline."""
+        """MSE(CE) of the exported schedule over MSE(CE) of the baseline."""
         return self.optimized.metrics.mse_m2 / self.baseline.metrics.mse_m2
+
+    @property
+    def search_ratio_mse(self) -> float:
+        """MSE(CE) of the searched schedule over MSE(CE) of the baseline."""
+        return self.searched.metrics.mse_m2 / self.baseline.metrics.mse_m2
 
     def summary(self, toolpath: str = "", toolpath_sha256: str | None = None) -> dict:
         """The summary JSON (users' units), as written by ``oga optimize --summary``."""
@@ -122,6 +138,9 @@ class OptimizeResult:
                          **metrics(self.baseline)},
             "optimized": metrics(self.optimized),
             "ratio_mse": self.ratio_mse,
+            "kept_baseline": self.kept_baseline,
+            "search": {"status": self.searched.status, "ratio_mse": self.search_ratio_mse,
+                       "violations": list(self.searched.violations)},
             "limits_ok": self.optimized.limits_ok,
             "stability_ok": self.optimized.stability_ok,
             "violations": list(self.optimized.violations),
@@ -311,13 +330,18 @@ def optimize(
         advance(k0, min(k0 + chunk, n))
         if progress is not None:
             progress(min(k0 + chunk, n) / n)
-    schedule = GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out)
-    for arr in (kp_out, kf_out):
-        arr.flags.writeable = False
     fixed_kp = np.tile([base_kp[a] for a in AXES], (n, 1))
     fixed_kf = np.tile([base_kf[a] for a in AXES], (n, 1))
+    for arr in (kp_out, kf_out, fixed_kp, fixed_kf):
+        arr.flags.writeable = False
+    searched_schedule = GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out)
     baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
-    optimized = verify(setpoints, machine, kp_out, kf_out, kp_bounds)
+    searched = verify(setpoints, machine, kp_out, kf_out, kp_bounds)
+    kept_baseline = not (searched.ok and searched.metrics.mse_m2 < baseline.metrics.mse_m2)
+    if kept_baseline:
+        schedule, optimized = GainSchedule(kp_m_min_per_mm=fixed_kp, kf=fixed_kf), baseline
+    else:
+        schedule, optimized = searched_schedule, searched
     return OptimizeResult(
         status=optimized.status,
         setpoints=setpoints,
@@ -328,6 +352,9 @@ def optimize(
         baseline_kf=base_kf,
         baseline=baseline,
         optimized=optimized,
+        searched_schedule=searched_schedule,
+        searched=searched,
+        kept_baseline=kept_baseline,
         adjusted=adjusted,
         kp_bounds=kp_bounds,
         optimize_time_s=time.perf_counter() - t0,

@@ -101,9 +101,9 @@ def test_verify_flags_a_gain_step_that_breaks_the_jerk_limit(short, machine):
 
 def test_paper_mode_follows_the_published_rules(short, machine):
     r = optimize(short, machine, PAPER)
-    assert r.status == "ok" and r.optimized.ok
-    kp = r.schedule.kp_m_min_per_mm
-    assert np.all(kp[:, 0] == 1.6) and np.all(r.schedule.kf == 0.9)  # X fixed, Kf fixed
+    assert r.searched.ok
+    kp = r.searched_schedule.kp_m_min_per_mm
+    assert np.all(kp[:, 0] == 1.6) and np.all(r.searched_schedule.kf == 0.9)  # X, Kf fixed
     assert kp[:, 2].min() >= 1.0 - 1e-12 and kp[:, 2].max() <= 2.7 + 1e-12
     assert np.ptp(kp[:, 2]) > 0.1  # Z's gain really is adjusted
     # every increment is one of the five candidates: at most a2 of the interval per sample
@@ -120,7 +120,7 @@ def test_paper_mode_picks_the_least_cost_candidate(short, machine):
     from oga.simulate import axis_params, rest_state, step, window
 
     r = optimize(short, machine, PAPER)
-    kpz = r.schedule.kp_m_min_per_mm[:, 2]
+    kpz = r.searched_schedule.kp_m_min_per_mm[:, 2]
     n_pred = 50
     pd = np.ascontiguousarray(short.pos)
     px, pz = axis_params(machine, "x"), axis_params(machine, "z")
@@ -182,6 +182,18 @@ def test_full_mode_beats_the_fixed_baseline_within_every_limit(short, machine):
     for k in (0, 2):
         v, a, j = eq2_peaks(sim.u[:, k], short.dt, ~short.rapid)
         assert v <= lim.vmax_m_s[k] and a <= lim.amax_m_s2[k] and j <= lim.jmax_m_s3[k] * (1 + 1e-9)
+
+
+def test_exported_table_is_never_worse_than_the_baseline(short, machine):
+    for opts in (PAPER, {"baseline": "3.0,0.8"}):
+        r = optimize(short, machine, opts)
+        worse = not r.searched.ok or r.search_ratio_mse >= 1.0
+        assert r.kept_baseline == worse
+        assert r.ratio_mse <= 1.0 and r.status == "ok"
+        if r.kept_baseline:
+            assert np.all(r.schedule.kp_m_min_per_mm == r.baseline_kp["z"])
+        else:
+            assert r.schedule is r.searched_schedule
 
 
 def test_unknown_axis_or_range_outside_stability_refused(short, machine):

@@ -56,6 +56,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"optimized ({','.join(res.adjusted)}; {','.join(res.options.gains)}): "
           f"CE rms {o['rms_ce_um']:.3f} um, max {o['max_ce_um']:.3f} um, "
           f"MSE ratio {res.ratio_mse:.3f}, {res.optimize_time_s:.1f} s")
+    if res.kept_baseline:
+        why = ("failed verification: " + "; ".join(res.searched.violations)
+               if not res.searched.ok else f"MSE ratio {res.search_ratio_mse:.3f} >= 1")
+        print(f"warning: the searched schedule was not kept ({why}); "
+              "the table holds the baseline's fixed gains")
     if res.status != "ok":
         print("verification FAILED, no table written: " + "; ".join(res.optimized.violations),
               file=sys.stderr)
