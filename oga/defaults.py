@@ -8,7 +8,8 @@ __all__ = [
     "NP",
     "LAMBDA",
     "ANCHOR",
-    "MPC_BLOCKS",
+    "MPC_ATTEMPTS",
+    "MPC_ACCEPT_RATIO",
     "MPC_MIN_NP",
     "MPC_REPLAN",
     "A1",
@@ -32,8 +33,12 @@ NP = 50
 LAMBDA = {"paper": 0.01, "full": 100.0}
 #: Weight pulling the gains back to the baseline per mode, um^2 per unit^2 (paper: none).
 ANCHOR = {"paper": 0.0, "full": 300.0}
-#: Full mode: move blocks over the horizon (the gain trajectory may step at each block start).
-MPC_BLOCKS = 10
+#: Full mode: the settings tried in turn, (move blocks over the horizon, trust region of a
+#: block step in (m/min)/mm for Kp and 1 for Kf); the next is tried only when the previous
+#: schedule did not reach MPC_ACCEPT_RATIO, and the best verified one is kept.
+MPC_ATTEMPTS = ((10, 0.3, 0.05), (5, 0.1, 0.02))
+#: Full mode: MSE(CE) ratio to the baseline that ends the attempts.
+MPC_ACCEPT_RATIO = 0.8
 #: Full mode: shortest horizon accepted, samples (dead time plus the loop's settling).
 MPC_MIN_NP = 20
 #: Full mode: samples between two plans (longer intervals were measured to lose the gain).

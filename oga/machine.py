@@ -15,9 +15,12 @@ import hashlib
 import json
 import tomllib
 from pathlib import Path as FilePath
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+if TYPE_CHECKING:
+    from feedplan.limits import AxisLimits
 
 from oga.errors import MachineError
 

@@ -54,9 +54,6 @@ _M2_TO_UM2 = 1e12
 _H = 1e-3
 #: Share of the eq. 2 limits the linearised constraints may use (the exact check uses 1).
 _LIN_MARGIN = 0.95
-#: Trust region of one block step, (m/min)/mm for Kp and 1 for Kf (the linearisation holds there).
-_TRUST_KP = 0.3
-_TRUST_KF = 0.05
 
 
 @njit(cache=True)
@@ -80,7 +77,6 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
     nw = 0
     kkt = np.empty((2 * nv, 2 * nv))
     rhs = np.empty(2 * nv)
-    best_feasible = False
     for _it in range(4 * nv + 10):
         n = nv + nw
         for i in range(n):
@@ -201,7 +197,8 @@ def _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_l
 @njit(cache=True)
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-    kp_base, kf_base, vmax, amax, jmax, te, u_hist, n_pred, n_blocks, replan, lam, anchor,
+    kp_base, kf_base, vmax, amax, jmax, te, u_hist, n_pred, n_blocks, trust_kp, trust_kf, replan,
+    lam, anchor,
     ce_window, count, moving, kp_out, kf_out, u_out, stats,
 ):
     """Run the full-mode search over samples ``k0 .. k1 - 1`` in place.
@@ -209,7 +206,8 @@ def mpc_chunk(
     Parameters are those of :func:`oga.search.search_chunk`, plus: ``pdT``/``vdT``
     padded by ``n_pred`` samples past the end (shape (3, N + n_pred)); ``kp_base``,
     ``kf_base`` (3,) the baseline gains the anchor pulls to; ``n_blocks`` move
-    blocks over the horizon; ``replan`` samples between two plans (``k0`` must be
+    blocks over the horizon; ``trust_kp``, ``trust_kf`` the trust region of one block
+    step ((m/min)/mm, 1), where the linearisation is trusted; ``replan`` samples between two plans (``k0`` must be
     a multiple of it); ``anchor`` weight; ``count`` from
     :func:`oga.contour.moving_count` for the nearest-point window.
     """
@@ -251,37 +249,53 @@ def mpc_chunk(
     plan_kp = np.empty((3, n_pred))
     plan_kf = np.empty((3, n_pred))
     trial = np.empty((3, n_pred))
+    block_state = np.empty((3, n_blocks, states.shape[1]))
+    idle = np.ones(3, dtype=np.bool_)
     for k in range(k0, k1, replan):
-        # 1: nominal predictions and sensitivities
+        # 1: nominal predictions (held gains), keeping the state at every block start,
+        #    then the sensitivities, each simulated from its block's start only
         for a in range(3):
-            for i in range(n_pred):
-                kpa[i] = kp[a] * _C
-                kfa[i] = kf[a]
-            if moving[a]:
-                _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
-                          tmp_p, tmp_u)
-                stats[STAT_WINDOWS] += 1
-                p0[a, :] = tmp_p
-                u0[a, :] = tmp_u
-            else:
+            idle[a] = True
+            if not moving[a]:
                 for i in range(n_pred):
                     p0[a, i] = states[a, 0]
                     u0[a, i] = 0.0
+                continue
+            scratch[:] = states[a]
+            for b in range(n_blocks):
+                i0 = b * blen
+                i1 = n_pred if b == n_blocks - 1 else i0 + blen
+                block_state[a, b, :] = scratch
+                for i in range(i0, i1):
+                    kpa[i] = kp[a] * _C
+                    kfa[i] = kf[a]
+                run(scratch, params[a], pdT[a, k + i0:k + i1], vdT[a, k + i0:k + i1],
+                    kpa[i0:i1], kfa[i0:i1], p0[a, i0:i1], u0[a, i0:i1])
+            stats[STAT_WINDOWS] += 1
+            for i in range(n_pred):  # does the axis's setpoint move within the horizon?
+                if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
+                    idle[a] = False
+                    break
         for v in range(nv):
             a = var_axis[v]
             start = var_blk[v] * blen
             for i in range(n_pred):
+                sp[v, i] = 0.0
+                su[v, i] = 0.0
+            if idle[a]:  # no gain can matter to an axis standing still: no sensitivity
+                continue
+            for i in range(start, n_pred):
                 kpa[i] = kp[a] * _C
                 kfa[i] = kf[a]
-                if i >= start:
-                    if var_gain[v] == 0:
-                        kpa[i] += _H * _C
-                    else:
-                        kfa[i] += _H
-            _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
-                      tmp_p, tmp_u)
+                if var_gain[v] == 0:
+                    kpa[i] += _H * _C
+                else:
+                    kfa[i] += _H
+            scratch[:] = block_state[a, var_blk[v], :]
+            run(scratch, params[a], pdT[a, k + start:k + n_pred], vdT[a, k + start:k + n_pred],
+                kpa[start:], kfa[start:], tmp_p[start:], tmp_u[start:])
             stats[STAT_WINDOWS] += 1
-            for i in range(n_pred):
+            for i in range(start, n_pred):
                 sp[v, i] = (tmp_p[i] - p0[a, i]) / _H
                 su[v, i] = (tmp_u[i] - u0[a, i]) / _H
         # 2: linearised contour error around the nominal prediction
@@ -344,11 +358,13 @@ def mpc_chunk(
             if var_gain[v] == 0:
                 alo[m] = kp_lo[a] - kp[a]
                 ahi[m] = kp_hi[a] - kp[a]
-                tr = _TRUST_KP
+                tr = trust_kp
             else:
                 alo[m] = kf_lo[a] - kf[a]
                 ahi[m] = kf_hi[a] - kf[a]
-                tr = _TRUST_KF
+                tr = trust_kf
+            if idle[a]:
+                tr = 0.0
             alo[m + 1] = -tr
             ahi[m + 1] = tr
             m += 2
@@ -390,20 +406,16 @@ def mpc_chunk(
             worst = 0.0
             for a in range(3):
                 if not moving[a]:
+                    for i in range(n_pred):
+                        trial[a, i] = states[a, 0]
                     continue
                 _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_lo,
                             kp_hi, kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa)
                 _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
-                          tmp_p, tmp_u)
+                          trial[a], tmp_u)
                 stats[STAT_WINDOWS] += 1
-                for i in range(n_pred):
-                    trial[a, i] = tmp_p[i]
                 worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
                                                amax[a], jmax[a], te, n_pred))
-            for a in range(3):
-                if not moving[a]:
-                    for i in range(n_pred):
-                        trial[a, i] = states[a, 0]
             cost = 0.0
             j = -1
             for i in range(n_pred):

@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.contour import ce_series, contour_error_of, plane_axes
