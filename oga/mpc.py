@@ -42,11 +42,12 @@ from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.simulate import run, step
 
-__all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED"]
+__all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
 
 STAT_FALLBACK = 0  # re-plans where even the held gains broke eq. 2 over the horizon
 STAT_WINDOWS = 1  # horizon simulations
 STAT_SCALED = 2  # re-plans whose increments were scaled down by the exact check
+STAT_QP_SHORT = 3  # re-plans whose QP stopped short of the optimum (the line search decides)
 
 _C = KP_SI_PER_M_MIN_PER_MM
 _M2_TO_UM2 = 1e12
@@ -57,84 +58,160 @@ _LIN_MARGIN = 0.95
 
 
 @njit(cache=True)
+def _chol(a):
+    """Lower Cholesky factor of a symmetric positive definite matrix (a copy)."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= low[j, k] * low[j, k]
+        low[j, j] = np.sqrt(max(s, 1e-300))
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= low[i, k] * low[j, k]
+            low[i, j] = s / low[j, j]
+    return low
+
+
+@njit(cache=True)
+def _chol_solve(low, b, out):
+    """Solve ``L L' out = b``."""
+    n = low.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= low[i, k] * out[k]
+        out[i] = s / low[i, i]
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= low[k, i] * out[k]
+        out[i] = s / low[i, i]
+
+
+@njit(cache=True)
 def _qp_active_set(p, q, a, lo, hi, m, x):
     """Minimise ``x'Px/2 + q'x`` subject to ``lo <= A x <= hi`` (first ``m`` rows of A).
 
-    A small dense active-set method for a strictly convex QP with few active rows:
-    start from the unconstrained minimum, add the most violated row to the working
-    set, solve the KKT system of the working set, drop a row whose multiplier has
-    the wrong sign, repeat. Rows should be scaled to unit-order bounds. On return
-    ``x`` is the solution (or the best feasible iterate if the iteration limit is hit;
-    zero if none was feasible).
+    The dual active-set method of Goldfarb and Idnani (1983): start from the
+    unconstrained minimum, take the most violated row, and move primal and dual
+    variables together (partial steps drop a row whose multiplier reaches zero,
+    a full step adds the violated row) until no row is violated. Every step is
+    computed through ``P^-1`` on one Cholesky factor. Rows should be scaled to
+    unit-order bounds.
+
+    Returns True with the optimum in ``x``; False if the rows cannot all be met
+    (or the iteration limit is hit), ``x`` then holding the last iterate. The caller
+    only proposes that step: the exact line search on the model decides.
     """
     nv = p.shape[0]
-    for i in range(nv):
-        x[i] = 0.0
     if nv == 0:
-        return
-    work = np.empty(nv, dtype=np.int64)  # working rows
-    side = np.empty(nv, dtype=np.int64)  # -1 at lo, +1 at hi
-    nw = 0
-    kkt = np.empty((2 * nv, 2 * nv))
-    rhs = np.empty(2 * nv)
-    for _it in range(4 * nv + 10):
-        n = nv + nw
-        for i in range(n):
-            for j in range(n):
-                kkt[i, j] = 0.0
-        for i in range(nv):
-            for j in range(nv):
-                kkt[i, j] = p[i, j]
-            rhs[i] = -q[i]
-        for c in range(nw):
-            r = work[c]
-            for i in range(nv):
-                kkt[nv + c, i] = a[r, i]
-                kkt[i, nv + c] = a[r, i]
-            rhs[nv + c] = lo[r] if side[c] < 0 else hi[r]
-        try:
-            sol = np.linalg.solve(kkt[:n, :n], rhs[:n])
-        except Exception:  # dependent working rows: drop the newest
-            nw -= 1
-            continue
-        # a multiplier of the wrong sign: that row is not binding, drop it
-        worst_c = -1
-        worst_v = 1e-12
-        for c in range(nw):
-            nu = sol[nv + c] * side[c]
-            if -nu > worst_v:
-                worst_v = -nu
-                worst_c = c
-        if worst_c >= 0:
-            work[worst_c] = work[nw - 1]
-            side[worst_c] = side[nw - 1]
-            nw -= 1
-            continue
-        # the most violated row not in the working set
-        viol_r = -1
-        viol_v = 1e-9
-        viol_s = 0
+        return True
+    low = _chol(p)
+    nq = np.empty(nv)
+    for i in range(nv):
+        nq[i] = -q[i]
+    _chol_solve(low, nq, x)  # unconstrained minimum
+    act = np.empty(nv, dtype=np.int64)  # active rows
+    sgn = np.empty(nv, dtype=np.int64)  # +1: a.x >= lo active, -1: a.x <= hi active
+    g = np.empty((nv, nv))  # g[c] = P^-1 n_c, n_c = sgn_c a_act[c]
+    u = np.zeros(nv)  # multipliers of the active rows (>= 0)
+    gp = np.empty(nv)
+    z = np.empty(nv)
+    rowv = np.empty(nv)
+    na = 0
+    for _outer in range(10 * (m + nv) + 10):
+        # step 1: the most violated row (s = n.x - b < 0)
+        pr = -1
+        ps = 0
+        worst = -1e-10
         for r in range(m):
             t = 0.0
             for i in range(nv):
-                t += a[r, i] * sol[i]
-            if lo[r] - t > viol_v:
-                viol_v = lo[r] - t
-                viol_r = r
-                viol_s = -1
-            elif t - hi[r] > viol_v:
-                viol_v = t - hi[r]
-                viol_r = r
-                viol_s = 1
-        if viol_r < 0:  # optimal
+                t += a[r, i] * x[i]
+            if t - lo[r] < worst:
+                worst = t - lo[r]
+                pr = r
+                ps = 1
+            if hi[r] - t < worst:
+                worst = hi[r] - t
+                pr = r
+                ps = -1
+        if pr < 0:
+            return True
+        for i in range(nv):
+            rowv[i] = ps * a[pr, i]
+        bp = lo[pr] if ps > 0 else -hi[pr]
+        _chol_solve(low, rowv, gp)
+        up = 0.0
+        for _inner in range(nv + 2):
+            # step 2: r = (N' P^-1 N)^-1 N' P^-1 n_p, z = P^-1 n_p - P^-1 N r
+            r = np.zeros(na)
+            if na > 0:
+                mm = np.empty((na, na))
+                rhs = np.empty(na)
+                for c in range(na):
+                    t = 0.0
+                    for i in range(nv):
+                        t += sgn[c] * a[act[c], i] * gp[i]
+                    rhs[c] = t
+                    for d in range(na):
+                        t = 0.0
+                        for i in range(nv):
+                            t += sgn[c] * a[act[c], i] * g[d, i]
+                        mm[c, d] = t
+                try:
+                    r = np.linalg.solve(mm, rhs)
+                except Exception:
+                    return False
             for i in range(nv):
-                x[i] = sol[i]
-            return
-        if nw == nv:  # cannot add more rows: stop with the last feasible point
-            break
-        work[nw] = viol_r
-        side[nw] = viol_s
-        nw += 1
+                t = gp[i]
+                for c in range(na):
+                    t -= g[c, i] * r[c]
+                z[i] = t
+            t1 = np.inf  # partial step: a multiplier reaches zero
+            k = -1
+            for c in range(na):
+                if r[c] > 1e-14:
+                    ratio = u[c] / r[c]
+                    if ratio < t1:
+                        t1 = ratio
+                        k = c
+            zn = 0.0
+            sp = -bp
+            for i in range(nv):
+                zn += z[i] * rowv[i]
+                sp += rowv[i] * x[i]
+            t2 = -sp / zn if zn > 1e-14 else np.inf  # full step: the row becomes met
+            t = min(t1, t2)
+            if t == np.inf:
+                return False  # the rows cannot all be met
+            if t2 < np.inf:
+                for i in range(nv):
+                    x[i] += t * z[i]
+            for c in range(na):
+                u[c] -= t * r[c]
+            up += t
+            if t2 <= t1:  # full step: add the row
+                act[na] = pr
+                sgn[na] = ps
+                u[na] = up
+                for i in range(nv):
+                    g[na, i] = gp[i]
+                na += 1
+                break
+            # partial step: drop row k
+            na -= 1
+            act[k] = act[na]
+            sgn[k] = sgn[na]
+            u[k] = u[na]
+            for i in range(nv):
+                g[k, i] = g[na, i]
+        else:
+            return False
+    return False
 
 
 @njit(cache=True)
@@ -394,7 +471,8 @@ def mpc_chunk(
                     alo[m] = -1.0 - nominal * scale
                     ahi[m] = 1.0 - nominal * scale
                     m += 1
-        _qp_active_set(pmat, qvec, amat, alo, ahi, m, x)
+        if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, x):
+            stats[STAT_QP_SHORT] += 1
         # 4: exact line search: the plan scaled by 1, 1/2, 1/4, 1/8 and 0 (hold), each
         #    simulated exactly; the least exact window cost among those meeting eq. 2 wins
         best_cost = np.inf

@@ -330,7 +330,7 @@ def optimize(
     for i_att, setting in enumerate(attempts):
         # a fresh search state: axis states, gains, command history, outputs, counters
         run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
-               np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(3, dtype=np.int64))
+               np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
         for k0 in range(0, n, _CHUNK):
             advance(k0, min(k0 + _CHUNK, n), run, setting)
             if progress is not None:

@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_search_args(p)
     p.add_argument("--out", required=True, metavar="TABLE.csv", help="gain table CSV to write")
     p.add_argument("--summary", metavar="SUMMARY.json", help="summary JSON to write")
+    p.add_argument("--report", metavar="REPORT.html",
+                   help="optimisation report to write (one self-contained HTML file)")
     p.set_defaults(func=run)
 
 
@@ -48,6 +50,10 @@ def run(args: argparse.Namespace) -> int:
     summary = job.summary()
     if args.summary:
         write_json(args.summary, summary)
+    if args.report:
+        from oga.report import render_report
+
+        write_text(args.report, render_report(job))
     for w in job.path.warnings:
         print(f"warning: {w}")
     b, o = summary["baseline"], summary["optimized"]

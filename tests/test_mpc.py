@@ -1,0 +1,48 @@
+"""The full-mode QP solver, checked by the KKT conditions (an independent optimality test)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from oga.mpc import _qp_active_set
+
+
+def random_qp(seed, nv=12, m=60):
+    rng = np.random.default_rng(seed)
+    s = rng.normal(size=(40, nv)) * np.concatenate([np.full(nv // 2, 1e-2), np.full(nv - nv // 2, 1.0)])
+    p = s.T @ s + 1e-3 * np.eye(nv)
+    q = rng.normal(size=nv) * 5
+    a = rng.normal(size=(m, nv))
+    return p, q, a, -np.abs(rng.normal(size=m)), np.abs(rng.normal(size=m))
+
+
+def kkt_ok(p, q, a, lo, hi, x):
+    ax = a @ x
+    if not (np.all(ax >= lo - 1e-8) and np.all(ax <= hi + 1e-8)):
+        return False
+    at_lo, at_hi = np.isclose(ax, lo, atol=1e-8), np.isclose(ax, hi, atol=1e-8)
+    act = at_lo | at_hi
+    grad = -(p @ x + q)
+    mu, *_ = np.linalg.lstsq(a[act].T, grad, rcond=None)
+    stationary = np.allclose(a[act].T @ mu, grad, atol=1e-6 * (1 + np.abs(grad).max()))
+    return stationary and bool(np.all(mu * np.where(at_hi[act], 1.0, -1.0) >= -1e-6))
+
+
+def test_reported_optimum_meets_the_kkt_conditions():
+    solved = 0
+    for seed in range(100):
+        p, q, a, lo, hi = random_qp(seed)
+        x = np.empty(p.shape[0])
+        if _qp_active_set(p, q, a, lo, hi, a.shape[0], x):
+            solved += 1
+            assert kkt_ok(p, q, a, lo, hi, x), seed
+    assert solved == 100  # hard random problems, many active rows
+
+
+def test_few_active_rows_always_solved():
+    for seed in range(50):
+        p, q, a, lo, hi = random_qp(seed)
+        lo, hi = lo - 3.0, hi + 3.0  # a few rows bind at most, as in the MPC's problems
+        x = np.empty(p.shape[0])
+        assert _qp_active_set(p, q, a, lo, hi, a.shape[0], x)
+        assert kkt_ok(p, q, a, lo, hi, x)
