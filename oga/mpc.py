@@ -195,6 +195,8 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
                 u[c] -= t * r[c]
             up += t
             if t2 <= t1:  # full step: add the row
+                if na == nv:  # dependent rows: no room for another
+                    return False
                 act[na] = pr
                 sgn[na] = ps
                 u[na] = up
