@@ -10,10 +10,12 @@ from __future__ import annotations
 import asyncio
 import time
 from pathlib import PurePath
+
+import numpy as np
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 
@@ -28,6 +30,7 @@ from api.schemas import (
     job_out,
 )
 from api.storage import FINISHED, STATUSES, JobRow, Store
+from feedplan.setpoints import AXES
 from oga.errors import MachineError, ToolpathError
 from oga.export import C_NAME, TABLE_FORMATS, render_table, table_from_npz
 from oga.machine import PRESETS, Machine, load_machine, machine_from_dict
@@ -175,6 +178,38 @@ def get_summary(job_id: str, request: Request) -> dict:
     if row.summary is None:
         raise HTTPException(409, f"job {job_id} is {row.status}: no summary")
     return row.summary
+
+
+@router.get("/jobs/{job_id}/report", responses={
+    200: {"content": {"text/html": {}}, "description": "the report, one self-contained page"},
+    **_ERRORS}, response_class=HTMLResponse, summary="The optimisation report of a succeeded job")
+def get_report(job_id: str, request: Request) -> Response:
+    """As ``oga optimize --report``. Rebuilt from what the job stored: its toolpath is planned
+    again (the setpoint hash must match the summary's) and the baseline gains and the stored
+    table are replayed on the model; nothing is searched again. 409 until the job has
+    succeeded (a failed job stores no schedule to replay)."""
+    from feedplan.read import read_toolpath
+    from oga.options import options_from_dict
+    from oga.pipeline import plan_toolpath
+    from oga.report import render_report, replay_report_data
+
+    store = _store(request)
+    row = store.get(job_id, with_toolpath=True)
+    if row is None:
+        raise HTTPException(404, f"no job {job_id!r}")
+    blob = store.table(row.id)
+    if row.status != "succeeded" or blob is None or row.summary is None:
+        raise HTTPException(409, f"job {row.id} is {row.status}: no report")
+    table = table_from_npz(blob)
+    machine = machine_from_dict(row.machine)
+    options = options_from_dict(row.options)
+    path = read_toolpath(row.toolpath, row.toolpath_format, source=row.source)
+    sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m)
+    column = {name: table.data[:, i] for i, name in enumerate(table.header)}
+    kp = np.column_stack([column[f"{a}_kp_m_min_per_mm"] for a in AXES])
+    kf = np.column_stack([column[f"{a}_kf"] for a in AXES])
+    data = replay_report_data(sp, machine, kp, kf, row.summary)
+    return HTMLResponse(render_report(data), headers={"X-Oga-Job-Id": row.id})
 
 
 @router.post("/gain-table", responses={

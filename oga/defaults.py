@@ -10,6 +10,7 @@ __all__ = [
     "ANCHOR",
     "MPC_ATTEMPTS",
     "MPC_ACCEPT_RATIO",
+    "REPORT_MAX_POINTS",
     "MPC_MIN_NP",
     "MPC_REPLAN",
     "A1",
@@ -64,3 +65,5 @@ API_SYNC_MAX_MOTION_S = 10.0
 API_SYNC_TIMEOUT_S = 120.0
 #: Table formats written by ``oga batch`` (names of oga.export.TABLE_FORMATS).
 BATCH_FORMATS = ("csv",)
+#: Report figures: points per drawn line at most (min/max buckets keep the peaks).
+REPORT_MAX_POINTS = 2000

@@ -31,14 +31,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
+from oga.defaults import REPORT_MAX_POINTS
 from oga.machine import Machine
 from oga.verify import Verification
 
 __all__ = ["ReportData", "curvature", "decimate", "render_report", "replay_report_data",
            "report_data"]
 
-#: Points per drawn line at most (before the min/max buckets double it at worst).
-MAX_POINTS = 2000
 #: Colours of the |CE| scale, low to high (viridis-like).
 _CE_COLOURS = ("#440154", "#472d7b", "#3b528b", "#2c728e", "#21918c", "#28ae80", "#5ec962",
                "#addc30", "#fde725")
@@ -123,7 +122,7 @@ def replay_report_data(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm: 
 
 # --- series helpers -----------------------------------------------------------------------------
 
-def decimate(y: np.ndarray, max_points: int = MAX_POINTS) -> np.ndarray:
+def decimate(y: np.ndarray, max_points: int = REPORT_MAX_POINTS) -> np.ndarray:
     """Indices of the samples to draw of a long series, keeping its peaks.
 
     Parameters
@@ -359,7 +358,8 @@ def _fig_path(d: ReportData, max_points: int) -> tuple[str, str]:
     body, y = [], 28
     for v, p, name in zip((d.baseline, d.optimized), drawn, ("baseline", "optimised")):
         panel = _Panel(80, y, pw, ph, xlim, ylim, equal=True)
-        panel.line(sp.pos[:, i] * _MM, sp.pos[:, j] * _MM, _GREY, width=0.8, dash="3,2")
+        keep = np.union1d(decimate(sp.pos[:, i], max_points), decimate(sp.pos[:, j], max_points))
+        panel.line(sp.pos[keep, i] * _MM, sp.pos[keep, j] * _MM, _GREY, width=0.8, dash="3,2")
         ce = np.where(feed, np.abs(v.ce), np.nan)
         idx = decimate(ce, max_points)
         level = np.minimum(ce[idx] / max(ce_max, 1e-300) * len(_CE_COLOURS),
@@ -567,7 +567,7 @@ td{font-family:monospace}.status-ok{color:#1b7f3b}.status-failed{color:#c00000}
 
 
 def render_report(job_or_result, *, title: str | None = None,
-                  max_points: int = MAX_POINTS) -> str:
+                  max_points: int = REPORT_MAX_POINTS) -> str:
     """The report of a job as one self-contained HTML page.
 
     Parameters
