@@ -12,7 +12,9 @@ re-plans as it recedes:
    (the nominal prediction), and once more per adjusted gain and per move
    block with that gain raised by a small step from the block on: finite-difference
    sensitivities of the predicted positions and velocity commands to a gain
-   trajectory that may step at the start of each of ``blocks`` blocks;
+   trajectory that may step at the start of each of ``blocks`` blocks (each
+   simulated from its block's start on; an axis whose setpoint stands still over
+   the whole horizon is not adjusted there);
 2. the predicted contour error is linearised around the nominal prediction
    (distance to the line of the nearest path segment, as in :mod:`oga.search`),
    giving a quadratic cost in the block increments ``d``:
@@ -20,7 +22,7 @@ re-plans as it recedes:
 3. constraints: every gain inside its bounds in every block, and eq. 2 on the
    linearised velocity command over the whole horizon (with a small margin);
    each block step stays inside a trust region where the linearisation holds;
-   the QP is solved exactly by a small dense active-set method;
+   the QP is solved exactly by the dual active-set method of Goldfarb and Idnani;
 4. exact line search: the planned trajectory scaled by 1, 1/2, 1/4, 1/8 and 0
    (holding the gains) is simulated exactly from the true state; among the
    scales whose velocity command meets eq. 2 over the whole horizon, the one
