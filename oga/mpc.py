@@ -120,6 +120,7 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
     sgn = np.empty(nv, dtype=np.int64)  # +1: a.x >= lo active, -1: a.x <= hi active
     g = np.empty((nv, nv))  # g[c] = P^-1 n_c, n_c = sgn_c a_act[c]
     u = np.zeros(nv)  # multipliers of the active rows (>= 0)
+    gram = np.empty((nv, nv))  # N' P^-1 N of the active rows
     gp = np.empty(nv)
     z = np.empty(nv)
     rowv = np.empty(nv)
@@ -149,23 +150,18 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
         _chol_solve(low, rowv, gp)
         up = 0.0
         for _inner in range(nv + 2):
-            # step 2: r = (N' P^-1 N)^-1 N' P^-1 n_p, z = P^-1 n_p - P^-1 N r
+            # step 2: r = (N' P^-1 N)^-1 N' P^-1 n_p, z = P^-1 n_p - P^-1 N r; the Gram
+            # matrix N' P^-1 N of the active rows is kept up to date in gram
             r = np.zeros(na)
             if na > 0:
-                mm = np.empty((na, na))
                 rhs = np.empty(na)
                 for c in range(na):
                     t = 0.0
                     for i in range(nv):
-                        t += sgn[c] * a[act[c], i] * gp[i]
+                        t += g[c, i] * rowv[i]  # n_c' P^-1 n_p = g_c . n_p (P symmetric)
                     rhs[c] = t
-                    for d in range(na):
-                        t = 0.0
-                        for i in range(nv):
-                            t += sgn[c] * a[act[c], i] * g[d, i]
-                        mm[c, d] = t
                 try:
-                    r = np.linalg.solve(mm, rhs)
+                    r = np.linalg.solve(gram[:na, :na], rhs)
                 except Exception:
                     return False
             for i in range(nv):
@@ -204,15 +200,27 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
                 u[na] = up
                 for i in range(nv):
                     g[na, i] = gp[i]
+                for c in range(na + 1):
+                    t = 0.0
+                    for i in range(nv):
+                        t += rowv[i] * g[c, i]
+                    gram[na, c] = t
+                    gram[c, na] = t
                 na += 1
                 break
-            # partial step: drop row k
+            # partial step: drop row k (the last active row takes its place)
             na -= 1
             act[k] = act[na]
             sgn[k] = sgn[na]
             u[k] = u[na]
             for i in range(nv):
                 g[k, i] = g[na, i]
+            for c in range(na):
+                gram[k, c] = gram[na, c]
+            for c in range(na):
+                gram[c, k] = gram[k, c]
+            if k < na:
+                gram[k, k] = gram[na, na]
         else:
             return False
     return False
@@ -309,6 +317,14 @@ def mpc_chunk(
                     var_gain[nv] = g
                     var_blk[nv] = b
                     nv += 1
+    var_lo = np.zeros(3, dtype=np.int64)  # variables of axis a: var_lo[a] .. var_hi[a]-1
+    var_hi = np.zeros(3, dtype=np.int64)
+    for v in range(nv - 1, -1, -1):
+        var_lo[var_axis[v]] = v
+    for v in range(nv):
+        var_hi[var_axis[v]] = v + 1
+    mq = np.empty(n_pred)
+    wgt = np.empty(n_pred)
     p0 = np.empty((3, n_pred))
     u0 = np.empty((3, n_pred))
     sp = np.zeros((nv, n_pred))  # position sensitivities
@@ -397,26 +413,26 @@ def mpc_chunk(
             dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
             dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
             dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
-        # quadratic cost: sum_i (dq_i + S_i x)' M_i (dq_i + S_i x), M = I - t t'
-        for v in range(nv):
-            qvec[v] = 0.0
-            for w in range(nv):
-                pmat[v, w] = 0.0
-        for i in range(n_pred):
-            for v in range(nv):
-                a = var_axis[v]
-                sv = sp[v, i]
-                if sv == 0.0:
-                    continue
-                mq = 0.0
+        # quadratic cost: sum_i (dq_i + S_i x)' M_i (dq_i + S_i x), M = I - t t'; the
+        # variables of one axis are contiguous, so each axis pair is one weighted product
+        for a in range(3):
+            va0, va1 = var_lo[a], var_hi[a]
+            if va0 == va1:
+                continue
+            for i in range(n_pred):
+                t = 0.0
                 for b in range(3):
-                    mab = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
-                    mq += mab * dq[i, b]
-                qvec[v] += 2.0 * _M2_TO_UM2 * mq * sv
-                for w in range(nv):
-                    b = var_axis[w]
-                    mab = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
-                    pmat[v, w] += 2.0 * _M2_TO_UM2 * mab * sv * sp[w, i]
+                    t += ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * dq[i, b]
+                mq[i] = t
+            qvec[va0:va1] = (2.0 * _M2_TO_UM2) * (sp[va0:va1] @ mq)
+            for b in range(3):
+                vb0, vb1 = var_lo[b], var_hi[b]
+                if vb0 == vb1:
+                    continue
+                for i in range(n_pred):
+                    wgt[i] = ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * (
+                        2.0 * _M2_TO_UM2)
+                pmat[va0:va1, vb0:vb1] = (sp[va0:va1] * wgt) @ sp[vb0:vb1].T
         for v in range(nv):
             a = var_axis[v]
             pmat[v, v] += 2.0 * lam
