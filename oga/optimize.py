@@ -229,12 +229,15 @@ def optimize(
         Search options (CLI/API names); default the full mode: best fixed
         baseline, every contouring axis, Kp and Kf.
     progress : callable, optional
-        Called with the fraction done (0..1) between chunks of samples.
+        Called with the fraction done (0..1) between chunks of samples (over all
+        the settings full mode tries).
 
     Returns
     -------
     OptimizeResult
-        ``status`` tells whether the schedule passed verification.
+        ``status`` tells whether the exported schedule passed verification: the
+        searched one, or the baseline's fixed gains when the search failed or did
+        not beat them (``kept_baseline``).
 
     Raises
     ------
