@@ -2,8 +2,9 @@
 
 Every error answer is an :class:`api.schemas.ErrorBody` (``{"message", ...}``):
 bad input is 4xx (422 naming field, line and column; 400 for malformed JSON;
-413 for an oversized body), never 5xx. The API key, when set, is required by
-every route but ``/healthz`` (header ``X-API-Key`` or ``Authorization: Bearer``).
+413 for an oversized body), never 5xx. The API key, when set, is required (header
+``X-API-Key`` or ``Authorization: Bearer``) by every route but ``/healthz`` and the web
+page (``/`` and ``/static/``: they hold no data; the page sends the key its user types).
 """
 
 from __future__ import annotations
@@ -14,10 +15,12 @@ import logging
 import os
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 
@@ -31,6 +34,14 @@ from oga.errors import InputError
 __all__ = ["Settings", "create_app", "default_workers"]
 
 log = logging.getLogger("oga.api")
+
+#: The web page: ``index.html`` served at ``/``, its script and style under ``/static/``.
+STATIC_DIR = Path(__file__).parent / "static"
+
+
+def _public(path: str) -> bool:
+    """Routes open without the API key: liveness and the web page."""
+    return path in ("/healthz", "/") or path.startswith("/static/")
 
 
 def default_workers() -> int:
@@ -50,7 +61,7 @@ class Settings:
     workers : int
         Worker processes (jobs optimised at once); 0 starts none (the API only queues).
     api_key : str or None
-        Required by every route but ``/healthz`` when set.
+        Required by every route but ``/healthz`` and the web page when set.
     max_upload_bytes : int
         Largest request body, bytes.
     sync_max_motion_s, sync_timeout_s : float
@@ -88,7 +99,7 @@ class _Guard:
         self.max_bytes = max_bytes
 
     def _authorised(self, scope) -> bool:
-        if self.api_key is None or scope["path"] == "/healthz":
+        if self.api_key is None or _public(scope["path"]):
             return True
         headers = dict(scope["headers"])
         given = headers.get(b"x-api-key")
@@ -157,8 +168,8 @@ def create_app(settings: Settings) -> FastAPI:
             "restart of the server. Limits of this server: request body "
             f"{settings.max_upload_bytes} bytes (413 beyond); `POST /v1/gain-table` up to "
             f"{settings.sync_max_motion_s:g} s of motion (413 beyond: use jobs). "
-            + ("Every route but /healthz needs the header `X-API-Key`." if settings.api_key
-               else "")),
+            + ("Every route but /healthz and the web page needs the header `X-API-Key`."
+               if settings.api_key else "")),
         lifespan=lifespan,
     )
     app.state.settings = settings
@@ -200,5 +211,12 @@ def create_app(settings: Settings) -> FastAPI:
         return {"status": "ok", "version": __version__,
                 "workers_alive": pool.alive() if pool else 0,
                 "jobs": request.app.state.store.counts()}
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", response_class=FileResponse, include_in_schema=False)
+    def page() -> FileResponse:
+        """The web page: submit a program, watch the job, open the report, download tables."""
+        return FileResponse(STATIC_DIR / "index.html", media_type="text/html")
 
     return app
