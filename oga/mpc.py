@@ -39,10 +39,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import nearest_segment
+from oga.contour import nearest_segment, window_bounds
 from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
-from oga.simulate import run, step
+from oga.search import apply_gains
+from oga.simulate import run
 
 __all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
 
@@ -242,8 +243,7 @@ def _nearest(pd, count, ce_window, c, j_prev, x, y, z):
         j, t, d2 = nearest_segment(pd, lo, hi, x, y, z)
         if j > lo and j < hi - 1:
             return j, t, d2
-    lo = np.searchsorted(count, count[c] - ce_window, side="left")
-    hi = np.searchsorted(count, count[c] + ce_window, side="right") - 1
+    lo, hi = window_bounds(count, c, ce_window)
     return nearest_segment(pd, lo, hi, x, y, z)
 
 
@@ -546,14 +546,8 @@ def mpc_chunk(
                             kp_lo, kp_hi, kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa)
         # 5: apply the first `replan` samples of the plan and advance the true state
         for i in range(min(replan, k1 - k)):
-            kk = k + i
             for a in range(3):
                 if moving[a]:
                     kp[a] = plan_kp[a, i]
                     kf[a] = plan_kf[a, i]
-                kp_out[kk, a] = kp[a]
-                kf_out[kk, a] = kf[a]
-                u = step(states[a], params[a], pdT[a, kk], vdT[a, kk], kp[a] * _C, kf[a])
-                u_out[kk, a] = u
-                u_hist[a, 1] = u_hist[a, 0]
-                u_hist[a, 0] = u
+            apply_gains(k + i, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hist)

@@ -45,7 +45,7 @@ from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.simulate import step, window
 
-__all__ = ["search_chunk", "MAX_CANDIDATES", "STAT_FALLBACK", "STAT_WINDOWS"]
+__all__ = ["apply_gains", "search_chunk", "MAX_CANDIDATES", "STAT_FALLBACK", "STAT_WINDOWS"]
 
 #: Largest number of candidates per axis and sample (5 Kp x 5 Kf).
 MAX_CANDIDATES = 25
@@ -159,6 +159,19 @@ def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, 
         p = p_now if m == 0 else pred[m - 1]
         u[m] = kp_si * (pd[i] - p) + (kf * vd[i] if k + m <= last else 0.0)
     return eq2_excess(u, u1, u2, vmax, amax, jmax, te, n)
+
+
+@njit(cache=True)
+def apply_gains(k, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hist):
+    """Apply the gains ``kp``, ``kf`` (3,) at sample ``k``: record them, advance every axis's
+    true state by one Te on the exact kernel, record the commands and shift their history."""
+    for a in range(3):
+        kp_out[k, a] = kp[a]
+        kf_out[k, a] = kf[a]
+        u = step(states[a], params[a], pdT[a, k], vdT[a, k], kp[a] * _C, kf[a])
+        u_out[k, a] = u
+        u_hist[a, 1] = u_hist[a, 0]
+        u_hist[a, 0] = u
 
 
 @njit(cache=True)
@@ -372,9 +385,4 @@ def search_chunk(
         for a in range(3):
             kp[a] += dkp[a, choice[a]]
             kf[a] += dkf[a, choice[a]]
-            kp_out[k, a] = kp[a]
-            kf_out[k, a] = kf[a]
-            u = step(states[a], params[a], pdT[a, k], vdT[a, k], kp[a] * _C, kf[a])
-            u_out[k, a] = u
-            u_hist[a, 1] = u_hist[a, 0]
-            u_hist[a, 0] = u
+        apply_gains(k, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hist)

@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes, jobs optimised at once (default: one per CPU)")
     p.add_argument("--api-key", default=None, metavar="KEY",
-                   help="require this key (header X-API-Key) on every route but /healthz; "
+                   help="require this key (header X-API-Key) on every route but /healthz and the web "
+                   "page; "
                    "default the environment variable OGA_API_KEY, else none")
     p.add_argument("--max-upload-mb", type=float, default=API_MAX_UPLOAD_BYTES / 2**20,
                    metavar="MB",
