@@ -54,6 +54,8 @@ __all__ = [
     "state_size",
     "rest_state",
     "step",
+    "drive",
+    "axis_arrays",
     "window",
     "run",
     "simulate_axis",
@@ -214,8 +216,8 @@ def friction_nonlinear(params: np.ndarray, v: float) -> float:
 
 
 @njit(cache=True)
-def _substeps(params, p, v, f, i, ud):
-    """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` held."""
+def _substeps(params, p, v, f, i, ud, load):
+    """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held."""
     # x = [p, v, F]: position integrates, force does not depend on p or v, and the
     # friction input does not reach F (structural zeros of substep_matrices)
     a01, a02, a11, a12, a22 = params[1], params[2], params[4], params[5], params[8]
@@ -235,7 +237,7 @@ def _substeps(params, p, v, f, i, ud):
             fc = raw
         if fc == raw or e * raw < 0.0:
             i += h * e
-        fn = friction_nonlinear(params, v)
+        fn = friction_nonlinear(params, v) + load
         p, v, f = (
             p + a01 * v + a02 * f + b00 * fc + b01 * fn,
             a11 * v + a12 * f + b10 * fc + b11 * fn,
@@ -265,12 +267,16 @@ def _lifted_guard(params, v, f, i, ud, fn):
 
 
 @njit(cache=True)
-def _advance(params, p, v, f, i, ud):
-    """One Te from ``(p, v, F, I)`` with velocity command ``ud`` held: ``(p, v, F, I)``."""
-    if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
+def _advance(params, p, v, f, i, ud, load):
+    """One Te from ``(p, v, F, I)`` with velocity command ``ud`` held: ``(p, v, F, I)``.
+
+    ``load`` (N) is an external force held over Te, opposing positive motion like
+    friction (it enters where the friction force does).
+    """
+    if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0 and load == 0.0:
         return p, v, f, i  # at rest and not driven: the sub-steps change nothing
     if params[_LIFTED] != 0.0:
-        fn = friction_nonlinear(params, v)
+        fn = friction_nonlinear(params, v) + load
         if _lifted_guard(params, v, f, i, ud, fn):
             a = params[_LA : _LA + 16]
             b = params[_LB : _LB + 8]
@@ -280,7 +286,7 @@ def _advance(params, p, v, f, i, ud):
                 a[9] * v + a[10] * f + a[11] * i + b[4] * ud + b[5] * fn,
                 a[13] * v + a[14] * f + a[15] * i + b[6] * ud + b[7] * fn,
             )
-    return _substeps(params, p, v, f, i, ud)
+    return _substeps(params, p, v, f, i, ud, load)
 
 
 @njit(cache=True)
@@ -305,8 +311,34 @@ def step(
     float
         The velocity command ``u_k`` (m/s).
     """
-    dead = int(params[_DEAD])
     u = kp_si * (pd - state[_P]) + kf * vd
+    drive(state, params, u, 0.0)
+    return u
+
+
+@njit(cache=True)
+def drive(state: np.ndarray, params: np.ndarray, u: float, load_n: float) -> None:
+    """Issue the velocity command ``u`` at sample k and advance the axis to k+1, in place.
+
+    The command enters the dead-time line; the velocity loop receives the command
+    issued ``d`` samples ago. Any position control law (not only ``Kp, Kf``) drives
+    the plant through this function, so all laws see the same plant, dead time and
+    inner loops.
+
+    Parameters
+    ----------
+    state : ndarray, shape (state size,)
+        Axis state at sample k (the measured position is ``state[0]``, m);
+        overwritten with the state at k+1.
+    params : ndarray
+        From :func:`axis_params`.
+    u : float
+        Velocity command issued at sample k, m/s.
+    load_n : float
+        External load force held over the period, N (0 for none); it acts like
+        friction: a positive load opposes positive motion.
+    """
+    dead = int(params[_DEAD])
     if dead == 0:
         ud = u
     else:
@@ -314,12 +346,11 @@ def step(
         for j in range(dead - 1, 0, -1):
             state[_LINE + j] = state[_LINE + j - 1]
         state[_LINE] = u
-    p, v, f, i = _advance(params, state[_P], state[_V], state[_F], state[_I], ud)
+    p, v, f, i = _advance(params, state[_P], state[_V], state[_F], state[_I], ud, load_n)
     state[_P] = p
     state[_V] = v
     state[_F] = f
     state[_I] = i
-    return u
 
 
 @njit(cache=True)
@@ -370,7 +401,7 @@ def window(
                 ud = kp_si * (pd[k] - pm) + kf * vd[k]
             else:
                 ud = kp_si * (pd[last] - pm)
-        p, v, f, i = _advance(params, p, v, f, i, ud)
+        p, v, f, i = _advance(params, p, v, f, i, ud, 0.0)
         out_p[j] = p
 
 
@@ -407,7 +438,7 @@ def run(
         out_u[k] = u
         m = k - dead  # the command applied now is u_m
         ud = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
-        p, v, f, i = _advance(params, p, v, f, i, ud)
+        p, v, f, i = _advance(params, p, v, f, i, ud, 0.0)
     # the dead-time line at sample n: u_{n-1}, .., u_{n-d}
     for j in range(dead - 1, -1, -1):  # downwards: an old entry is read before it is overwritten
         state[_LINE + j] = out_u[n - 1 - j] if n - 1 - j >= 0 else state[_LINE + j - n]
@@ -448,6 +479,41 @@ def simulate_axis(
     u = np.empty(n)
     run(rest_state(params, float(p0)), params, pd, vd, kp, kf_a, p_act, u)
     return p_act, u
+
+
+def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Packed parameters and rest states of the x, y, z axes, for compiled multi-axis loops.
+
+    Rows are in ``AXES`` order and padded with zeros to a common length, so a
+    compiled loop can pass ``params[a]`` and ``states[a]`` (contiguous row views)
+    to :func:`drive` for every present axis ``a``.
+
+    Parameters
+    ----------
+    machine : Machine
+        Machine description.
+    p0 : array_like, shape (3,)
+        Initial positions of x, y, z, m (each present axis starts at rest there).
+
+    Returns
+    -------
+    params : ndarray, shape (3, P)
+        :func:`axis_params` of each present axis (zeros for an absent axis).
+    states : ndarray, shape (3, S)
+        :func:`rest_state` of each present axis (zeros for an absent axis).
+    present : ndarray of bool, shape (3,)
+        Whether the machine has the axis.
+    """
+    rows = {a: axis_params(machine, a) for a in AXES if a in machine.axes}
+    rests = {a: rest_state(rows[a], float(p0[c])) for c, a in enumerate(AXES) if a in rows}
+    params = np.zeros((3, max(len(r) for r in rows.values())))
+    states = np.zeros((3, max(len(r) for r in rests.values())))
+    for c, a in enumerate(AXES):
+        if a in rows:
+            params[c, : len(rows[a])] = rows[a]
+            states[c, : len(rests[a])] = rests[a]
+    present = np.array([a in rows for a in AXES])
+    return params, states, present
 
 
 def _vector(x, name: str, n: int) -> np.ndarray:
