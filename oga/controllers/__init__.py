@@ -1,0 +1,3 @@
+"""Comparison controllers from the contouring literature (see :mod:`oga.controllers.base`)."""
+
+__all__: list[str] = []
