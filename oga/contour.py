@@ -153,6 +153,12 @@ def ce_point(pd, lo, hi, x, y, z, e1, e2, signed):
         (the path stands still), the distance to ``pd[lo]``, positive.
     """
     bi, bt, best = nearest_segment(pd, lo, hi, x, y, z)
+    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
+
+
+@njit(cache=True)
+def _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best):
+    """:func:`ce_point` from the nearest segment ``(bi, bt, best)`` of the window ``lo..hi``."""
     if bi < 0:  # standing still over the whole window
         rx = x - pd[lo, 0]
         ry = y - pd[lo, 1]
@@ -259,11 +265,91 @@ def ce_series(pd, pa, window, e1, e2, signed):
     """
     n = pd.shape[0]
     count = moving_count(pd)
+    centre, radius = _block_spheres(pd)
     out = np.empty(n)
     for k in range(n):
         lo, hi = window_bounds(count, k, window)
-        out[k] = ce_point(pd, lo, hi, pa[k, 0], pa[k, 1], pa[k, 2], e1, e2, signed)
+        x, y, z = pa[k, 0], pa[k, 1], pa[k, 2]
+        bi, bt, best = _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z)
+        out[k] = _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
     return out
+
+
+#: Segments per block of :func:`_block_spheres`.
+_BLOCK = 16
+
+
+@njit(cache=True)
+def _block_spheres(pd):
+    """A sphere around each block of ``_BLOCK`` consecutive segments (their vertices).
+
+    Returns ``(centre (B, 3), radius (B,))`` with block ``b`` holding the segments
+    ``b * _BLOCK .. (b + 1) * _BLOCK - 1``. The radius is enlarged by a relative
+    1e-9 and 1e-12 m, far above rounding, so the distance bound it gives is safe.
+    """
+    n_seg = max(pd.shape[0] - 1, 0)
+    nb = (n_seg + _BLOCK - 1) // _BLOCK
+    centre = np.empty((nb, 3))
+    radius = np.empty(nb)
+    for b in range(nb):
+        i0 = b * _BLOCK
+        i1 = min(i0 + _BLOCK, n_seg)  # last vertex of the block
+        for a in range(3):
+            lo_a = pd[i0, a]
+            hi_a = pd[i0, a]
+            for i in range(i0 + 1, i1 + 1):
+                lo_a = min(lo_a, pd[i, a])
+                hi_a = max(hi_a, pd[i, a])
+            centre[b, a] = 0.5 * (lo_a + hi_a)
+        r2 = 0.0
+        for i in range(i0, i1 + 1):
+            dx = pd[i, 0] - centre[b, 0]
+            dy = pd[i, 1] - centre[b, 1]
+            dz = pd[i, 2] - centre[b, 2]
+            r2 = max(r2, dx * dx + dy * dy + dz * dz)
+        radius[b] = np.sqrt(r2) * (1.0 + 1e-9) + 1e-12
+    return centre, radius
+
+
+@njit(cache=True)
+def _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z):
+    """:func:`nearest_segment` over ``lo..hi``, skipping blocks that provably hold no nearest segment.
+
+    An upper bound of the least squared distance comes from the setpoint ``pd[k]``
+    (a point of the path, where a moving segment of the window ends) and from the
+    segments of the block holding vertex ``k``; a block whose sphere lies farther
+    than the bound cannot hold the minimum and is skipped. The others are scanned in
+    index order with the same strict comparison as :func:`nearest_segment`, so the
+    answer is the same: the first segment with the least distance. Should the
+    bound not be met (``pd[k]`` on no moving segment of the window), every block is
+    scanned.
+    """
+    if hi <= lo:
+        return -1, 0.0, np.inf
+    kc = min(max(k, lo), hi)
+    bound = (x - pd[kc, 0]) ** 2 + (y - pd[kc, 1]) ** 2 + (z - pd[kc, 2]) ** 2
+    kb = min(kc, hi - 1) // _BLOCK
+    _j, _t, d2 = nearest_segment(pd, max(lo, kb * _BLOCK), min(hi, (kb + 1) * _BLOCK), x, y, z)
+    bound = min(bound, d2)
+    best = np.inf
+    bi = -1
+    bt = 0.0
+    for b in range(lo // _BLOCK, (hi - 1) // _BLOCK + 1):
+        dx = x - centre[b, 0]
+        dy = y - centre[b, 1]
+        dz = z - centre[b, 2]
+        gap = np.sqrt(dx * dx + dy * dy + dz * dz) - radius[b]
+        if gap > 0.0 and gap * gap > bound:
+            continue
+        j, t, d2 = nearest_segment(pd, max(lo, b * _BLOCK), min(hi, (b + 1) * _BLOCK), x, y, z)
+        if d2 < best:
+            best = d2
+            bi = j
+            bt = t
+            bound = min(bound, d2)
+    if best > bound:  # the bound was not a distance to the window's path: no pruning
+        return nearest_segment(pd, lo, hi, x, y, z)
+    return bi, bt, best
 
 
 def plane_axes(plane: str | None) -> tuple[int, int, bool]:
