@@ -343,6 +343,7 @@ def mpc_chunk(
     alo = np.empty(max_rows)
     ahi = np.empty(max_rows)
     x = np.zeros(nv)
+    trust = np.empty(nv)
     plan_kp = np.empty((3, n_pred))
     plan_kf = np.empty((3, n_pred))
     trial = np.empty((3, n_pred))
@@ -464,6 +465,7 @@ def mpc_chunk(
                 tr = 0.0
             alo[m + 1] = -tr
             ahi[m + 1] = tr
+            trust[v] = tr
             m += 2
         for a in range(3):
             if not moving[a]:
@@ -490,7 +492,12 @@ def mpc_chunk(
                         amat[m, v] = cv * scale
                     alo[m] = -1.0 - nominal * scale
                     ahi[m] = 1.0 - nominal * scale
-                    m += 1
+                    # a row that no step inside the trust region can break is left out
+                    reach = 0.0
+                    for v in range(nv):
+                        reach += abs(amat[m, v]) * trust[v]
+                    if reach > min(-alo[m], ahi[m]) * (1.0 - 1e-12):
+                        m += 1
         if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, x):
             stats[STAT_QP_SHORT] += 1
         # 4: exact line search: the plan scaled by 1, 1/2, 1/4, 1/8 and 0 (hold), each
