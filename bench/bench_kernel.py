@@ -3,7 +3,8 @@
 Two motions, each axis separately, figures after warm-up (compilation excluded):
 
 - ``circle``: the X axis of a circle of radius 50 mm at F3000 (50 mm/s), 100 s: the
-  axis velocity sweeps 0..50 mm/s and reverses every pi seconds;
+  axis velocity sweeps 0..50 mm/s and reverses every pi seconds; on ucp710 (cascade)
+  and on mcv-op (ARX velocity loop, the paper's 8th-order Vx; no lifted variant);
 - ``reference_xz``: tests/data/reference_xz.ngc planned at F3000 by feedplan (X and Z;
   Z stands still about 40 % of the time, where friction's smooth region near zero
   velocity must be evaluated at every sub-step).
@@ -69,7 +70,8 @@ def _bench_axis(label, machine, axis, pd, vd, repeat):
     p_act, u = np.empty(n), np.empty(n)
     kp_a, kf_a = np.full(n, KP), np.full(n, KF)
     t_run = {}
-    for lifted in (False, True):
+    variants = (False, True) if machine.axis(axis).kind == "cascade" else (True,)
+    for lifted in variants:
         params = axis_params(machine, axis, lifted)
 
         def do_run():
@@ -77,12 +79,15 @@ def _bench_axis(label, machine, axis, pd, vd, repeat):
 
         do_run()  # compile / load the cache
         t_run[lifted] = _best_of(do_run, repeat)
-    print(f"{label} {axis}: {n} samples")
-    for lifted, name in ((False, "sub-steps only"), (True, "lifted where exact")):
-        t = t_run[lifted]
-        print(f"  run ({name:18s}) {n / t / 1e6:6.2f} M samples/s "
+    print(f"{label} {machine.name} {axis}: {n} samples")
+    names = {False: "sub-steps only", True: "lifted where exact"}
+    if len(variants) == 1:
+        names = {True: machine.axis(axis).kind}
+    for lifted, t in t_run.items():
+        print(f"  run ({names[lifted]:18s}) {n / t / 1e6:6.2f} M samples/s "
               f"({t * 1e9 / n:6.1f} ns per sample, {n * te / t:6.0f}x real time)")
-    print(f"  lifted / sub-steps speed ratio: {t_run[False] / t_run[True]:.2f}")
+    if len(variants) == 2:
+        print(f"  lifted / sub-steps speed ratio: {t_run[False] / t_run[True]:.2f}")
 
     params = axis_params(machine, axis)
     out = np.empty((CAND_KP.size, NP))
@@ -113,6 +118,7 @@ def main() -> None:
     pd = radius * np.cos(speed / radius * t)
     vd = -speed * np.sin(speed / radius * t)
     _bench_axis("circle", machine, "x", pd, vd, args.repeat)
+    _bench_axis("circle", load_machine("mcv-op"), "x", pd, vd, args.repeat)
 
     sp = plan(load_toolpath(REFERENCE), machine.axis_limits(), feed_m_s=0.05)
     for c, axis in ((0, "x"), (2, "z")):

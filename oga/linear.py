@@ -1,7 +1,8 @@
-"""The linear axis: exact discrete models of the cascade's linear part.
+"""The linear axis: exact discrete models of the axis under the position loop.
 
 Used by the simulation kernel (its sub-step matrices and its lifted step) and by
-the stability analysis (the linearised loop lifted over Te).
+the stability analysis (the linearised loop lifted over Te). An axis is either a
+cascade (below) or an identified ARX velocity loop (:func:`arx_state_space`).
 
 The continuous mechanics of one axis (DESIGN.md), with state ``x = [p, v, F]``
 (position m, velocity m/s, actual force N) and inputs ``[F_cmd, F_n]`` (force
@@ -27,6 +28,11 @@ Te); composing ``substeps`` of them gives the axis over one Te
 (:func:`substep_sequence`). Linearised (friction -> its viscous part B, which is
 inside the matrices, so ``F_n = 0``) this is the lifted axis (:func:`lifted_axis`). The position loop adds a dead time of
 ``dead_time_samples`` samples and the gain Kp (:func:`position_open_loop`).
+
+An ARX axis (:class:`oga.machine.Arx`) is already discrete over Te; its velocity
+``v_k`` follows the difference equation of ``V(z)`` on the input
+``u_k - viscous_ratio v_{k-1}`` (friction linearised: the Coulomb term is dropped)
+and ``p_{k+1} = p_k + Te v_k`` (:func:`arx_state_space`).
 """
 
 from __future__ import annotations
@@ -34,9 +40,16 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
-from oga.machine import Cascade, Machine
+from oga.errors import MachineError
+from oga.machine import Arx, Cascade, Machine
 
-__all__ = ["substep_matrices", "substep_sequence", "lifted_axis", "position_open_loop"]
+__all__ = [
+    "substep_matrices",
+    "substep_sequence",
+    "arx_state_space",
+    "lifted_axis",
+    "position_open_loop",
+]
 
 
 def substep_matrices(cascade: Cascade, h: float) -> tuple[np.ndarray, np.ndarray]:
@@ -97,6 +110,8 @@ def substep_sequence(machine: Machine, axis: str) -> tuple[np.ndarray, np.ndarra
         ``B_j``: columns for the velocity command u (m/s) and the friction force F_n (N).
     """
     cas = machine.axis(axis).cascade
+    if cas is None:
+        raise MachineError(f"machine {machine.name!r}: axis {axis!r} is not a cascade")
     n_sub = machine.timing.substeps
     h = machine.timing.te_s / n_sub
     ad, bd = substep_matrices(cas, h)
@@ -121,33 +136,90 @@ def substep_sequence(machine: Machine, axis: str) -> tuple[np.ndarray, np.ndarra
     return a, b
 
 
+def arx_state_space(arx: Arx, te: float) -> tuple[np.ndarray, np.ndarray]:
+    """The linearised ARX axis (velocity command -> position) over one Te.
+
+    State ``z = [p, v_{k-1}, .., v_{k-nv}, w_{k-1}, .., w_{k-nw}]`` (m, then m/s) with
+    ``w = u - viscous_ratio v`` the velocity loop's input, ``nv = max(1, len(den) - 1)``
+    and ``nw = len(num) - 1``; this is the simulation kernel's state layout. One
+    period: ``w_k = u_k - viscous_ratio v_{k-1}``,
+    ``v_k = sum_i num[i] w_{k-i} - sum_{i>=1} den[i] v_{k-i}``, ``p_{k+1} = p_k + Te v_k``.
+
+    Parameters
+    ----------
+    arx : Arx
+        The axis model (``den[0] == 1``).
+    te : float
+        Period, s.
+
+    Returns
+    -------
+    a : ndarray, shape (n, n)
+        State transition, ``n = 1 + nv + nw``.
+    b : ndarray, shape (n, 1)
+        Input matrix of the velocity command ``u_k`` (m/s).
+    """
+    num, den = np.asarray(arx.num), np.asarray(arx.den)
+    nv, nw = max(1, den.size - 1), num.size - 1
+    n = 1 + nv + nw
+    # w_k and v_k as rows over the state, plus their input gains
+    w_row = np.zeros(n)
+    w_row[1] = -arx.viscous_ratio
+    v_row = np.zeros(n)
+    v_row[1 : den.size] -= den[1:]
+    v_row[1 + nv :] += num[1:]
+    v_row += num[0] * w_row
+    a = np.zeros((n, n))
+    b = np.zeros((n, 1))
+    a[0] = te * v_row
+    a[0, 0] += 1.0
+    b[0, 0] = te * num[0]
+    a[1] = v_row
+    b[1, 0] = num[0]
+    for j in range(2, 1 + nv):
+        a[j, j - 1] = 1.0
+    if nw:
+        a[1 + nv] = w_row
+        b[1 + nv, 0] = 1.0
+        for j in range(2 + nv, n):
+            a[j, j - 1] = 1.0
+    return a, b
+
+
 def lifted_axis(
     machine: Machine, axis: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The linearised inner loops of one axis lifted over one position-loop period Te.
+    """The linearised axis under the position loop over one period Te, dead time excluded.
 
     Parameters
     ----------
     machine : Machine
-        Machine description (timing and the axis cascade).
+        Machine description (timing and the axis model).
     axis : str
         Axis name ("x", "y" or "z"); MachineError if the machine lacks it.
 
     Returns
     -------
-    a : ndarray, shape (4, 4)
-        Discrete state transition over Te of ``z = [p, v, F, I]``
-        (m, m/s, N, m: I is the integral of the velocity error).
-    b : ndarray, shape (4, 1)
+    a : ndarray, shape (n, n)
+        Discrete state transition over Te. Cascade: ``n = 4``, ``z = [p, v, F, I]``
+        (m, m/s, N, m: I is the integral of the velocity error), the inner loops
+        lifted over the sub-steps. ARX: the state of :func:`arx_state_space`.
+    b : ndarray, shape (n, 1)
         Input matrix of the velocity command ``u`` (m/s) held over Te.
-    c : ndarray, shape (1, 4)
-        Output: the position p (m), measured at the start of the period.
+    c : ndarray, shape (1, n)
+        Output: the position p (m, the first state), measured at the start of the period.
     d : ndarray, shape (1, 1)
         Zero feed-through.
     """
-    a, b = substep_sequence(machine, axis)
-    c = np.array([[1.0, 0.0, 0.0, 0.0]])
-    return a[-1], b[-1][:, :1].copy(), c, np.zeros((1, 1))
+    model = machine.axis(axis)
+    if model.arx is not None:
+        a, b = arx_state_space(model.arx, machine.te)
+    else:
+        a_j, b_j = substep_sequence(machine, axis)
+        a, b = a_j[-1], b_j[-1][:, :1].copy()
+    c = np.zeros((1, a.shape[0]))
+    c[0, 0] = 1.0
+    return a, b, c, np.zeros((1, 1))
 
 
 def position_open_loop(
@@ -155,8 +227,8 @@ def position_open_loop(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The position open loop ``L(z) = Kp z^-d G(z)`` as a discrete state-space (period Te).
 
-    ``G`` is :func:`lifted_axis` (velocity command -> position) and ``d`` is
-    ``machine.timing.dead_time_samples``. The state is ``[z, w]`` with
+    ``G`` is :func:`lifted_axis` (velocity command -> position, ``n`` states) and
+    ``d`` is ``machine.timing.dead_time_samples``. The state is ``[z, w]`` with
     ``w = [u_k-1, ..., u_k-d]`` the dead-time line; negative unity feedback
     ``u = -y`` closes the position loop.
 
@@ -171,26 +243,27 @@ def position_open_loop(
 
     Returns
     -------
-    a : ndarray, shape (4 + d, 4 + d)
-    b : ndarray, shape (4 + d, 1)
-    c : ndarray, shape (1, 4 + d)
+    a : ndarray, shape (n + d, n + d)
+    b : ndarray, shape (n + d, 1)
+    c : ndarray, shape (1, n + d)
         Output ``y = Kp p`` (m/s).
     d : ndarray, shape (1, 1)
         Zero feed-through.
     """
     a_g, b_g, c_g, _ = lifted_axis(machine, axis)
     dead = machine.timing.dead_time_samples
-    n = 4 + dead
+    m = a_g.shape[0]
+    n = m + dead
     a = np.zeros((n, n))
     b = np.zeros((n, 1))
-    a[:4, :4] = a_g
+    a[:m, :m] = a_g
     if dead == 0:
-        b[:4] = b_g
+        b[:m] = b_g
     else:
-        a[:4, n - 1 : n] = b_g  # the oldest command enters the axis
-        b[4, 0] = 1.0  # the newest command enters the line
-        for i in range(5, n):
+        a[:m, n - 1 : n] = b_g  # the oldest command enters the axis
+        b[m, 0] = 1.0  # the newest command enters the line
+        for i in range(m + 1, n):
             a[i, i - 1] = 1.0
     c = np.zeros((1, n))
-    c[0, :4] = kp_si * c_g[0]
+    c[0, :m] = kp_si * c_g[0]
     return a, b, c, np.zeros((1, 1))

@@ -1,9 +1,11 @@
 """The machine description: one frozen pydantic model for library, CLI and API.
 
 A machine is a set of linear axes (x, y, z), each with its kinematic limits and
-the parameters of its cascade (velocity PI, force-loop lag, mass, friction),
-the loop timing, and the settings of the gain ranges. Everything is SI; gains
-are spoken in the users' unit (m/min)/mm and named so.
+exactly one model of what lies under the position loop: a ``cascade`` (velocity PI,
+force-loop lag, mass, friction) or an ``arx`` (an identified discrete velocity-loop
+model with an input-equivalent friction and load), the loop timing, and the
+settings of the gain ranges. Everything is SI; gains are spoken in the users' unit
+(m/min)/mm and named so.
 
 Presets live as TOML files in ``oga/presets/`` (each states the source of its
 numbers); users bring their own file with the same fields (TOML or JSON).
@@ -17,7 +19,15 @@ import tomllib
 from pathlib import Path as FilePath
 from typing import TYPE_CHECKING, Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 if TYPE_CHECKING:
     from feedplan.limits import AxisLimits
@@ -28,6 +38,7 @@ __all__ = [
     "KP_SI_PER_M_MIN_PER_MM",
     "Limits",
     "Cascade",
+    "Arx",
     "Axis",
     "Timing",
     "GainSettings",
@@ -86,11 +97,71 @@ class Cascade(_Frozen):
         return self
 
 
+Coef = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class Arx(_Frozen):
+    """Identified discrete velocity loop of one axis (period Te), with friction and load.
+
+    ``V(z) = (num[0] + num[1] z^-1 + ...) / (den[0] + den[1] z^-1 + ...)`` maps the
+    velocity command (m/s) to the axis velocity (m/s); leading zeros of ``num``
+    carry the loop's own delay. The position integrates the velocity of the last
+    period: ``p_{k+1} = p_k + Te v_k``.
+
+    Friction and an external load act as an input-equivalent velocity disturbance
+    (the velocity command that would cancel them), subtracted from the command::
+
+        u_eff = u - coulomb_m_s tanh(v / friction_smoothing_m_s) - viscous_ratio v
+                  - load_m_s_per_n F_load
+
+    with ``v`` the velocity of the last period (m/s) and ``F_load`` the load (N,
+    opposing positive motion).
+    """
+
+    num: Annotated[tuple[Coef, ...], Field(min_length=1)]
+    den: Annotated[tuple[Coef, ...], Field(min_length=1)]
+    coulomb_m_s: NonNeg = 0.0
+    viscous_ratio: NonNeg = 0.0
+    friction_smoothing_m_s: Pos = 1e-4
+    load_m_s_per_n: NonNeg = 0.0
+
+    @field_validator("den")
+    @classmethod
+    def _den_stable(cls, den: tuple[float, ...]) -> tuple[float, ...]:
+        if den[0] != 1.0:
+            raise ValueError(f"leading coefficient must be 1 (normalised), got {den[0]}")
+        poles = np.roots(den) if len(den) > 1 else np.zeros(0)
+        if poles.size and np.max(np.abs(poles)) >= 1.0:
+            raise ValueError(
+                f"the velocity loop must be stable; a pole has modulus {np.max(np.abs(poles)):.6g}"
+            )
+        return den
+
+    @field_validator("num")
+    @classmethod
+    def _num_not_zero(cls, num: tuple[float, ...]) -> tuple[float, ...]:
+        if sum(num) == 0.0:
+            raise ValueError("the DC gain (sum of the coefficients) must not be zero")
+        return num
+
+
 class Axis(_Frozen):
-    """One linear axis: its limits and its cascade model."""
+    """One linear axis: its limits and exactly one model kind, ``cascade`` or ``arx``."""
 
     limits: Limits
-    cascade: Cascade
+    cascade: Cascade | None = None
+    arx: Arx | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> "Axis":
+        if (self.cascade is None) == (self.arx is None):
+            raise ValueError("give exactly one axis model: a cascade table or an arx table")
+        return self
+
+    @property
+    def kind(self) -> str:
+        """The model kind: ``"cascade"`` or ``"arx"``."""
+        return "cascade" if self.cascade is not None else "arx"
 
 
 class Timing(_Frozen):
@@ -192,7 +263,9 @@ class Machine(_Frozen):
 
     def digest(self) -> str:
         """SHA-256 of the canonical JSON of this machine (identifies it in a table)."""
-        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        # without the unset model kind (an axis has exactly one)
+        data = self.model_dump(mode="json", exclude_none=True)
+        blob = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(blob.encode()).hexdigest()
 
 

@@ -1,6 +1,9 @@
-"""The compiled nonlinear axis simulation: the cascade of DESIGN.md, one axis at a time.
+"""The compiled nonlinear axis simulation, one axis at a time: cascade or ARX axes.
 
-Per axis and position-loop sample k (period Te):
+An axis is one of two kinds (:class:`oga.machine.Axis`), told apart by a kind code
+in its packed parameters, so every compiled function below takes either.
+
+**Cascade** (DESIGN.md). Per axis and position-loop sample k (period Te):
 
 1. measure ``p_k``;
 2. velocity command ``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (Kp in 1/s);
@@ -29,11 +32,33 @@ advanced with the lifted linear map of :func:`oga.linear.substep_sequence` (the
 same model; the two paths differ by floating-point rounding only, about 1e-15
 relative). On a contour this covers all but the samples near axis reversals.
 
-The compiled functions (:func:`step`, :func:`window`, :func:`run`) take the packed
-parameters of :func:`axis_params` and a state vector of :func:`state_size` entries:
-``[p, v, F, I, u_{k-1}, ..., u_{k-d}]`` (m, m/s, N, m, then m/s). They are meant to be
-called from other compiled code (the gain search) as well as through
-:func:`simulate`.
+**ARX** (:class:`oga.machine.Arx`): an identified velocity loop, already discrete
+over Te. At sample k, with the command ``u_k`` issued:
+
+1. the velocity loop's input ``w_k = u_k - f(v_{k-1}) - g_load F_load`` with the
+   input-equivalent friction ``f`` of :func:`friction_command_m_s` at the velocity
+   of the last period and the load gain ``g_load`` (m/s per N);
+2. ``v_k = sum_i num[i] w_{k-i} - sum_{i>=1} den[i] v_{k-i}``;
+3. ``p_{k+1} = p_k + Te v_k``.
+
+The dead time is folded into the numerator (``d`` leading zeros); with the
+friction off this is exactly the linear model of :func:`oga.linear.arx_state_space`.
+
+The compiled functions (:func:`rest_state`, :func:`step`, :func:`drive`, :func:`window`,
+:func:`run`) take the packed parameters of :func:`axis_params` and a state vector of
+:func:`state_size` entries, whose first entries are always the position p (m) and
+the velocity v (m/s):
+
+- cascade: ``[p, v, F, I, u_{k-1}, ..., u_{k-d}]`` (m, m/s, N, m, then m/s);
+- ARX: ``[p, v_{k-1}, .., v_{k-nv}, w_{k-1}, .., w_{k-nw}]`` (m, then m/s), the
+  velocities of the last ``nv = max(1, len(den) - 1)`` periods and the last
+  ``nw = len(num) - 1 + d`` velocity-loop inputs.
+
+All axes of a machine share one parameter length and one state length (the
+longest; shorter ones are zero-padded), so they stack into arrays.
+
+They are meant to be called from other compiled code (the gain search, the
+comparison controllers) as well as through :func:`simulate`.
 """
 
 from __future__ import annotations
@@ -55,6 +80,7 @@ __all__ = [
     "rest_state",
     "step",
     "drive",
+    "friction_command_m_s",
     "axis_arrays",
     "window",
     "run",
@@ -63,29 +89,44 @@ __all__ = [
     "Simulation",
 ]
 
-# Layout of the packed parameters (float64 vector).
-_AD = 0  # 3x3 row-major: x = [p, v, F] over one sub-step
-_BD = 9  # 3x2 row-major: held inputs [F_cmd, F_n]
-_KV = 15  # velocity PI gain, N s/m
-_INV_TN = 16  # 1 / Tn, 1/s
-_H = 17  # sub-step, s
-_FLIM = 18  # force limit, N
-_FC = 19  # Coulomb friction, N
-_DFS = 20  # Fs - Fc, N
-_INV_VS = 21  # 1 / Stribeck velocity, s/m
-_INV_EPS = 22  # 1 / friction smoothing velocity, s/m
-_R2_CUT = 23  # (v/vs)^2 above which the Stribeck term leaves F_n unchanged
-_NSUB = 24  # sub-steps per Te
-_DEAD = 25  # dead time, samples
-_LIFTED = 26  # 1.0: take the lifted step over Te where it is exact; 0.0: never
-_LA = 27  # 4x4 row-major: z = [p, v, F, I] over Te, unsaturated, F_n held
-_LB = 43  # 4x2 row-major: inputs [u, F_n] over Te
-_WV = 51  # 5: bound of |v_j - v_0| over the sub-steps, on |[v, e, F, I, F_n]|
-_WR = 56  # 5: bound of |F_cmd,j - F_cmd,0| over the sub-steps, same coordinates
-_VFAST = 61  # |v| above which F_n is exactly +-Fc (-inf if F_n is identically 0)
-_N_PARAMS = 62
+# Layout of the packed parameters (float64 vector). Header, both kinds:
+_KIND = 0  # _CASCADE or _ARX
+_DEAD = 1  # dead time, samples
+_NSTATE = 2  # length of the state vector
+_CASCADE, _ARX = 0.0, 1.0
+# cascade:
+_AD = 3  # 3x3 row-major: x = [p, v, F] over one sub-step
+_BD = 12  # 3x2 row-major: held inputs [F_cmd, F_n]
+_KV = 18  # velocity PI gain, N s/m
+_INV_TN = 19  # 1 / Tn, 1/s
+_H = 20  # sub-step, s
+_FLIM = 21  # force limit, N
+_FC = 22  # Coulomb friction, N
+_DFS = 23  # Fs - Fc, N
+_INV_VS = 24  # 1 / Stribeck velocity, s/m
+_INV_EPS = 25  # 1 / friction smoothing velocity, s/m
+_R2_CUT = 26  # (v/vs)^2 above which the Stribeck term leaves F_n unchanged
+_NSUB = 27  # sub-steps per Te
+_LIFTED = 28  # 1.0: take the lifted step over Te where it is exact; 0.0: never
+_LA = 29  # 4x4 row-major: z = [p, v, F, I] over Te, unsaturated, F_n held
+_LB = 45  # 4x2 row-major: inputs [u, F_n] over Te
+_WV = 53  # 5: bound of |v_j - v_0| over the sub-steps, on |[v, e, F, I, F_n]|
+_WR = 58  # 5: bound of |F_cmd,j - F_cmd,0| over the sub-steps, same coordinates
+_VFAST = 63  # |v| above which F_n is exactly +-Fc (-inf if F_n is identically 0)
+_B = 64  # viscous friction, N s/m
+_N_PARAMS = 65
+# ARX (then den[1:] padded to nv, then the numerator past its first entry, nw):
+_A_TE = 3  # period, s
+_A_NV = 4  # number of past velocities in the state (nv)
+_A_NW = 5  # number of past velocity-loop inputs in the state (nw)
+_A_B0 = 6  # num[0] (after the dead time's leading zeros)
+_A_FC = 7  # input-equivalent Coulomb friction, m/s
+_A_VISC = 8  # input-equivalent viscous friction, (m/s)/(m/s)
+_A_INV_EPS = 9  # 1 / friction smoothing velocity, s/m
+_A_LOAD = 10  # load gain, (m/s)/N
+_A_COEF = 11
 
-# Layout of the state vector.
+# Layout of the cascade state vector.
 _P, _V, _F, _I, _LINE = 0, 1, 2, 3, 4
 
 #: |v / eps| above which tanh(v / eps) is exactly +-1.0 in float64.
@@ -104,7 +145,8 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
     axis : str
         Axis name; MachineError if the machine lacks it.
     lifted : bool, optional
-        If True (default), the kernel advances a whole Te with the lifted linear
+        Cascade axes only (an ARX axis is discrete over Te already). If True
+        (default), the kernel advances a whole Te with the lifted linear
         map wherever that provably equals the sub-steps (no force limit reached and
         the friction force exactly constant at every sub-step: see
         :func:`_lifted_guard`); results then differ from pure sub-stepping by
@@ -112,10 +154,27 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (62,)
-        Sub-step matrices, PI, force limit, friction constants, sub-steps, dead
-        time, lifted map and the bounds of its guard.
+    ndarray, shape (P,)
+        Kind code, dead time and state size (:func:`state_size`), then for a
+        cascade the sub-step matrices, PI, force limit, friction constants,
+        sub-steps, lifted map, the bounds of its guard and the viscous friction (65
+        entries); for an ARX axis Te, history lengths, friction, load gain and the
+        coefficients (``11 + nv + nw``). Zero-padded to the longest over the
+        machine's axes, so every axis of a machine has the same P.
     """
+    model = machine.axis(axis)
+    n_params, n_state = _sizes(machine)
+    out = np.zeros(n_params)
+    if model.arx is not None:
+        _arx_params(model.arx, machine, out)
+    else:
+        _cascade_params(machine, axis, lifted, out)
+    out[_NSTATE] = n_state
+    return out
+
+
+def _cascade_params(machine: Machine, axis: str, lifted: bool, out: np.ndarray) -> None:
+    """Fill ``out`` with the packed parameters of a cascade axis (layout above)."""
     cas = machine.axis(axis).cascade
     h = machine.timing.te_s / machine.timing.substeps
     ad, bd = substep_matrices(cas, h)
@@ -134,7 +193,7 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
         v_fast = 1.01 * max(
             _TANH_CUT * cas.friction_smoothing_m_s, math.sqrt(r2_cut) * cas.stribeck_m_s
         )
-    out = np.empty(_N_PARAMS)
+    out[_KIND] = _CASCADE
     out[_AD : _AD + 9] = ad.ravel()
     out[_BD : _BD + 6] = bd.ravel()
     out[_KV] = cas.kv_n_s_m
@@ -154,7 +213,28 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
     out[_LB : _LB + 8] = b_j[-1].ravel()
     out[_WV : _WV + 5], out[_WR : _WR + 5] = _guard_bounds(a_j[:-1], b_j[:-1], cas)
     out[_VFAST] = v_fast
-    return out
+    out[_B] = cas.viscous_n_s_m
+
+
+def _arx_params(arx, machine: Machine, out: np.ndarray) -> None:
+    """Fill ``out`` with the packed parameters of an ARX axis (layout ``_A_*``), the dead
+    time folded into ``num``."""
+    dead = machine.timing.dead_time_samples
+    num = np.concatenate([np.zeros(dead), arx.num])
+    den = np.asarray(arx.den)
+    nv, nw = max(1, den.size - 1), num.size - 1
+    out[_KIND] = _ARX
+    out[_DEAD] = dead
+    out[_A_TE] = machine.te
+    out[_A_NV] = nv
+    out[_A_NW] = nw
+    out[_A_B0] = num[0]
+    out[_A_FC] = arx.coulomb_m_s
+    out[_A_VISC] = arx.viscous_ratio
+    out[_A_INV_EPS] = 1.0 / arx.friction_smoothing_m_s
+    out[_A_LOAD] = arx.load_m_s_per_n
+    out[_A_COEF : _A_COEF + den.size - 1] = den[1:]
+    out[_A_COEF + nv : _A_COEF + nv + nw] = num[1:]
 
 
 def _guard_bounds(a_j, b_j, cas) -> tuple[np.ndarray, np.ndarray]:
@@ -179,35 +259,89 @@ def _guard_bounds(a_j, b_j, cas) -> tuple[np.ndarray, np.ndarray]:
     return np.max(np.abs(dv), axis=0), np.max(np.abs(dr), axis=0)
 
 
+def _sizes(machine: Machine) -> tuple[int, int]:
+    """Common lengths (parameters, state) of the machine's axes: the longest of each.
+
+    Every axis of a machine is packed to these lengths (unused entries zero), so
+    the axes' parameters and states stack into arrays for compiled multi-axis loops.
+    """
+    dead = machine.timing.dead_time_samples
+    sizes = []
+    for model in machine.axes.values():
+        if model.arx is None:
+            sizes.append((_N_PARAMS, 4 + dead))
+        else:
+            nv, nw = max(1, len(model.arx.den) - 1), len(model.arx.num) - 1 + dead
+            sizes.append((_A_COEF + nv + nw, 1 + nv + nw))
+    return max(p for p, _ in sizes), max(n for _, n in sizes)
+
+
 def state_size(machine: Machine) -> int:
-    """Length of an axis state vector: ``4 + dead_time_samples``."""
-    return 4 + machine.timing.dead_time_samples
+    """Length of the machine's axis state vectors: the longest natural length over its
+    axes (cascade ``4 + d``, ARX ``1 + nv + nw``); a shorter axis leaves its tail zero."""
+    return _sizes(machine)[1]
 
 
 @njit(cache=True)
 def rest_state(params: np.ndarray, p0: float) -> np.ndarray:
-    """An axis at rest at position ``p0`` (m), integral and dead-time line zero.
+    """An axis at rest at position ``p0`` (m): every other entry (velocities, force,
+    integral, command histories) zero.
 
     Returns
     -------
-    ndarray, shape (4 + d,)
+    ndarray, shape (state size,)
     """
-    state = np.zeros(4 + int(params[_DEAD]))
+    state = np.zeros(int(params[_NSTATE]))
     state[_P] = p0
     return state
 
 
+@njit(cache=True, inline="always")
+def _smooth_sign(x: float) -> float:
+    """``tanh(x)``, exactly +-1 beyond ``_TANH_CUT``."""
+    if x > _TANH_CUT:
+        return 1.0
+    if x < -_TANH_CUT:
+        return -1.0
+    # tanh(x) from one exp: half the latency of libm's tanh, error < 3e-16
+    t = math.exp(-2.0 * abs(x))
+    return math.copysign((1.0 - t) / (1.0 + t), x)
+
+
+@njit(cache=True)
+def friction_command_m_s(params: np.ndarray, v: float) -> float:
+    """The machine's friction at velocity ``v`` as an input-equivalent velocity command.
+
+    The velocity command (m/s) an ideal friction compensator adds to cancel the
+    axis friction; the kernel subtracts exactly this from an ARX axis's command.
+
+    - ARX: ``coulomb_m_s tanh(v / eps) + viscous_ratio v``;
+    - cascade: the whole friction force over the velocity PI's proportional gain,
+      ``(F_n(v) + B v) / Kv`` (the velocity error that makes the PI's proportional
+      part deliver it; the kernel applies the force itself).
+
+    Parameters
+    ----------
+    params : ndarray
+        From :func:`axis_params` (either kind).
+    v : float
+        Axis velocity, m/s.
+
+    Returns
+    -------
+    float
+        m/s, the sign of ``v``.
+    """
+    if params[_KIND] == _ARX:
+        return params[_A_FC] * _smooth_sign(v * params[_A_INV_EPS]) + params[_A_VISC] * v
+    return (friction_nonlinear(params, v) + params[_B] * v) / params[_KV]
+
+
 @njit(cache=True)
 def friction_nonlinear(params: np.ndarray, v: float) -> float:
-    """Coulomb + Stribeck friction force (N) at velocity ``v`` (m/s), viscous part excluded."""
-    x = v * params[_INV_EPS]
-    if x > _TANH_CUT:
-        s = 1.0
-    elif x < -_TANH_CUT:
-        s = -1.0
-    else:  # tanh(x) from one exp: half the latency of libm's tanh, error < 3e-16
-        t = math.exp(-2.0 * abs(x))
-        s = math.copysign((1.0 - t) / (1.0 + t), x)
+    """Coulomb + Stribeck friction force (N) at velocity ``v`` (m/s) of a cascade axis,
+    viscous part excluded."""
+    s = _smooth_sign(v * params[_INV_EPS])
     r = v * params[_INV_VS]
     r2 = r * r
     if r2 > params[_R2_CUT]:
@@ -220,8 +354,12 @@ def _substeps(params, p, v, f, i, ud, load):
     """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held."""
     # x = [p, v, F]: position integrates, force does not depend on p or v, and the
     # friction input does not reach F (structural zeros of substep_matrices)
-    a01, a02, a11, a12, a22 = params[1], params[2], params[4], params[5], params[8]
-    b00, b01, b10, b11, b20 = params[9], params[10], params[11], params[12], params[13]
+    a01, a02, a11, a12, a22 = (
+        params[_AD + 1], params[_AD + 2], params[_AD + 4], params[_AD + 5], params[_AD + 8]
+    )
+    b00, b01, b10, b11, b20 = (
+        params[_BD], params[_BD + 1], params[_BD + 2], params[_BD + 3], params[_BD + 4]
+    )
     kv = params[_KV]
     inv_tn = params[_INV_TN]
     h = params[_H]
@@ -297,7 +435,7 @@ def step(
 
     Parameters
     ----------
-    state : ndarray, shape (4 + d,)
+    state : ndarray, shape (state size,)
         Axis state at sample k; overwritten with the state at k+1.
     params : ndarray
         From :func:`axis_params`.
@@ -328,16 +466,21 @@ def drive(state: np.ndarray, params: np.ndarray, u: float, load_n: float) -> Non
     Parameters
     ----------
     state : ndarray, shape (state size,)
-        Axis state at sample k (the measured position is ``state[0]``, m);
-        overwritten with the state at k+1.
+        Axis state at sample k (the measured position is ``state[0]``, m, the
+        velocity ``state[1]``, m/s); overwritten with the state at k+1.
     params : ndarray
         From :func:`axis_params`.
     u : float
         Velocity command issued at sample k, m/s.
     load_n : float
         External load force held over the period, N (0 for none); it acts like
-        friction: a positive load opposes positive motion.
+        friction: a positive load opposes positive motion. Cascade: a force on the
+        mechanics; ARX: the input-equivalent velocity ``load_m_s_per_n * load_n``
+        subtracted from the command.
     """
+    if params[_KIND] == _ARX:
+        _arx_drive(state, params, u, load_n)
+        return
     dead = int(params[_DEAD])
     if dead == 0:
         ud = u
@@ -354,6 +497,36 @@ def drive(state: np.ndarray, params: np.ndarray, u: float, load_n: float) -> Non
 
 
 @njit(cache=True)
+def _arx_drive(state, params, u, load_n):
+    """:func:`drive` for an ARX axis (state and parameter layouts in the module docstring)."""
+    nv = int(params[_A_NV])
+    nw = int(params[_A_NW])
+    w = u - friction_command_m_s(params, state[1]) - params[_A_LOAD] * load_n
+    v = params[_A_B0] * w
+    for i in range(nv):
+        v -= params[_A_COEF + i] * state[1 + i]
+    for i in range(nw):
+        v += params[_A_COEF + nv + i] * state[1 + nv + i]
+    for j in range(nv - 1, 0, -1):
+        state[1 + j] = state[j]
+    state[1] = v
+    if nw > 0:
+        for j in range(nw - 1, 0, -1):
+            state[1 + nv + j] = state[nv + j]
+        state[1 + nv] = w
+    state[0] += params[_A_TE] * v
+
+
+@njit(cache=True, inline="always")
+def _command(pd, vd, k, p, kp_si, kf):
+    """``Kp (pd_k - p) + Kf vd_k``; past the last sample its position is held, velocity 0."""
+    last = pd.shape[0] - 1
+    if k <= last:
+        return kp_si * (pd[k] - p) + kf * vd[k]
+    return kp_si * (pd[last] - p)
+
+
+@njit(cache=True)
 def window(
     state: np.ndarray,
     params: np.ndarray,
@@ -367,12 +540,13 @@ def window(
 ) -> None:
     """Predict ``n`` samples from a state with constant gains, leaving ``state`` untouched.
 
-    Allocates nothing: the state is carried in local variables and the commands
-    still in the dead-time line are recomputed from ``out_p``.
+    Cascade: allocates nothing (the state is carried in local variables and the
+    commands still in the dead-time line are recomputed from ``out_p``). ARX:
+    works on one copy of the state.
 
     Parameters
     ----------
-    state : ndarray, shape (4 + d,)
+    state : ndarray, shape (state size,)
         Axis state at sample ``k0`` (not modified).
     params : ndarray
         From :func:`axis_params`.
@@ -386,8 +560,13 @@ def window(
     out_p : ndarray, shape (>= n,)
         Receives the positions ``p_{k0+1} .. p_{k0+n}`` (m) in ``out_p[0:n]``.
     """
+    if params[_KIND] == _ARX:
+        s = state.copy()
+        for j in range(n):
+            _arx_drive(s, params, _command(pd, vd, k0 + j, s[_P], kp_si, kf), 0.0)
+            out_p[j] = s[_P]
+        return
     dead = int(params[_DEAD])
-    last = pd.shape[0] - 1
     p0 = state[_P]
     p, v, f, i = p0, state[_V], state[_F], state[_I]
     for j in range(n):
@@ -395,12 +574,7 @@ def window(
         if m < 0:
             ud = state[_LINE + dead - 1 - j]
         else:
-            k = k0 + m
-            pm = p0 if m == 0 else out_p[m - 1]
-            if k <= last:
-                ud = kp_si * (pd[k] - pm) + kf * vd[k]
-            else:
-                ud = kp_si * (pd[last] - pm)
+            ud = _command(pd, vd, k0 + m, p0 if m == 0 else out_p[m - 1], kp_si, kf)
         p, v, f, i = _advance(params, p, v, f, i, ud, 0.0)
         out_p[j] = p
 
@@ -420,7 +594,7 @@ def run(
 
     Parameters
     ----------
-    state : ndarray, shape (4 + d,)
+    state : ndarray, shape (state size,)
         Axis state at sample 0; on return the state at sample N.
     params : ndarray
         From :func:`axis_params`.
@@ -429,8 +603,14 @@ def run(
     out_p, out_u : ndarray, shape (N,)
         Receive the measured positions ``p_k`` (m) and the commands ``u_k`` (m/s).
     """
-    dead = int(params[_DEAD])
     n = pd.shape[0]
+    if params[_KIND] == _ARX:
+        for k in range(n):
+            out_p[k] = state[_P]
+            out_u[k] = kp_si[k] * (pd[k] - state[_P]) + kf[k] * vd[k]
+            _arx_drive(state, params, out_u[k], 0.0)
+        return
+    dead = int(params[_DEAD])
     p, v, f, i = state[_P], state[_V], state[_F], state[_I]
     for k in range(n):
         out_p[k] = p
@@ -484,7 +664,7 @@ def simulate_axis(
 def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Packed parameters and rest states of the x, y, z axes, for compiled multi-axis loops.
 
-    Rows are in ``AXES`` order and padded with zeros to a common length, so a
+    Rows are in ``AXES`` order (every axis of a machine has the same lengths), so a
     compiled loop can pass ``params[a]`` and ``states[a]`` (contiguous row views)
     to :func:`drive` for every present axis ``a``.
 
@@ -506,12 +686,13 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
     """
     rows = {a: axis_params(machine, a) for a in AXES if a in machine.axes}
     rests = {a: rest_state(rows[a], float(p0[c])) for c, a in enumerate(AXES) if a in rows}
-    params = np.zeros((3, max(len(r) for r in rows.values())))
-    states = np.zeros((3, max(len(r) for r in rests.values())))
+    n_params, n_state = _sizes(machine)
+    params = np.zeros((3, n_params))
+    states = np.zeros((3, n_state))
     for c, a in enumerate(AXES):
         if a in rows:
-            params[c, : len(rows[a])] = rows[a]
-            states[c, : len(rests[a])] = rests[a]
+            params[c] = rows[a]
+            states[c] = rests[a]
     present = np.array([a in rows for a in AXES])
     return params, states, present
 

@@ -1,7 +1,7 @@
 """Phase and gain margins of the position loop, and the stable Kp range of an axis.
 
 The open loop ``L(z) = Kp z^-d G(z)`` of :func:`oga.linear.position_open_loop`
-(friction -> its viscous part, no force limit) is evaluated on the unit circle
+(either axis kind; friction -> its viscous part, no force limit) is evaluated on the unit circle
 ``z = exp(j w Te)`` over a dense logarithmic grid from ``1e-6 / Te`` rad/s to the
 Nyquist frequency ``pi / Te``; every crossing of ``|L| = 1`` (gain crossover) and
 of the phase ``-180 deg (mod 360)`` (phase crossover, ``Im L = 0`` with ``Re L < 0``)

@@ -1,4 +1,4 @@
-"""The machine description: the ucp710 preset as DESIGN.md states it, files, refusals naming the field."""
+"""The machine description: presets as their sources state them, files, refusals naming the field."""
 
 from __future__ import annotations
 
@@ -98,3 +98,26 @@ def test_planning_limits_keep_the_loop_reserve():
     assert list(planned.vmax_m_s) == list(full.vmax_m_s)
     assert list(planned.jmax_m_s3) == pytest.approx(list(full.jmax_m_s3 * m.planner.jerk_fraction))
     assert list(planned.amax_m_s2) == pytest.approx(list(full.amax_m_s2 * m.planner.accel_fraction))
+
+
+def test_ucp710_digest_unchanged():
+    # tables carry the digest: the ARX axis kind must not change ucp710's
+    assert load_machine("ucp710").digest() == (
+        "b63865ab0901bcc2b2fa2322cd4be1b9ba1df3d85d80510c5e67e4d968535ea3"
+    )
+    assert all(a.kind == "cascade" and a.arx is None for a in load_machine("ucp710").axes.values())
+
+
+def test_mcv_op_preset_loads_and_round_trips(tmp_path):
+    m = load_machine("mcv-op")
+    assert "mcv-op" in PRESETS and set(m.axes) == {"x", "y"} and m.source
+    assert all(a.kind == "arx" for a in m.axes.values())
+    # the R50 circle at F8000 (0.133 m/s) fits the planning limits: v^2 / R, v^3 / R^2
+    v, r = 8.0 / 60.0, 0.05
+    lim = m.planning_limits()
+    assert min(lim.vmax_m_s[:2]) > v
+    assert min(lim.amax_m_s2[:2]) > v**2 / r and min(lim.jmax_m_s3[:2]) > v**3 / r**2
+    data = m.model_dump(mode="json", exclude_none=True)
+    (tmp_path / "m.json").write_text(json.dumps(data))
+    again = load_machine(tmp_path / "m.json")
+    assert again == m and again.digest() == m.digest()

@@ -24,7 +24,11 @@ from oga.simulate import (
 )
 
 UCP = load_machine("ucp710")
+MCV = load_machine("mcv-op")  # ARX axes (tests/test_arx.py has their own references)
 TE = UCP.te
+#: One axis of each kind, for the properties every axis has.
+BOTH_KINDS = pytest.mark.parametrize("machine, axis", [(UCP, "z"), (MCV, "x")],
+                                     ids=["cascade", "arx"])
 
 
 def _machine(axis_updates=None, **timing):
@@ -242,8 +246,9 @@ def test_force_limit_saturates_and_the_axis_still_settles():
     assert pos[-1] == pytest.approx(target, abs=1e-7)
 
 
-def test_window_continues_a_run_exactly_and_leaves_the_state():
-    params = axis_params(UCP, "z")
+@BOTH_KINDS
+def test_window_continues_a_run_exactly_and_leaves_the_state(machine, axis):
+    params = axis_params(machine, axis)
     n = 1500
     t = np.arange(n) * TE
     pd = 0.01 * np.sin(2 * math.pi * 2.0 * t)  # reverses: friction at work
@@ -265,10 +270,11 @@ def test_window_continues_a_run_exactly_and_leaves_the_state():
     assert np.array_equal(out[:nw], tail_p[1:])
 
 
-def test_run_in_pieces_equals_one_run():
-    # the state (dead-time line included) carries over between runs, also runs
-    # shorter than the dead time
-    params = axis_params(UCP, "x")
+@BOTH_KINDS
+def test_run_in_pieces_equals_one_run(machine, axis):
+    # the state (dead-time line / ARX histories included) carries over between runs,
+    # also runs shorter than the dead time
+    params = axis_params(machine, axis)
     n = 400
     pd, vd = _smooth_move(n, 0.01)
     kp = np.full(n, 2.0 * KP_SI_PER_M_MIN_PER_MM)
@@ -282,7 +288,8 @@ def test_run_in_pieces_equals_one_run():
         run(state, params, pd[a:b], vd[a:b], kp[a:b], kf[a:b], p[a:b], u[a:b])
     assert np.array_equal(p, whole_p) and np.array_equal(u, whole_u)
     assert np.array_equal(state, whole_state)
-    assert np.array_equal(state[4:], whole_u[[-1, -2]])
+    if machine is UCP:
+        assert np.array_equal(state[4:], whole_u[[-1, -2]])
     # and sample by sample with step
     state = rest_state(params, 0.0)
     for k in range(n):
@@ -291,8 +298,9 @@ def test_run_in_pieces_equals_one_run():
     assert np.array_equal(state, whole_state)
 
 
-def test_window_past_the_end_holds_the_last_setpoint():
-    params = axis_params(UCP, "x")
+@BOTH_KINDS
+def test_window_past_the_end_holds_the_last_setpoint(machine, axis):
+    params = axis_params(machine, axis)
     n = 300
     pd, vd = _smooth_move(n, 0.004)
     vd[-1] = 0.01  # a nonzero last velocity must not be extrapolated
@@ -367,7 +375,12 @@ def test_simulate_refuses_bad_gains(kp, kf, match):
         simulate(sp, UCP, kp, kf)
 
 
-def test_state_layout():
-    params = axis_params(UCP, "x")
-    s = rest_state(params, 0.25)
-    assert s.shape == (state_size(UCP),) and s[0] == 0.25 and not np.any(s[1:])
+@pytest.mark.parametrize("machine, size", [(UCP, 4 + 2), (MCV, 1 + 7 + 6)])
+def test_state_layout(machine, size):
+    # cascade [p, v, F, I, u_k-1, u_k-2]; mcv-op X (the longer axis): p, 7 velocities
+    # (den has 8 coefficients), 6 inputs (num has 7)
+    assert state_size(machine) == size
+    for axis in machine.axes:
+        params = axis_params(machine, axis)
+        s = rest_state(params, 0.25)
+        assert s.shape == (size,) and s[0] == 0.25 and not np.any(s[1:])
