@@ -8,10 +8,9 @@ At every sample ``k`` and for every axis ``a`` the search
    two previous commands (``|u| <= Vmax``, ``|du|/Te <= Amax``,
    ``|d2u|/Te^2 <= Jmax``);
 2. forms the paper's five candidates ``{a2 dKmin, a1 dKmin, 0, a1 dKmax,
-   a2 dKmax}`` for Kp and, when Kf is adjusted too, the same five for Kf; every
-   (dKp, dKf) pair whose command stays inside the eq. 2 interval is a candidate
-   (``0`` is replaced by the admissible increment nearest 0 when 0 itself is
-   not admissible);
+   a2 dKmax}`` for Kp and, when Kf is adjusted too, the same five for Kf, each
+   held inside the admissible interval (eq. 7 and eq. 10 intersected); every
+   (dKp, dKf) pair whose command stays inside the eq. 2 interval is a candidate;
 3. simulates every candidate of every axis over ``Np`` samples on the exact
    nonlinear axis model from the current true state (axes are independent,
    so each axis's windows are simulated once);
@@ -19,6 +18,20 @@ At every sample ``k`` and for every axis ``a`` the search
    ``J = E'E + lam dK'dK`` (contour error E in um, increments in (m/min)/mm
    and 1) and applies the least-cost one, advances the true state by one sample
    and recedes.
+
+Reading of the candidate rule
+-----------------------------
+The paper: "dKp is tuned in [a2 dKmin, a1 dKmin, 0, a1 dKmax, a2 dKmax] ...;
+dKmin and dKmax are calculated at each instant by (7) and (10)". Here ``dKmin``,
+``dKmax`` are the ends of the stability interval (eq. 7, ``Kmin - K`` and
+``Kmax - K``), and each of the five increments is then held inside the kinematic
+bound (eq. 10), so that eq. 2 holds as the paper requires. The other reading,
+the fractions of the intersection of eqs. 7 and 10, caps every gain change at
+``a2`` of the jerk room, ``Jmax Te^2 / (|E_k| 1000/60)`` (m/min)/mm: a few
+thousandths per sample on a curve, too slow to follow the curvature. On ucp710
+and the reference contour that reading does worse than the fixed gains with the
+published settings (MSE ratio 1.36 at Np 50; 0.52 at Np 100), while this one
+gives 0.33 (bench/bench_paper.py).
 
 Scoring combinations
 --------------------
@@ -63,10 +76,25 @@ _SLACK = 1e-9
 
 
 @njit(cache=True)
-def _fractions(lo, hi, a1, a2, out):
-    """The paper's five increments of the interval [lo, hi]; returns how many (deduplicated)."""
-    zero = min(max(0.0, lo), hi)
-    vals = (a2 * lo, a1 * lo, zero, a1 * hi, a2 * hi)
+def _fractions(slo, shi, lo, hi, a1, a2, out):
+    """The paper's five increments; returns how many (deduplicated).
+
+    Parameters
+    ----------
+    slo, shi : float
+        Ends of the stability interval of the increment (eq. 7): ``dKmin``, ``dKmax``.
+    lo, hi : float
+        The admissible interval (eq. 7 and eq. 10), inside ``[slo, shi]``.
+    a1, a2 : float
+        Candidate fractions.
+    out : ndarray, shape (>= 5,)
+        Receives ``0, a1 dKmin, a1 dKmax, a2 dKmin, a2 dKmax``, each held inside
+        ``[lo, hi]``, in that order (smallest first, so that among candidates of
+        exactly equal cost the search keeps the smallest increment: with ``lam = 0``
+        an axis at rest on its setpoint, whose gain the horizon cannot see, keeps
+        its gain instead of drifting to a bound).
+    """
+    vals = (0.0, a1 * slo, a1 * shi, a2 * slo, a2 * shi)
     n = 0
     for v in vals:
         v = min(max(v, lo), hi)
@@ -104,20 +132,21 @@ def _candidates(
     fr_f = np.empty(5)
     # Kp interval: stability, then kinematic through u = (kp + dkp) c e + kf vd
     if adj_kp:
-        lo, hi = _interval(kp_lo - kp, kp_hi - kp, ulo - kf * vd - kp * c * e,
-                           uhi - kf * vd - kp * c * e, c * e)
+        slo, shi = kp_lo - kp, kp_hi - kp
+        lo, hi = _interval(slo, shi, ulo - kf * vd - kp * c * e, uhi - kf * vd - kp * c * e,
+                           c * e)
         if lo > hi:  # kinematics and stability disagree: stay within stability only
-            lo, hi = kp_lo - kp, kp_hi - kp
-        n_p = _fractions(lo, hi, a1, a2, fr_p)
+            lo, hi = slo, shi
+        n_p = _fractions(slo, shi, lo, hi, a1, a2, fr_p)
     else:
         fr_p[0] = 0.0
         n_p = 1
     if adj_kf:
-        lo, hi = _interval(kf_lo - kf, kf_hi - kf, ulo - kp * c * e - kf * vd,
-                           uhi - kp * c * e - kf * vd, vd)
+        slo, shi = kf_lo - kf, kf_hi - kf
+        lo, hi = _interval(slo, shi, ulo - kp * c * e - kf * vd, uhi - kp * c * e - kf * vd, vd)
         if lo > hi:
-            lo, hi = kf_lo - kf, kf_hi - kf
-        n_f = _fractions(lo, hi, a1, a2, fr_f)
+            lo, hi = slo, shi
+        n_f = _fractions(slo, shi, lo, hi, a1, a2, fr_f)
     else:
         fr_f[0] = 0.0
         n_f = 1

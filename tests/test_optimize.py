@@ -15,10 +15,10 @@ import pytest
 
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
-from oga.contour import ce_point, contour_error_of
+from oga.contour import contour_error_of
 from oga.errors import OptimizeError, OptionError
 from oga.export import table_csv
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.machine import load_machine
 from oga.optimize import optimize
 from oga.options import options_from_dict
 from oga.simulate import simulate
@@ -111,58 +111,6 @@ def test_paper_mode_follows_the_published_rules(short, machine):
     dk = np.diff(kp[:, 2])
     prev = kp[:-1, 2]
     assert np.all(dk <= 0.05 * (hi - prev) + 1e-12) and np.all(dk >= 0.05 * (lo - prev) - 1e-12)
-
-
-def test_paper_mode_picks_the_least_cost_candidate(short, machine):
-    """Replays the search to sample k and checks its choice by exact brute force."""
-    from oga import defaults
-    from oga.search import _candidates
-    from oga.simulate import axis_params, rest_state, step, window
-
-    r = optimize(short, machine, PAPER)
-    kpz = r.searched_schedule.kp_m_min_per_mm[:, 2]
-    n_pred = 50
-    pd = np.ascontiguousarray(short.pos)
-    px, pz = axis_params(machine, "x"), axis_params(machine, "z")
-    sx, sz = rest_state(px, pd[0, 0]), rest_state(pz, pd[0, 2])
-    vx, vz = (np.ascontiguousarray(short.vel[:, c]) for c in (0, 2))
-    xd, zd = np.ascontiguousarray(pd[:, 0]), np.ascontiguousarray(pd[:, 2])
-    lim = machine.axis_limits()
-    c = KP_SI_PER_M_MIN_PER_MM
-    u1 = u2 = 0.0
-    checked = 0
-    for k in range(len(short) - n_pred):
-        moving_z = abs(short.vel[k, 2]) > 1e-3
-        if moving_z and k % 37 == 0:
-            prev = kpz[k - 1] if k else 1.6
-            te = short.dt
-            ulo = max(-lim.vmax_m_s[2], u1 - lim.amax_m_s2[2] * te, 2 * u1 - u2 - lim.jmax_m_s3[2] * te**2)
-            uhi = min(lim.vmax_m_s[2], u1 + lim.amax_m_s2[2] * te, 2 * u1 - u2 + lim.jmax_m_s3[2] * te**2)
-            dkp, dkf = np.zeros(25), np.zeros(25)
-            nc, _ = _candidates(zd[k] - sz[0], vz[k], prev, 0.9, 1.0, 2.7, 0.0, 1.0, True, False,
-                                ulo, uhi, defaults.A1, defaults.A2, dkp, dkf)
-            xs = np.empty(n_pred)
-            window(sx, px, xd, vx, k, n_pred, 1.6 * c, 0.9, xs)
-            costs = []
-            for i in range(nc):
-                zs = np.empty(n_pred)
-                window(sz, pz, zd, vz, k, n_pred, (prev + dkp[i]) * c, 0.9, zs)
-                e = [ce_point(pd, max(k + 1 + j - 150, 0), min(k + 1 + j + 150, len(pd) - 1),
-                              xs[j], pd[0, 1], zs[j], 2, 0, True) for j in range(n_pred)]
-                costs.append(np.sum(np.square(e)) * 1e12 + 0.01 * dkp[i] ** 2)
-            chosen = kpz[k] - prev
-            best = dkp[int(np.argmin(costs))]
-            # the search scores with the exact distance to the nearest segment's line
-            assert chosen == pytest.approx(best, abs=1e-12) or \
-                costs[list(dkp[:nc]).index(chosen)] <= min(costs) * (1 + 1e-6)
-            checked += 1
-        uz = step(sz, pz, zd[k], vz[k], kpz[k] * c, 0.9)
-        step(sx, px, xd[k], vx[k], 1.6 * c, 0.9)
-        u2, u1 = u1, uz
-    assert checked >= 5
-
-
-# --- full mode ------------------------------------------------------------------------
 
 
 def test_full_mode_beats_the_fixed_baseline_within_every_limit(short, machine):
