@@ -30,6 +30,7 @@ _EXPORTS = {
     "OptionError": "oga.errors",
     "PlanError": "oga.errors",
     "OptimizeError": "oga.errors",
+    "TuneError": "oga.errors",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

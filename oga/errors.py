@@ -17,6 +17,7 @@ __all__ = [
     "OptionError",
     "PlanError",
     "OptimizeError",
+    "TuneError",
 ]
 
 
@@ -84,3 +85,7 @@ class PlanError(OgaError, RuntimeError):
 
 class OptimizeError(OgaError, RuntimeError):
     """The gain search or its verification failed."""
+
+
+class TuneError(OgaError, RuntimeError):
+    """No setting of a comparison controller's tuning grid meets the axis limits (paper eq. 2)."""

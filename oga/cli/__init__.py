@@ -18,7 +18,7 @@ from oga.errors import InputError, OgaError
 __all__ = ["main"]
 
 #: Sub-commands, each a module ``oga.cli.<name>``.
-COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "batch", "serve")
+COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "compare", "batch", "serve")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -57,7 +57,9 @@ def run(args: argparse.Namespace) -> int:
     for w in job.path.warnings:
         print(f"warning: {w}")
     b, o = summary["baseline"], summary["optimized"]
-    print(f"baseline  Kp {b['kp']} Kf {b['kf']}: CE rms {b['rms_ce_um']:.3f} um, "
+    kp_b = {a: v for a, v in b["kp"].items() if a in machine.axes}
+    kf_b = {a: v for a, v in b["kf"].items() if a in machine.axes}
+    print(f"baseline  Kp {kp_b} Kf {kf_b}: CE rms {b['rms_ce_um']:.3f} um, "
           f"max {b['max_ce_um']:.3f} um")
     print(f"optimized ({','.join(res.adjusted)}; {','.join(res.options.gains)}): "
           f"CE rms {o['rms_ce_um']:.3f} um, max {o['max_ce_um']:.3f} um, "

@@ -13,21 +13,36 @@ Each controller module in :mod:`oga.controllers` exposes ``NAME``,
 from __future__ import annotations
 
 import itertools
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from feedplan.setpoints import Setpoints
+from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of, plane_axes
-from oga.errors import OptionError
-from oga.machine import Machine
+from oga.errors import OptionError, TuneError
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.verify import command_ratios
 
-__all__ = ["ControllerRun", "Score", "path_frame", "score", "grid_tune", "check_parameters"]
+__all__ = [
+    "ControllerRun",
+    "Score",
+    "path_frame",
+    "score",
+    "grid_tune",
+    "check_parameters",
+    "best_fixed",
+    "baseline_si",
+    "load_array",
+]
 
 #: Slack on the command-limit check (float64 rounding only).
 _SLACK = 1e-9
+#: Best fixed gains of the last few (setpoints, machine) pairs: every controller of a
+#: comparison starts from them, and the grid behind them is the costly part.
+_BEST: OrderedDict = OrderedDict()
+_BEST_KEPT = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,7 +93,12 @@ class Score:
 
 
 def score(setpoints: Setpoints, machine: Machine, pos: np.ndarray, u: np.ndarray) -> Score:
-    """Score positions ``pos`` (N, 3) and commands ``u`` (N, 3) of a run on ``setpoints``."""
+    """Score positions ``pos`` (N, 3) and commands ``u`` (N, 3) of a run on ``setpoints``.
+
+    A diverged run (positions or commands not finite) scores ``inf`` and fails the limits.
+    """
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(u))):
+        return Score(mse_ce_m2=np.inf, command_ratios=np.full((3, 3), np.inf), limits_ok=False)
     ce = contour_error_of(setpoints, pos)
     mse = float(np.mean(ce * ce))
     ratios = command_ratios(u, setpoints, machine)
@@ -165,7 +185,7 @@ def grid_tune(
 
     Raises
     ------
-    OptionError
+    TuneError
         No combination meets the limits (names the grid).
     """
     names = list(grid)
@@ -179,5 +199,64 @@ def grid_tune(
         if best_score is None or s.mse_ce_m2 < best_score.mse_ce_m2:
             best, best_score = params, s
     if best is None:
-        raise OptionError(f"no parameter combination meets the axis limits; grid {grid}")
+        raise TuneError(f"no parameter combination meets the axis limits; grid {grid}")
     return best, best_score, feasible
+
+
+def best_fixed(setpoints: Setpoints, machine: Machine):
+    """The best equal fixed gains on this toolpath (:func:`oga.ranges.gain_ranges`), memoised.
+
+    Returns
+    -------
+    oga.ranges.BestFixed
+
+    Raises
+    ------
+    OptionError
+        No equal fixed gains meet the axis limits on this toolpath.
+    """
+    key = (setpoints, machine.digest())  # Setpoints hash by identity
+    if key not in _BEST:
+        from oga.ranges import gain_ranges
+
+        _BEST[key] = gain_ranges(setpoints, machine).best_fixed
+        if len(_BEST) > _BEST_KEPT:
+            _BEST.popitem(last=False)
+    best = _BEST[key]
+    if best is None:
+        raise OptionError(
+            f"{setpoints.source or 'toolpath'}: no equal fixed gains meet the axis limits "
+            "(paper eq. 2); give the baseline gains"
+        )
+    return best
+
+
+def baseline_si(setpoints: Setpoints, machine: Machine) -> tuple[np.ndarray, np.ndarray]:
+    """The best fixed gains per axis x, y, z: ``(kp (3,), kf (3,))`` in 1/s and factor.
+
+    Axes that do not move get the same (common) values. OptionError as :func:`best_fixed`.
+    """
+    best = best_fixed(setpoints, machine)
+    kp0, kf0 = next(iter(best.kp.values())), next(iter(best.kf.values()))
+    kp = np.array([best.kp.get(a, kp0) for a in AXES]) * KP_SI_PER_M_MIN_PER_MM
+    kf = np.array([best.kf.get(a, kf0) for a in AXES])
+    return kp, kf
+
+
+def load_array(load_n, n: int) -> np.ndarray:
+    """External load force per sample and axis as a new (n, 3) float64 array, N (zeros if None).
+
+    Raises
+    ------
+    OptionError
+        Not finite, or not of shape (n, 3).
+    """
+    if load_n is None:
+        return np.zeros((n, 3))
+    try:
+        load = np.array(load_n, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise OptionError(f"load_n: expected numbers of shape ({n}, 3)") from None
+    if load.shape != (n, 3) or not np.all(np.isfinite(load)):
+        raise OptionError(f"load_n: expected finite values of shape ({n}, 3), got {load.shape}")
+    return load
