@@ -95,7 +95,7 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
             f"motion, the limit is {limit:g} s; submit it with POST /v1/jobs instead")
     row = _store(request).submit(
         source=tp.name, toolpath_format=tp.format, toolpath=tp.content,
-        machine=machine.model_dump(mode="json"), options=body.options.as_dict(),
+        machine=machine.model_dump(mode="json", exclude_none=True), options=body.options.as_dict(),
         priority=1 if sync else 0)
     return row
 
@@ -257,4 +257,4 @@ def get_machine(name: str, response: Response) -> dict:
         raise HTTPException(404, f"no machine preset {name!r} (presets: {', '.join(PRESETS)})")
     m = load_machine(name)
     response.headers["X-Oga-Machine-Sha256"] = m.digest()
-    return m.model_dump(mode="json")
+    return m.model_dump(mode="json", exclude_none=True)  # an axis has one model kind

@@ -142,6 +142,20 @@ def test_machines_and_health(client):
     assert health["status"] == "ok" and health["workers_alive"] == 1
 
 
+def test_the_arx_preset_is_listed_and_served(client):
+    preset = load_machine("mcv-op")
+    items = {m["name"]: m for m in client.get("/v1/machines").json()["items"]}
+    assert items["mcv-op"]["axes"] == ["x", "y"] and items["mcv-op"]["sha256"] == preset.digest()
+    got = client.get("/v1/machines/mcv-op").json()
+    assert "cascade" not in got["axes"]["x"] and got["axes"]["x"]["arx"]["den"][0] == 1.0
+    assert machine_from_dict(got) == preset
+    xy = "G21 G90 G17\nG1 X0 Y0 F3000\nG1 X8\nG3 X13 Y5 I0 J5\nG1 Y15\nM2\n"
+    r = client.post("/v1/gain-table", json=body(xy, machine="mcv-op"))
+    assert r.status_code == 200, r.text
+    head = r.text.splitlines()
+    assert head[0].startswith("t_s,s_m,x_pos_m") and len(head) > 500
+
+
 # -- bad input: 4xx, never 5xx -------------------------------------------------------------------
 
 def _bad_machine():
