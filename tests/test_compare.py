@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import sys
@@ -13,6 +14,7 @@ import pytest
 import oga.cli as cli
 from feedplan.read import load_toolpath
 from oga.compare import compare
+from oga.controllers.base import score
 from oga.contour import contour_error_of
 from oga.controllers import CONTROLLERS, load_controller
 from oga.controllers.afsmc import run as afsmc_run
@@ -142,3 +144,24 @@ def test_a_law_no_tuning_can_keep_in_the_limits_shows_its_untuned_figures(setpoi
     assert row.status == "untuned" and "eq. 2" in row.message
     assert np.isfinite(row.mse_ce_um2) and row.limits_ok is False and row.jerk_ratio > 1.0
     assert row.ce_m.shape == (len(setpoints),)
+
+
+def test_a_diverged_run_scores_as_infeasible_and_fails_its_row(setpoints, monkeypatch):
+    sim = simulate(setpoints, MACHINE, 3.0, 0.8)
+    pos = sim.pos.copy()
+    pos[len(pos) // 2, 0] = np.nan
+    s = score(setpoints, MACHINE, pos, sim.u)
+    assert s.mse_ce_m2 == np.inf and s.limits_ok is False
+    ok = score(setpoints, MACHINE, sim.pos, sim.u)
+    assert np.isfinite(ok.mse_ce_m2) and ok.limits_ok
+    # a law whose loop diverges gets a failed row naming it, not a crash
+    fixed = load_controller("fixed")
+
+    def diverging(sp, machine, **kw):
+        run = fixed.run(sp, machine, **kw)
+        return type(run)(name=run.name, pos=pos, u=run.u, needs_firmware=False)
+
+    broken = dataclasses.replace(fixed, run=diverging)
+    monkeypatch.setattr("oga.compare.load_controller", lambda name: broken)
+    (row,) = compare(setpoints, MACHINE, ["fixed"]).rows
+    assert row.status == "failed" and "diverged" in row.message
