@@ -30,9 +30,10 @@ DT_S = 1e-3
 TOL_M = 20e-6
 #: Prediction horizon of the receding-horizon search, samples (paper: 50).
 NP = 50
-#: Weight of the gain increments in the cost per mode, um^2 per unit^2 (paper: 0.01).
+#: Weight of the gain increments in the cost per mode, per unit^2 of increment (paper: 0.01),
+#: against E'E in the mode's unit: mm^2 in paper mode (the paper's), um^2 in full mode.
 LAMBDA = {"paper": 0.01, "full": 100.0}
-#: Weight pulling the gains back to the baseline per mode, um^2 per unit^2 (paper: none).
+#: Weight pulling the gains back to the baseline per mode, same units (paper: none).
 ANCHOR = {"paper": 0.0, "full": 300.0}
 #: Full mode: the settings tried in turn, (move blocks over the horizon, trust region of a
 #: block step in (m/min)/mm for Kp and 1 for Kf); the next is tried only when the previous

@@ -46,11 +46,12 @@ class OptimizeOptions(BaseModel):
         Prediction horizon in samples.
     lam : float or None
         Weight of the gain increments in the cost ``J = E'E + lam dK'dK`` with the
-        contour error E in um and the increments in (m/min)/mm (Kp) and 1 (Kf);
-        None: the mode's default (:data:`oga.defaults.LAMBDA`).
+        contour error E in mm in paper mode (the paper's unit) and in um in full
+        mode, and the increments in (m/min)/mm (Kp) and 1 (Kf); None: the mode's
+        default (:data:`oga.defaults.LAMBDA`).
     anchor : float or None
         Weight of the gains' distance from the baseline in the cost,
-        ``+ anchor (K - K_baseline)'(K - K_baseline)`` (um^2 per unit^2); 0 is
+        ``+ anchor (K - K_baseline)'(K - K_baseline)`` (E'E's unit per unit^2); 0 is
         the paper's cost. On straight moves the contour error does not see the
         axes' lag, so without it the gains drift there unchecked, and the jerk
         limit then keeps them from coming back in time for the next curve.

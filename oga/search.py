@@ -15,8 +15,8 @@ At every sample ``k`` and for every axis ``a`` the search
    nonlinear axis model from the current true state (axes are independent,
    so each axis's windows are simulated once);
 4. scores every combination of the axes' candidates with
-   ``J = E'E + lam dK'dK`` (contour error E in um, increments in (m/min)/mm
-   and 1) and applies the least-cost one, advances the true state by one sample
+   ``J = E'E + lam dK'dK`` (contour error E in mm, a CNC's unit, as the paper's
+   tuning of lam implies, increments in (m/min)/mm and 1) and applies the least-cost one, advances the true state by one sample
    and recedes.
 
 Reading of the candidate rule
@@ -68,7 +68,10 @@ STAT_FALLBACK = 0
 STAT_WINDOWS = 1
 
 _C = KP_SI_PER_M_MIN_PER_MM
-_M2_TO_UM2 = 1e12
+#: E in mm: with E in um the paper's lam = 0.01 would weigh nothing against E'E (about
+#: 50 um^2 over a horizon), while the paper finds lam = 0 lets gain peaks through and
+#: 0.01 smooths them; in mm the two terms are of one order, and they behave so here.
+_M2_TO_MM2 = 1e6
 #: Largest number of full combinations enumerated before switching to coordinate descent.
 _MAX_ENUM = 4096
 #: Relative slack of the eq. 2 checks (float64 rounding).
@@ -238,7 +241,7 @@ def search_chunk(
     n_pred : int
         Prediction horizon Np, samples.
     lam : float
-        Increment weight (um^2 per unit^2 of increment).
+        Increment weight (mm^2 per unit^2 of increment; the anchor ``mu`` likewise).
     a1, a2 : float
         Candidate fractions.
     ce_window : int
@@ -353,7 +356,7 @@ def search_chunk(
                 if not allowed[a, c]:
                     diag[a, c] = np.inf
                     continue
-                diag[a, c] = (s * _M2_TO_UM2 + lam * (dkp[a, c] ** 2 + dkf[a, c] ** 2)
+                diag[a, c] = (s * _M2_TO_MM2 + lam * (dkp[a, c] ** 2 + dkf[a, c] ** 2)
                               + mu * ((kp[a] + dkp[a, c] - kp_base[a]) ** 2
                                       + (kf[a] + dkf[a, c] - kf_base[a]) ** 2))
         for a in range(3):
@@ -365,7 +368,7 @@ def search_chunk(
                         s = 0.0
                         for j in range(n_pred):
                             s -= tang[j, a] * tang[j, b] * d[a, ca, j] * d[b, cb, j]
-                        cross[a, b, ca, cb] = 2.0 * s * _M2_TO_UM2
+                        cross[a, b, ca, cb] = 2.0 * s * _M2_TO_MM2
         # choose the least-cost combination
         n_combo = ncand[0] * ncand[1] * ncand[2]
         if n_combo <= _MAX_ENUM:

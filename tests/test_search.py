@@ -251,7 +251,7 @@ def test_the_choice_is_the_least_cost_combination(short, machine, adjust):
                 for dz, pz in cands[2]:
                     e = [ce_point(pd, max(k + 1 + j - 150, 0), min(k + 1 + j + 150, n - 1),
                                   px[j], pd[0, 1], pz[j], 2, 0, True) for j in range(n_pred)]
-                    costs[dx, dz] = np.sum(np.square(e)) * 1e12 + lam * (dx * dx + dz * dz)
+                    costs[dx, dz] = np.sum(np.square(e)) * 1e6 + lam * (dx * dx + dz * dz)
             chosen = (kp_s[k, 0] - kp_s[k - 1, 0], kp_s[k, 2] - kp_s[k - 1, 2])
             match = [c for key, c in costs.items()
                      if abs(key[0] - chosen[0]) < 1e-12 and abs(key[1] - chosen[1]) < 1e-12]

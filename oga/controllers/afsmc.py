@@ -52,8 +52,7 @@ from oga.errors import OptionError, TuneError
 from oga.machine import Machine
 from oga.simulate import axis_arrays, drive
 
-__all__ = ["NAME", "NEEDS_FIRMWARE", "PARAMETERS", "RULES", "AfsmcTrace", 
-           "simulate_afsmc", "run"]
+__all__ = ["NAME", "NEEDS_FIRMWARE", "PARAMETERS", "RULES", "AfsmcTrace", "simulate_afsmc", "run"]
 
 NAME = "afsmc"
 NEEDS_FIRMWARE = True
