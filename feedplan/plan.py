@@ -63,7 +63,7 @@ from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Path
 from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import DT_S, TOL_M
-from oga.errors import OptionError, PlanError
+from oga.errors import OptionError, PlanError, ToolpathError
 
 __all__ = ["plan", "GRID_M", "FIT_TOL_FRACTION"]
 
@@ -477,8 +477,10 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
             i, j, _ = PLANES[s.plane]
             span[i] = span[j] = s.radius
         for k in np.flatnonzero((span > 1e-12) & ~limits.present):
-            where = f"line {s.line}" if s.line else "the path"
-            raise PlanError(f"{where} moves axis {AXES[k]}, which has a 0 limit (it must not move)")
+            raise ToolpathError(
+                f"moves axis {AXES[k]}, which the machine lacks (0 limits: it must not move)",
+                line=s.line,
+            )
 
 
 def _plane_of(pos: np.ndarray, rapid: np.ndarray, preferred: str):

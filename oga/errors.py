@@ -68,7 +68,8 @@ class ToolpathError(InputError):
         self.message = message
         self.line = int(line)
         self.column = int(column)
-        super().__init__(message if not line else f"line {line}:{column}: {message}")
+        where = f"line {line}:{column}: " if column else f"line {line}: "
+        super().__init__(f"{where}{message}" if line else message)
 
 
 class MachineError(InputError):

@@ -24,7 +24,7 @@ from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
 from feedplan.setpoints import Setpoints
 from feedplan.plan import plan
-from oga.errors import OptionError, PlanError
+from oga.errors import OptionError, ToolpathError
 
 #: ucp710 (DESIGN.md): X and Y 30 m/min, 2.5 m/s^2, 10 m/s^3; Z 30 m/min, 2.1 m/s^2, 100 m/s^3
 UCP = AxisLimits(np.full(3, 0.5), np.array([2.5, 2.5, 2.1]), np.array([10.0, 10.0, 100.0]))
@@ -249,10 +249,10 @@ def test_machine_without_z_plans_in_xy():
     assert np.all(sp.pos[:, 2] == 0.0)
 
 
-def test_moving_an_absent_axis_is_a_plan_error():
+def test_moving_an_absent_axis_is_a_toolpath_error():
     lim = AxisLimits(np.array([0.5, 0.5, 0]), np.array([2.5, 2.5, 0]), np.array([10.0, 10.0, 0]))
     seg = Line([0, 0, 0], [1 * MM, 0, 1 * MM], F3000, line=4)
-    with pytest.raises(PlanError, match="axis z"):
+    with pytest.raises(ToolpathError, match="axis z, which the machine lacks"):
         plan(Path(seg.start, (seg,)), lim)
 
 
