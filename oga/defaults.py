@@ -22,6 +22,22 @@ __all__ = [
     "API_SYNC_MAX_MOTION_S",
     "API_SYNC_TIMEOUT_S",
     "BATCH_FORMATS",
+    "CCC_DEFAULTS",
+    "CCC_TUNE_GRID",
+    "ZPETC_CCC_DDOB_DEFAULTS",
+    "ZPETC_CCC_DDOB_TUNE_GRID",
+    "FUZZY_PID_KI_PER_KP2",
+    "FUZZY_PID_KD",
+    "FUZZY_PID_E_RANGE_M",
+    "FUZZY_PID_EC_RANGE_M_S",
+    "FUZZY_PID_TUNE_GRID",
+    "SMC_DOB_CCC_DEFAULTS",
+    "SMC_DOB_CCC_TUNE_GRID",
+    "AFSMC_ERROR_SCALE_PER_LAG",
+    "AFSMC_RATE_PER_OUTPUT_SCALE",
+    "AFSMC_GAMMA_PER_KP_1_S",
+    "AFSMC_TUNE_GAMMA_PER_KP_1_S",
+    "AFSMC_TUNE_KP_COMP_PER_KP",
 ]
 
 #: Position-loop / interpolation period Te, seconds.
@@ -68,3 +84,83 @@ API_SYNC_TIMEOUT_S = 120.0
 BATCH_FORMATS = ("csv",)
 #: Report figures: points per drawn line at most (min/max buckets keep the peaks).
 REPORT_MAX_POINTS = 2000
+
+# --- comparison controllers (oga compare): design defaults (run with tune=False) and the
+# tuning grids (tune=True: every combination simulated on the toolpath, the least MSE(CE)
+# whose velocity command meets paper eq. 2 wins, as for the fixed-gain baseline) ----------
+#: ccc: the compensator C, Kc (1/s) and Ki (1/s^2). Kc = 20 1/s raises the loop gain across
+#: the path to about 1.5 times the best fixed Kp (2.4 to 3 (m/min)/mm = 40 to 50 1/s), still
+#: inside the stable range of the plane loop (see tests); Ki = 0: the paper's constant gain.
+CCC_DEFAULTS = {"cc_gain_1_s": 20.0, "cc_integral_1_s2": 0.0}
+#: ccc: 21 runs; Kp and Kf stay at the best fixed gains.
+CCC_TUNE_GRID = {
+    "cc_gain_1_s": [0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0],
+    "cc_integral_1_s2": [0.0, 200.0, 800.0],
+}
+#: zpetc-ccc-ddob: CCC as ccc; the Q low-pass of the paper (3rd-order Butterworth, 30 Hz);
+#: zeros with |z| < 0.95 cancelled (their cancelling poles decay within about 60 samples);
+#: every part switched on.
+ZPETC_CCC_DDOB_DEFAULTS = {
+    **CCC_DEFAULTS,
+    "q_cutoff_hz": 30.0,
+    "q_order": 3,
+    "accept_radius": 0.95,
+    "zpetc": True,
+    "dob": True,
+    "friction": True,
+}
+#: zpetc-ccc-ddob: 12 runs, the CCC gain and the observer's bandwidth.
+ZPETC_CCC_DDOB_TUNE_GRID = {"cc_gain_1_s": [0.0, 20.0, 40.0], "q_cutoff_hz": [10.0, 30.0, 60.0, 100.0]}
+#: fuzzy-pid: initial integral gain K'i = this * K'p^2 (1/s^2; the PI zero a decade below the
+#: crossover) and derivative gain K'd (the PD zero at 20 K'p, above the crossover).
+FUZZY_PID_KI_PER_KP2 = 0.1
+FUZZY_PID_KD = 0.05
+#: fuzzy-pid: error and error-rate ranges mapped onto [-6, 6] (the order of the baseline's
+#: tracking error on a contour at F3000 and of its rate), m and m/s.
+FUZZY_PID_E_RANGE_M = 100e-6
+FUZZY_PID_EC_RANGE_M_S = 1e-3
+#: fuzzy-pid: 18 runs: K'p as fractions of the best fixed Kp, K'i in units of K'p^2, and the
+#: input ranges as multiples of the defaults (wide ranges keep the inputs near ZO: the gains
+#: then vary slowly enough for the jerk limit of paper eq. 2).
+FUZZY_PID_TUNE_GRID = {
+    "kp_factor": (0.8, 1.0),
+    "ki_per_kp2": (0.0, 0.02, 0.1),
+    "range_factor": (1.0, 10.0, 100.0),
+}
+#: smc-dob-ccc (units in the names; the reasons are in oga.controllers.smc_dob_ccc).
+SMC_DOB_CCC_DEFAULTS = {
+    "c_1_s": 40.0,
+    "eta_1_s": 100.0,
+    "k_switch_m_s2": 0.05,
+    "phi_m_s": 1e-3,
+    "dob": True,
+    "l_dob_1_s": 100.0,
+    "ccc": True,
+    "kcp_1_s": 20.0,
+    "kci_1_s2": 0.0,
+    "kcd": 0.0,
+    "eps_range_m": 10e-6,
+    "eps_rate_range_m_s": 1e-3,
+    "gamma_1_s": 1.0,
+    "sigma_1_s": 1.0,
+}
+#: smc-dob-ccc: 27 runs: surface pole, reaching gain, coupling gain.
+SMC_DOB_CCC_TUNE_GRID = {
+    "c_1_s": [20.0, 40.0, 80.0],
+    "eta_1_s": [50.0, 100.0, 200.0],
+    "kcp_1_s": [0.0, 20.0, 40.0],
+}
+#: afsmc (no table of the paper gives them), relative to the baseline gains: fuzzy error
+#: universe edge (the input saturates beyond it) over the P-only following error v_prog / Kp
+#: at the programmed feed: the initial surface is then linear over every error a P + FFW loop
+#: makes (a 1 mm edge saturated on mcv-op at F8000 and the loop oscillated: jerk 31x the limit).
+AFSMC_ERROR_SCALE_PER_LAG = 1.0
+#: afsmc: change-rate universe edge over the output scale: the rate rules then add at most 0.1
+#: of de/dt to the command (with 1.0 the derivative action alone broke the jerk limit, 1.03x).
+AFSMC_RATE_PER_OUTPUT_SCALE = 10.0
+#: afsmc: adaptation rate over the baseline Kp (1/s): gamma = this * Kp, 1/s^2 (adapts in
+#: about 1/this s).
+AFSMC_GAMMA_PER_KP_1_S = 1.0
+#: afsmc: 15 runs: adaptation rates over Kp (1/s), and compensation gains over Kp.
+AFSMC_TUNE_GAMMA_PER_KP_1_S = (0.01, 0.1, 1.0)
+AFSMC_TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)

@@ -39,6 +39,7 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
+from oga import defaults
 from oga.controllers.base import (
     ControllerRun,
     baseline_si,
@@ -82,20 +83,13 @@ _LABEL = {"LN": -3, "MN": -2, "SN": -1, "ZZ": 0, "SP": 1, "MP": 2, "LP": 3}
 #: Table 2 as label values in [-3, 3], indexed ``[i_e, j_rate]`` from LN (0) to LP (6).
 RULES = np.array([[_LABEL[w] for w in row.split()] for row in reversed(_TABLE2)], float)
 
-#: Design defaults (no table of the paper gives them), relative to the baseline gains:
-#: fuzzy error universe edge (the input saturates beyond it) over the P-only following error
-#: v_prog / Kp at the programmed feed: the initial surface is then linear over every error a
-#: P + FFW loop makes (a 1 mm edge saturated on mcv-op at F8000 and the loop oscillated:
-#: jerk 31x the limit).
-ERROR_SCALE_PER_LAG = 1.0
-#: change-rate universe edge over the output scale: the rate rules then add at most 0.1 of
-#: de/dt to the command (with 1.0 the derivative action alone broke the jerk limit, 1.03x).
-RATE_PER_OUTPUT_SCALE = 10.0
-#: adaptation rate over the baseline Kp (1/s): gamma = this * Kp, 1/s^2 (adapts in ~1/this s).
-GAMMA_PER_KP_1_S = 1.0
-#: Tuning grid: adaptation rates over Kp (1/s), and compensation gains over Kp.
-TUNE_GAMMA_PER_KP_1_S = (0.01, 0.1, 1.0)
-TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)
+#: Design defaults and tuning grid (:mod:`oga.defaults`, where their reasons are given).
+ERROR_SCALE_PER_LAG = defaults.AFSMC_ERROR_SCALE_PER_LAG
+RATE_PER_OUTPUT_SCALE = defaults.AFSMC_RATE_PER_OUTPUT_SCALE
+GAMMA_PER_KP_1_S = defaults.AFSMC_GAMMA_PER_KP_1_S
+TUNE_GAMMA_PER_KP_1_S = defaults.AFSMC_TUNE_GAMMA_PER_KP_1_S
+TUNE_KP_COMP_PER_KP = defaults.AFSMC_TUNE_KP_COMP_PER_KP
+
 
 @dataclass(frozen=True, eq=False)
 class AfsmcTrace:

@@ -33,6 +33,7 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
+from oga import defaults
 from oga.controllers.base import (
     ControllerRun,
     best_fixed,
@@ -62,17 +63,9 @@ NAME = "ccc"
 NEEDS_FIRMWARE = True
 PARAMETERS = ("kp_m_min_per_mm", "kf", "cc_gain_1_s", "cc_integral_1_s2")
 
-#: Design defaults (tune=False) of the compensator C: Kc (1/s) and Ki (1/s^2).
-#: Kc = 20 1/s raises the loop gain across the path to about 1.5 times the best fixed Kp
-#: (2.4 to 3 (m/min)/mm = 40 to 50 1/s), still inside the stable range of the plane loop
-#: (see tests); Ki = 0: the paper's constant-gain compensator.
-DEFAULTS = {"cc_gain_1_s": 20.0, "cc_integral_1_s2": 0.0}
-#: Tuning grid of the compensator (21 runs, as the fixed-gain baseline's Kp x Kf grid on
-#: the toolpath itself); Kp and Kf stay at the best fixed gains.
-TUNE_GRID = {
-    "cc_gain_1_s": [0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0],
-    "cc_integral_1_s2": [0.0, 200.0, 800.0],
-}
+#: Design defaults and tuning grid (:mod:`oga.defaults`, where their reasons are given).
+DEFAULTS = defaults.CCC_DEFAULTS
+TUNE_GRID = defaults.CCC_TUNE_GRID
 
 
 def baseline_gains(setpoints: Setpoints, machine: Machine, given: dict) -> tuple[float, float]:

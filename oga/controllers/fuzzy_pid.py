@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import Setpoints
+from oga import defaults
 from oga.contour import plane_axes
 from oga.controllers.base import ControllerRun, baseline_si, check_parameters, grid_tune, load_array
 from oga.controllers.fuzzy import RULES, UNIVERSE, mamdani
@@ -58,21 +59,12 @@ PAPER_RATIOS = {
     "dki_ratio": 6 * 0.01 / 0.3,
     "dkd_ratio": 6 * 0.01 / 0.5,
 }
-#: Design defaults: the integral and derivative gains relative to K'p.
-KI_PER_KP2 = 0.1
-KD_DEFAULT = 0.05
-#: Error and error-rate ranges mapped onto [-6, 6] without tuning (the order of the
-#: baseline's tracking error on a contour at F3000 and of its rate), m and m/s.
-E_RANGE_M = 100e-6
-EC_RANGE_M_S = 1e-3
-#: Tuning grid: K'p as fractions of the best fixed Kp, K'i in units of K'p^2, and the
-#: input ranges as multiples of the defaults (wide ranges keep the inputs near ZO: the
-#: gains then vary slowly enough for the jerk limit of paper eq. 2).
-TUNE_GRID = {
-    "kp_factor": (0.8, 1.0),
-    "ki_per_kp2": (0.0, 0.02, 0.1),
-    "range_factor": (1.0, 10.0, 100.0),
-}
+#: Design defaults and tuning grid (:mod:`oga.defaults`, where their reasons are given).
+KI_PER_KP2 = defaults.FUZZY_PID_KI_PER_KP2
+KD_DEFAULT = defaults.FUZZY_PID_KD
+E_RANGE_M = defaults.FUZZY_PID_E_RANGE_M
+EC_RANGE_M_S = defaults.FUZZY_PID_EC_RANGE_M_S
+TUNE_GRID = defaults.FUZZY_PID_TUNE_GRID
 #: The parameters each grid axis sets (a grid axis is dropped when all of them are given).
 _TUNES = {
     "kp_factor": ("kp_1_s",),

@@ -54,6 +54,7 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import Setpoints
+from oga import defaults
 from oga.controllers.base import ControllerRun, baseline_si, check_parameters, grid_tune, path_frame
 from oga.controllers.fuzzy import RULES, UNIVERSE, memberships
 from oga.controllers.fuzzy_pid import PAPER_RATIOS, law_inputs
@@ -87,29 +88,9 @@ PARAMETERS = (
     "kf_base",
 )
 
-#: Design defaults (units in the names; the reasons are in the module docstring).
-DEFAULTS = {
-    "c_1_s": 40.0,
-    "eta_1_s": 100.0,
-    "k_switch_m_s2": 0.05,
-    "phi_m_s": 1e-3,
-    "dob": True,
-    "l_dob_1_s": 100.0,
-    "ccc": True,
-    "kcp_1_s": 20.0,
-    "kci_1_s2": 0.0,
-    "kcd": 0.0,
-    "eps_range_m": 10e-6,
-    "eps_rate_range_m_s": 1e-3,
-    "gamma_1_s": 1.0,
-    "sigma_1_s": 1.0,
-}
-#: Tuning grid of the main gains (surface pole, reaching gain, coupling gain).
-TUNE_GRID = {
-    "c_1_s": [20.0, 40.0, 80.0],
-    "eta_1_s": [50.0, 100.0, 200.0],
-    "kcp_1_s": [0.0, 20.0, 40.0],
-}
+#: Design defaults and tuning grid (:mod:`oga.defaults`; the reasons are in this docstring).
+DEFAULTS = defaults.SMC_DOB_CCC_DEFAULTS
+TUNE_GRID = defaults.SMC_DOB_CCC_TUNE_GRID
 #: Normalising time of the contour-error integral in the adaptation law, s.
 _I_TIME_S = 0.1
 

@@ -42,6 +42,7 @@ from numba import njit
 from scipy import signal
 
 from feedplan.setpoints import AXES, Setpoints
+from oga import defaults
 from oga.controllers.base import ControllerRun, check_parameters, grid_tune, score
 from oga.controllers.ccc import Prepared, baseline_gains, cc_correction, prepare
 from oga.errors import OptionError, TuneError
@@ -79,21 +80,9 @@ PARAMETERS = (
     "friction",
 )
 
-#: Design defaults (tune=False). CCC as :data:`oga.controllers.ccc.DEFAULTS`; the Q
-#: low-pass of the paper (3rd-order Butterworth, 30 Hz); zeros with |z| < 0.95 cancelled
-#: (their cancelling poles decay within about 60 samples); every part switched on.
-DEFAULTS = {
-    "cc_gain_1_s": 20.0,
-    "cc_integral_1_s2": 0.0,
-    "q_cutoff_hz": 30.0,
-    "q_order": 3,
-    "accept_radius": 0.95,
-    "zpetc": True,
-    "dob": True,
-    "friction": True,
-}
-#: Tuning grid (12 runs): the CCC gain and the observer's bandwidth.
-TUNE_GRID = {"cc_gain_1_s": [0.0, 20.0, 40.0], "q_cutoff_hz": [10.0, 30.0, 60.0, 100.0]}
+#: Design defaults and tuning grid (:mod:`oga.defaults`, where their reasons are given).
+DEFAULTS = defaults.ZPETC_CCC_DDOB_DEFAULTS
+TUNE_GRID = defaults.ZPETC_CCC_DDOB_TUNE_GRID
 
 #: Relative size below which a transfer-function coefficient is rounding noise.
 _COEF_EPS = 1e-9
