@@ -54,6 +54,7 @@ __all__ = [
     "TUNE_GRID",
     "Prepared",
     "baseline_gains",
+    "add_coupling",
     "prepare",
     "cc_correction",
     "run",
@@ -210,6 +211,26 @@ def cc_correction(err1, err2, cos_t, sin_t, kappa, kc, ki_te, integ):
 
 
 @njit(cache=True)
+def add_coupling(u, k, pd, out_p, present, rapid, e1, e2, tangent, kappa, kc, ki_te, integ):
+    """Add the cross-coupled correction of sample ``k`` to the commands ``u`` (3,), in place.
+
+    :func:`cc_correction` on the plane axes' errors ``pd[k] - out_p[k]``; during a rapid
+    there is none and the compensator's integral restarts. Returns the integral state.
+    """
+    if rapid[k]:
+        return 0.0
+    d1, d2, _, integ = cc_correction(
+        pd[k, e1] - out_p[k, e1], pd[k, e2] - out_p[k, e2],
+        tangent[k, 0], tangent[k, 1], kappa[k], kc, ki_te, integ,
+    )
+    if present[e1]:
+        u[e1] += d1
+    if present[e2]:
+        u[e2] += d2
+    return integ
+
+
+@njit(cache=True)
 def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2,
           kp, kf, kc, ki_te, load, out_p, out_u):
     """Simulate all axes jointly with P + FFW and the cross-coupled correction."""
@@ -220,17 +241,8 @@ def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2,
         for a in range(3):
             out_p[k, a] = states[a, 0] if present[a] else pd[k, a]
             u[a] = kp * (pd[k, a] - out_p[k, a]) + kf * vd[k, a] if present[a] else 0.0
-        if rapid[k]:
-            integ = 0.0
-        else:
-            d1, d2, _, integ = cc_correction(
-                pd[k, e1] - out_p[k, e1], pd[k, e2] - out_p[k, e2],
-                tangent[k, 0], tangent[k, 1], kappa[k], kc, ki_te, integ,
-            )
-            if present[e1]:
-                u[e1] += d1
-            if present[e2]:
-                u[e2] += d2
+        integ = add_coupling(u, k, pd, out_p, present, rapid, e1, e2, tangent, kappa, kc, ki_te,
+                             integ)
         for a in range(3):
             if present[a]:
                 drive(states[a], params[a], u[a], load[k, a])

@@ -44,7 +44,7 @@ from scipy import signal
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.controllers.base import ControllerRun, check_parameters, grid_tune, score
-from oga.controllers.ccc import Prepared, baseline_gains, cc_correction, prepare
+from oga.controllers.ccc import Prepared, add_coupling, baseline_gains, prepare
 from oga.errors import OptionError, TuneError
 from oga.linear import position_open_loop
 from oga.machine import Machine
@@ -251,17 +251,8 @@ def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2, kp, kf
                 u[a] = kp * (pd[k, a] - out_p[k, a]) + kf * vd[k, a]
             else:
                 u[a] = kp * (ref[k, a] - out_p[k, a]) + kf_plane * vd[k, a]
-        if rapid[k]:
-            integ = 0.0
-        else:
-            d1, d2, _, integ = cc_correction(
-                pd[k, e1] - out_p[k, e1], pd[k, e2] - out_p[k, e2],
-                tangent[k, 0], tangent[k, 1], kappa[k], kc, ki_te, integ,
-            )
-            if present[e1]:
-                u[e1] += d1
-            if present[e2]:
-                u[e2] += d2
+        integ = add_coupling(u, k, pd, out_p, present, rapid, e1, e2, tangent, kappa, kc, ki_te,
+                             integ)
         for a in (e1, e2):
             if not present[a]:
                 continue
