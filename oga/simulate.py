@@ -162,6 +162,21 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
         coefficients (``11 + nv + nw``). Zero-padded to the longest over the
         machine's axes, so every axis of a machine has the same P.
     """
+    key = (machine.digest(), axis, lifted)
+    if key not in _PARAMS:
+        if len(_PARAMS) >= 64:  # a server sees many machines: keep the memo small
+            _PARAMS.clear()
+        _PARAMS[key] = _pack(machine, axis, lifted)
+    return _PARAMS[key].copy()
+
+
+#: Packed parameters per (machine digest, axis, lifted): the sub-step matrices cost a
+#: matrix exponential per axis, and every stage of a run asks for them again.
+_PARAMS: dict[tuple[str, str, bool], np.ndarray] = {}
+
+
+def _pack(machine: Machine, axis: str, lifted: bool) -> np.ndarray:
+    """The packed parameters of :func:`axis_params`, computed."""
     model = machine.axis(axis)
     n_params, n_state = _sizes(machine)
     out = np.zeros(n_params)
