@@ -8,11 +8,13 @@ __all__ = [
     "NP",
     "LAMBDA",
     "ANCHOR",
-    "MPC_ATTEMPTS",
-    "MPC_ACCEPT_RATIO",
+    "MPC_KNOT_SAMPLES",
+    "MPC_COMMIT_SAMPLES",
+    "MPC_ITERATIONS",
+    "MPC_STOP",
+    "MPC_TRUST",
     "REPORT_MAX_POINTS",
     "MPC_MIN_NP",
-    "MPC_REPLAN",
     "A1",
     "A2",
     "CE_WINDOW_SAMPLES",
@@ -44,23 +46,28 @@ __all__ = [
 DT_S = 1e-3
 #: Interpolation tolerance (largest deviation of a setpoint from the programmed path), metres.
 TOL_M = 20e-6
-#: Prediction horizon of the receding-horizon search, samples (paper: 50).
-NP = 50
+#: Prediction horizon per mode, samples: the paper's 50; full mode plans a window of 100
+#: (its first MPC_COMMIT_SAMPLES are applied, the rest looks past them).
+NP = {"paper": 50, "full": 100}
 #: Weight of the gain increments in the cost per mode, per unit^2 of increment (paper: 0.01),
-#: against E'E in the mode's unit: mm^2 in paper mode (the paper's), um^2 in full mode.
+#: against E'E in the mode's unit: mm^2 in paper mode (the paper's), um^2 in full mode
+#: (there on the steps between knots).
 LAMBDA = {"paper": 0.01, "full": 100.0}
 #: Weight pulling the gains back to the baseline per mode, same units (paper: none).
 ANCHOR = {"paper": 0.0, "full": 300.0}
-#: Full mode: the settings tried in turn, (move blocks over the horizon, trust region of a
-#: block step in (m/min)/mm for Kp and 1 for Kf); the next is tried only when the previous
-#: schedule did not reach MPC_ACCEPT_RATIO, and the best verified one is kept.
-MPC_ATTEMPTS = ((10, 0.3, 0.05), (5, 0.1, 0.02))
-#: Full mode: MSE(CE) ratio to the baseline that ends the attempts.
-MPC_ACCEPT_RATIO = 0.8
-#: Full mode: shortest horizon accepted, samples (dead time plus the loop's settling).
-MPC_MIN_NP = 20
-#: Full mode: samples between two plans (longer intervals were measured to lose the gain).
-MPC_REPLAN = 1
+#: Full mode: samples between two knots of the planned gain trajectory (linear between).
+MPC_KNOT_SAMPLES = 10
+#: Full mode: samples of each plan applied before the window recedes and is planned again.
+MPC_COMMIT_SAMPLES = 25
+#: Full mode: sequential-QP iterations per window at most (each re-linearised on the plan).
+MPC_ITERATIONS = 3
+#: Full mode: an iteration that lowers the window's exact cost by less than this share ends
+#: the window's iterations.
+MPC_STOP = 0.05
+#: Full mode: trust region of one iteration's knot change, (m/min)/mm for Kp and 1 for Kf.
+MPC_TRUST = (0.3, 0.05)
+#: Full mode: shortest window accepted, samples (dead time plus the loop's settling).
+MPC_MIN_NP = 40
 #: Candidate fractions of the admissible increment interval (paper: a1 = 0.01, a2 = 0.05).
 A1 = 0.01
 A2 = 0.05

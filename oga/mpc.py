@@ -1,36 +1,40 @@
-"""Full mode: receding-horizon gain search as a small model-predictive problem, compiled.
+"""Full mode: the gain trajectory over a moving window, planned by sequential QP, compiled.
 
 The paper's search (:mod:`oga.search`) tries five increments per sample, each
 held over the horizon. On jerk-limited setpoints that held-gain prediction
 misleads it: it moves a gain far while an axis is idle (the kinematic bound is
 void there), then cannot bring it back once the axis moves (the bound is tight
-there). Full mode instead plans a whole gain *trajectory* over the horizon and
-re-plans as it recedes:
+there). Full mode instead plans each adjusted gain as a *trajectory* over a
+window of ``w`` samples, piecewise linear between knots ``kspace`` samples apart
+(knot 0 is the gain in force, so the schedule is continuous), and recedes:
 
-1. every ``replan`` samples, from the current true state, simulate each axis
-   over ``Np`` samples on the exact nonlinear model with the gains held
-   (the nominal prediction), and once more per adjusted gain and per move
-   block with that gain raised by a small step from the block on: finite-difference
-   sensitivities of the predicted positions and velocity commands to a gain
-   trajectory that may step at the start of each of ``blocks`` blocks (each
-   simulated from its block's start on; an axis whose setpoint stands still over
-   the whole horizon is not adjusted there);
+1. from the current true state, simulate each axis over the window along the
+   current plan on the exact nonlinear model (the nominal prediction), and once
+   more per adjusted gain and knot with that knot raised by a small step (its hat
+   function, simulated from the previous knot on): finite-difference
+   sensitivities of the predicted positions and velocity commands to the knots
+   (an axis whose setpoint stands still over the whole window is not adjusted);
 2. the predicted contour error is linearised around the nominal prediction
    (distance to the line of the nearest path segment, as in :mod:`oga.search`),
-   giving a quadratic cost in the block increments ``d``:
-   ``|E(d)|^2 + lam |d|^2 + anchor |K(d) - K_baseline|^2`` (um^2);
-3. constraints: every gain inside its bounds in every block, and eq. 2 on the
-   linearised velocity command over the whole horizon (with a small margin);
-   each block step stays inside a trust region where the linearisation holds;
-   the QP is solved exactly by the dual active-set method of Goldfarb and Idnani;
-4. exact line search: the planned trajectory scaled by 1, 1/2, 1/4, 1/8 and 0
-   (holding the gains) is simulated exactly from the true state; among the
-   scales whose velocity command meets eq. 2 over the whole horizon, the one
-   with the least exact contour-error cost is taken (so a step never makes the
-   exact prediction worse than holding, and never breaks eq. 2 in it);
-5. the first ``replan`` samples of the plan are applied and the true state is
-   advanced with the exact kernel.
+   giving a quadratic cost in the knot changes ``d``:
+   ``|E(d)|^2 + lam |steps between knots|^2 + anchor mean |K - K_baseline|^2`` (um^2);
+3. constraints: every knot inside its gain bounds and inside a trust region
+   where the linearisation holds, and eq. 2 on the linearised velocity command
+   over the whole window (with a small margin); the QP is solved exactly by the
+   dual active-set method of Goldfarb and Idnani;
+4. exact line search: the step scaled by 1, 1/2, 1/4 and 0 (the current plan)
+   is simulated exactly from the true state; among the scales whose velocity
+   command meets eq. 2 over the whole window, the one with the least exact cost
+   is taken, so an iteration never makes the exact prediction worse;
+5. steps 1-4 are repeated ``iters`` times (sequential QP, each linearised
+   around the last plan) or until the line search keeps the plan;
+6. the first ``commit`` samples of the plan are applied, the true state is
+   advanced with the exact kernel, and the rest of the plan, shifted, starts the
+   next window.
 
+Planning a whole window and committing a part of it costs a few window
+simulations per sample where re-planning every sample cost about fifty, and the
+iterations converge the plan where a single linearised step per sample could not.
 Every figure a user sees still comes from the replay in :mod:`oga.verify`.
 """
 
@@ -47,10 +51,10 @@ from oga.simulate import run
 
 __all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
 
-STAT_FALLBACK = 0  # re-plans where even the held gains broke eq. 2 over the horizon
-STAT_WINDOWS = 1  # horizon simulations
-STAT_SCALED = 2  # re-plans whose increments were scaled down by the exact check
-STAT_QP_SHORT = 3  # re-plans whose QP stopped short of the optimum (the line search decides)
+STAT_FALLBACK = 0  # iterations where no step kept eq. 2 on the samples to be committed
+STAT_WINDOWS = 1  # window simulations
+STAT_SCALED = 2  # iterations whose QP step was scaled down by the exact check
+STAT_QP_SHORT = 3  # iterations whose QP stopped short of the optimum (the line search decides)
 
 _C = KP_SI_PER_M_MIN_PER_MM
 _M2_TO_UM2 = 1e12
@@ -247,314 +251,365 @@ def _nearest(pd, count, ce_window, c, j_prev, x, y, z):
     return nearest_segment(pd, lo, hi, x, y, z)
 
 
-@njit(cache=True)
-def _simulate(state, params, pd, vd, k, n, kp_si, kf, scratch, out_p, out_u):
-    """Exact prediction from ``state`` at sample k over n samples with per-sample gains.
-
-    ``pd``/``vd`` are padded past the end (last position held, zero velocity), so
-    the slices always exist. ``out_p[i]`` is the measured position at sample k+i.
-    """
-    scratch[:] = state
-    run(scratch, params, pd[k:k + n], vd[k:k + n], kp_si, kf, out_p, out_u)
-
 
 @njit(cache=True)
-def _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_lo, kp_hi,
-                kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa):
-    """Gain trajectory of axis ``a`` over the horizon for block steps ``scale * x``.
+def _plan_at(knots, a, g, tau, kspace):
+    """Gain ``g`` (0 Kp, 1 Kf) of axis ``a`` at ``tau`` samples after the last applied one:
+    linear between knots (knot j at ``tau = j kspace``), held after the last."""
+    j = tau // kspace
+    last = knots.shape[2] - 1
+    if j >= last:
+        return knots[a, g, last]
+    f = (tau - j * kspace) / kspace
+    return (1.0 - f) * knots[a, g, j] + f * knots[a, g, j + 1]
 
-    Fills ``plan_kp[a]``, ``plan_kf[a]`` ((m/min)/mm, 1) and the kernel's ``kpa`` (1/s), ``kfa``.
-    """
-    for i in range(n_pred):
-        plan_kp[a, i] = kp[a]
-        plan_kf[a, i] = kf[a]
-    for v in range(nv):
-        if var_axis[v] != a:
-            continue
-        for i in range(var_blk[v] * blen, n_pred):
-            if var_gain[v] == 0:
-                plan_kp[a, i] += scale * x[v]
-            else:
-                plan_kf[a, i] += scale * x[v]
-    for i in range(n_pred):
-        plan_kp[a, i] = min(max(plan_kp[a, i], kp_lo[a]), kp_hi[a])
-        plan_kf[a, i] = min(max(plan_kf[a, i], kf_lo[a]), kf_hi[a])
-        kpa[i] = plan_kp[a, i] * _C
-        kfa[i] = plan_kf[a, i]
+
+@njit(cache=True)
+def _gains(knots, a, g, w, kspace, out):
+    """The plan's gain at every window sample ``i`` (``tau = i + 1``) into ``out[:w]``."""
+    for i in range(w):
+        out[i] = _plan_at(knots, a, g, i + 1, kspace)
+
+
+@njit(cache=True)
+def _sim_plan(states, params, pdT, vdT, k, w, knots, a, kspace, kpa, kfa, out_p, out_u, scratch):
+    _gains(knots, a, 0, w, kspace, kpa)
+    _gains(knots, a, 1, w, kspace, kfa)
+    for i in range(w):
+        kpa[i] *= _C
+    scratch[:] = states[a]
+    run(scratch, params[a], pdT[a, k:k + w], vdT[a, k:k + w], kpa, kfa, out_p, out_u)
+
+
+@njit(cache=True)
+def _window_cost(pd, count, ce_window, k, w, n_total, trial):
+    cost = 0.0
+    j = -1
+    for i in range(w):
+        c = min(k + i, n_total - 1)
+        j, _t, d2 = _nearest(pd, count, ce_window, c, j, trial[0, i], trial[1, i], trial[2, i])
+        if j < 0:
+            d2 = ((trial[0, i] - pd[c, 0]) ** 2 + (trial[1, i] - pd[c, 1]) ** 2
+                  + (trial[2, i] - pd[c, 2]) ** 2)
+        cost += d2
+    return cost * _M2_TO_UM2
 
 
 @njit(cache=True)
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-    kp_base, kf_base, vmax, amax, jmax, te, u_hist, n_pred, n_blocks, trust_kp, trust_kf, replan,
-    lam, anchor,
-    ce_window, count, moving, kp_out, kf_out, u_out, stats,
+    kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
+    lam, anchor, ce_window, count, moving, knots, kp_out, kf_out, u_out, stats, stop=0.0,
 ):
-    """Run the full-mode search over samples ``k0 .. k1 - 1`` in place.
+    """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
-    Parameters are those of :func:`oga.search.search_chunk`, plus: ``pdT``/``vdT``
-    padded by ``n_pred`` samples past the end (shape (3, N + n_pred)); ``kp_base``,
-    ``kf_base`` (3,) the baseline gains the anchor pulls to; ``n_blocks`` move
-    blocks over the horizon; ``trust_kp``, ``trust_kf`` the trust region of one block
-    step ((m/min)/mm, 1), where the linearisation is trusted; ``replan`` samples between two plans (``k0`` must be
-    a multiple of it); ``anchor`` weight; ``count`` from
-    :func:`oga.contour.moving_count` for the nearest-point window.
+    ``knots`` (3, 2, w // kspace + 1) carries the plan between calls: knot 0 is the
+    gain applied at the sample before the window, knot j the gain at window sample
+    j K - 1; it is shifted by ``commit`` samples after each window.
     """
     n_total = pd.shape[0]
-    blen = max(n_pred // n_blocks, 1)
-    # variables: (axis, gain, block) for adjusted gains
-    var_axis = np.empty(12 * n_blocks, dtype=np.int64)
-    var_gain = np.empty(12 * n_blocks, dtype=np.int64)  # 0 kp, 1 kf
-    var_blk = np.empty(12 * n_blocks, dtype=np.int64)
+    nk = w // kspace  # free knots per gain: 1 .. nk
+    var_axis = np.empty(6 * nk, dtype=np.int64)
+    var_gain = np.empty(6 * nk, dtype=np.int64)
+    var_knot = np.empty(6 * nk, dtype=np.int64)
     nv = 0
     for a in range(3):
         if not moving[a]:
             continue
         for g in range(2):
             if (g == 0 and adj_kp[a]) or (g == 1 and adj_kf[a]):
-                for b in range(n_blocks):
+                for j in range(1, nk + 1):
                     var_axis[nv] = a
                     var_gain[nv] = g
-                    var_blk[nv] = b
+                    var_knot[nv] = j
                     nv += 1
-    var_lo = np.zeros(3, dtype=np.int64)  # variables of axis a: var_lo[a] .. var_hi[a]-1
+    var_lo = np.zeros(3, dtype=np.int64)
     var_hi = np.zeros(3, dtype=np.int64)
     for v in range(nv - 1, -1, -1):
         var_lo[var_axis[v]] = v
     for v in range(nv):
         var_hi[var_axis[v]] = v + 1
-    mq = np.empty(n_pred)
-    wgt = np.empty(n_pred)
-    p0 = np.empty((3, n_pred))
-    u0 = np.empty((3, n_pred))
-    sp = np.zeros((nv, n_pred))  # position sensitivities
-    su = np.zeros((nv, n_pred))  # command sensitivities
-    kpa = np.empty(n_pred)
-    kfa = np.empty(n_pred)
+    mq = np.empty(w)
+    wgt = np.empty(w)
+    p0 = np.empty((3, w))
+    u0 = np.empty((3, w))
+    sp = np.zeros((nv, w))
+    su = np.zeros((nv, w))
+    kpa = np.empty(w)
+    kfa = np.empty(w)
     scratch = np.empty(states.shape[1])
-    tmp_p = np.empty(n_pred)
-    tmp_u = np.empty(n_pred)
-    dq = np.empty((n_pred, 3))
-    tang = np.empty((n_pred, 3))
+    tmp_p = np.empty(w)
+    tmp_u = np.empty(w)
+    dq = np.empty((w, 3))
+    tang = np.empty((w, 3))
     pmat = np.empty((nv, nv))
     qvec = np.empty(nv)
-    max_rows = 2 * nv + 3 * 3 * n_pred
+    max_rows = nv + 3 * 3 * w
     amat = np.zeros((max_rows, nv))
     alo = np.empty(max_rows)
     ahi = np.empty(max_rows)
     x = np.zeros(nv)
     trust = np.empty(nv)
-    plan_kp = np.empty((3, n_pred))
-    plan_kf = np.empty((3, n_pred))
-    trial = np.empty((3, n_pred))
-    block_state = np.empty((3, n_blocks, states.shape[1]))
+    trial = np.empty((3, w))
+    plan_kp = np.empty((3, w))
+    plan_kf = np.empty((3, w))
+    trial_knots = knots.copy()
+    knot_state = np.empty((3, nk, states.shape[1]))
     idle = np.ones(3, dtype=np.bool_)
-    for k in range(k0, k1, replan):
-        # 1: nominal predictions (held gains), keeping the state at every block start,
-        #    then the sensitivities, each simulated from its block's start only
+    k = k0
+    while k < k1:
+        # the plan's knot 0 is the gain in force now
         for a in range(3):
+            knots[a, 0, 0] = kp[a]
+            knots[a, 1, 0] = kf[a]
             idle[a] = True
-            if not moving[a]:
-                for i in range(n_pred):
-                    p0[a, i] = states[a, 0]
-                    u0[a, i] = 0.0
-                continue
-            scratch[:] = states[a]
-            for b in range(n_blocks):
-                i0 = b * blen
-                i1 = n_pred if b == n_blocks - 1 else i0 + blen
-                block_state[a, b, :] = scratch
-                for i in range(i0, i1):
-                    kpa[i] = kp[a] * _C
-                    kfa[i] = kf[a]
-                run(scratch, params[a], pdT[a, k + i0:k + i1], vdT[a, k + i0:k + i1],
-                    kpa[i0:i1], kfa[i0:i1], p0[a, i0:i1], u0[a, i0:i1])
-            stats[STAT_WINDOWS] += 1
-            for i in range(n_pred):  # does the axis's setpoint move within the horizon?
-                if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
-                    idle[a] = False
-                    break
-        for v in range(nv):
-            a = var_axis[v]
-            start = var_blk[v] * blen
-            for i in range(n_pred):
-                sp[v, i] = 0.0
-                su[v, i] = 0.0
-            if idle[a]:  # no gain can matter to an axis standing still: no sensitivity
-                continue
-            for i in range(start, n_pred):
-                kpa[i] = kp[a] * _C
-                kfa[i] = kf[a]
-                if var_gain[v] == 0:
-                    kpa[i] += _H * _C
-                else:
-                    kfa[i] += _H
-            scratch[:] = block_state[a, var_blk[v], :]
-            run(scratch, params[a], pdT[a, k + start:k + n_pred], vdT[a, k + start:k + n_pred],
-                kpa[start:], kfa[start:], tmp_p[start:], tmp_u[start:])
-            stats[STAT_WINDOWS] += 1
-            for i in range(start, n_pred):
-                sp[v, i] = (tmp_p[i] - p0[a, i]) / _H
-                su[v, i] = (tmp_u[i] - u0[a, i]) / _H
-        # 2: linearised contour error around the nominal prediction
-        j = -1
-        for i in range(n_pred):
-            c = min(k + i, n_total - 1)
-            j, t, _d2 = _nearest(pd, count, ce_window, c, j, p0[0, i], p0[1, i], p0[2, i])
-            if j < 0:  # the path stands still around this sample: distance to its point
-                for a in range(3):
-                    dq[i, a] = p0[a, i] - pd[c, a]
-                    tang[i, a] = 0.0
-                continue
-            sx = pd[j + 1, 0] - pd[j, 0]
-            sy = pd[j + 1, 1] - pd[j, 1]
-            sz = pd[j + 1, 2] - pd[j, 2]
-            inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
-            tang[i, 0], tang[i, 1], tang[i, 2] = sx * inv, sy * inv, sz * inv
-            dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
-            dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
-            dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
-        # quadratic cost: sum_i (dq_i + S_i x)' M_i (dq_i + S_i x), M = I - t t'; the
-        # variables of one axis are contiguous, so each axis pair is one weighted product
-        for a in range(3):
-            va0, va1 = var_lo[a], var_hi[a]
-            if va0 == va1:
-                continue
-            for i in range(n_pred):
-                t = 0.0
-                for b in range(3):
-                    t += ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * dq[i, b]
-                mq[i] = t
-            qvec[va0:va1] = (2.0 * _M2_TO_UM2) * (sp[va0:va1] @ mq)
-            for b in range(3):
-                vb0, vb1 = var_lo[b], var_hi[b]
-                if vb0 == vb1:
+            if moving[a]:
+                for i in range(w):
+                    if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
+                        idle[a] = False
+                        break
+        for _it in range(iters):
+            # 1: nominal prediction along the plan, keeping the state at every knot start
+            for a in range(3):
+                if not moving[a]:
+                    for i in range(w):
+                        p0[a, i] = states[a, 0]
+                        u0[a, i] = 0.0
                     continue
-                for i in range(n_pred):
-                    wgt[i] = ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * (
-                        2.0 * _M2_TO_UM2)
-                pmat[va0:va1, vb0:vb1] = (sp[va0:va1] * wgt) @ sp[vb0:vb1].T
-        for v in range(nv):
-            a = var_axis[v]
-            pmat[v, v] += 2.0 * lam
-            # anchor on the gain of every block from this variable's block on
-            base = kp_base[a] if var_gain[v] == 0 else kf_base[a]
-            cur = kp[a] if var_gain[v] == 0 else kf[a]
-            for w in range(nv):
-                if var_axis[w] == a and var_gain[w] == var_gain[v]:
-                    shared = n_blocks - max(var_blk[v], var_blk[w])
-                    pmat[v, w] += 2.0 * anchor * shared / n_blocks
-            qvec[v] += 2.0 * anchor * (cur - base) * (n_blocks - var_blk[v]) / n_blocks
-        # 3: constraints: gain bounds per block, a trust region per step, eq. 2 rows
-        m = 0
-        for v in range(nv):
-            a = var_axis[v]
-            for w in range(nv):
-                same = var_axis[w] == a and var_gain[w] == var_gain[v]
-                amat[m, w] = 1.0 if same and var_blk[w] <= var_blk[v] else 0.0
-                amat[m + 1, w] = 1.0 if w == v else 0.0
-            if var_gain[v] == 0:
-                alo[m] = kp_lo[a] - kp[a]
-                ahi[m] = kp_hi[a] - kp[a]
-                tr = trust_kp
-            else:
-                alo[m] = kf_lo[a] - kf[a]
-                ahi[m] = kf_hi[a] - kf[a]
-                tr = trust_kf
-            if idle[a]:
-                tr = 0.0
-            alo[m + 1] = -tr
-            ahi[m + 1] = tr
-            trust[v] = tr
-            m += 2
-        for a in range(3):
-            if not moving[a]:
-                continue
-            lims = (_LIN_MARGIN * vmax[a], _LIN_MARGIN * amax[a] * te,
-                    _LIN_MARGIN * jmax[a] * te * te)
-            for r in range(3):
-                for i in range(n_pred):
-                    # the r-th difference of u at window sample i (history before i = 0)
-                    nominal = u0[a, i]
-                    if r >= 1:
-                        nominal -= (1.0 if r == 1 else 2.0) * (u0[a, i - 1] if i >= 1 else u_hist[a, 0])
-                    if r == 2:
-                        nominal += u0[a, i - 2] if i >= 2 else u_hist[a, 1 - i]
-                    scale = 1.0 / lims[r]
-                    for v in range(nv):
-                        cv = 0.0
-                        if var_axis[v] == a:
+                _gains(knots, a, 0, w, kspace, kpa)
+                _gains(knots, a, 1, w, kspace, kfa)
+                for i in range(w):
+                    kpa[i] *= _C
+                scratch[:] = states[a]
+                for j in range(nk):
+                    i0 = j * kspace
+                    i1 = w if j == nk - 1 else i0 + kspace
+                    knot_state[a, j, :] = scratch
+                    run(scratch, params[a], pdT[a, k + i0:k + i1], vdT[a, k + i0:k + i1],
+                        kpa[i0:i1], kfa[i0:i1], p0[a, i0:i1], u0[a, i0:i1])
+                stats[STAT_WINDOWS] += 1
+            # sensitivities: knot j's hat (ramp for the last) from knot j-1's sample on
+            for v in range(nv):
+                a = var_axis[v]
+                jk = var_knot[v]
+                start = (jk - 1) * kspace
+                for i in range(w):
+                    sp[v, i] = 0.0
+                    su[v, i] = 0.0
+                if idle[a]:
+                    continue
+                _gains(knots, a, 0, w, kspace, kpa)
+                _gains(knots, a, 1, w, kspace, kfa)
+                for i in range(start, w):
+                    tau = i + 1
+                    hat = 1.0 - abs(tau - jk * kspace) / kspace
+                    if jk == nk and tau >= jk * kspace:
+                        hat = 1.0
+                    hat = max(hat, 0.0)
+                    if var_gain[v] == 0:
+                        kpa[i] += _H * hat
+                    else:
+                        kfa[i] += _H * hat
+                    kpa[i] *= _C
+                scratch[:] = knot_state[a, jk - 1, :]
+                run(scratch, params[a], pdT[a, k + start:k + w], vdT[a, k + start:k + w],
+                    kpa[start:], kfa[start:], tmp_p[start:], tmp_u[start:])
+                stats[STAT_WINDOWS] += 1
+                for i in range(start, w):
+                    sp[v, i] = (tmp_p[i] - p0[a, i]) / _H
+                    su[v, i] = (tmp_u[i] - u0[a, i]) / _H
+            # 2: linearised contour error around the nominal prediction
+            j = -1
+            for i in range(w):
+                c = min(k + i, n_total - 1)
+                j, t, _d2 = _nearest(pd, count, ce_window, c, j, p0[0, i], p0[1, i], p0[2, i])
+                if j < 0:
+                    for a in range(3):
+                        dq[i, a] = p0[a, i] - pd[c, a]
+                        tang[i, a] = 0.0
+                    continue
+                sx = pd[j + 1, 0] - pd[j, 0]
+                sy = pd[j + 1, 1] - pd[j, 1]
+                sz = pd[j + 1, 2] - pd[j, 2]
+                inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
+                tang[i, 0], tang[i, 1], tang[i, 2] = sx * inv, sy * inv, sz * inv
+                dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
+                dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
+                dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
+            for a in range(3):
+                va0, va1 = var_lo[a], var_hi[a]
+                if va0 == va1:
+                    continue
+                for i in range(w):
+                    t = 0.0
+                    for b in range(3):
+                        t += ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * dq[i, b]
+                    mq[i] = t
+                qvec[va0:va1] = (2.0 * _M2_TO_UM2) * (sp[va0:va1] @ mq)
+                for b in range(3):
+                    vb0, vb1 = var_lo[b], var_hi[b]
+                    if vb0 == vb1:
+                        continue
+                    for i in range(w):
+                        wgt[i] = ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * (
+                            2.0 * _M2_TO_UM2)
+                    pmat[va0:va1, vb0:vb1] = (sp[va0:va1] * wgt) @ sp[vb0:vb1].T
+            # smoothness (lam on knot-to-knot steps) and anchor (mean over knots)
+            for v in range(nv):
+                a = var_axis[v]
+                g = var_gain[v]
+                jk = var_knot[v]
+                base = kp_base[a] if g == 0 else kf_base[a]
+                kv = knots[a, g, jk]
+                step_prev = kv - knots[a, g, jk - 1]
+                pmat[v, v] += 2.0 * lam + 2.0 * anchor / nk
+                qvec[v] += 2.0 * lam * step_prev + 2.0 * anchor * (kv - base) / nk
+                if jk > 1:  # the step from the previous free knot
+                    pmat[v, v - 1] -= 2.0 * lam
+                    pmat[v - 1, v] -= 2.0 * lam
+                    pmat[v - 1, v - 1] += 2.0 * lam
+                    qvec[v - 1] -= 2.0 * lam * step_prev
+            # 3: constraints: gain bounds and trust region per knot; eq. 2 rows
+            m = 0
+            for v in range(nv):
+                a = var_axis[v]
+                g = var_gain[v]
+                kv = knots[a, g, var_knot[v]]
+                for c in range(nv):
+                    amat[m, c] = 1.0 if c == v else 0.0
+                if g == 0:
+                    lo_b, hi_b, tr = kp_lo[a] - kv, kp_hi[a] - kv, trust_kp
+                else:
+                    lo_b, hi_b, tr = kf_lo[a] - kv, kf_hi[a] - kv, trust_kf
+                if idle[a]:
+                    tr = 0.0
+                alo[m] = max(lo_b, -tr)
+                ahi[m] = min(hi_b, tr)
+                trust[v] = tr
+                m += 1
+            for a in range(3):
+                if not moving[a] or var_lo[a] == var_hi[a]:
+                    continue
+                lims = (_LIN_MARGIN * vmax[a], _LIN_MARGIN * amax[a] * te,
+                        _LIN_MARGIN * jmax[a] * te * te)
+                for r in range(3):
+                    for i in range(w):
+                        nominal = u0[a, i]
+                        if r >= 1:
+                            nominal -= (1.0 if r == 1 else 2.0) * (u0[a, i - 1] if i >= 1 else u_hist[a, 0])
+                        if r == 2:
+                            nominal += u0[a, i - 2] if i >= 2 else u_hist[a, 1 - i]
+                        scale = 1.0 / lims[r]
+                        reach = 0.0
+                        for v in range(var_lo[a], var_hi[a]):
                             cv = su[v, i]
                             if r >= 1 and i >= 1:
                                 cv -= (1.0 if r == 1 else 2.0) * su[v, i - 1]
                             if r == 2 and i >= 2:
                                 cv += su[v, i - 2]
-                        amat[m, v] = cv * scale
-                    alo[m] = -1.0 - nominal * scale
-                    ahi[m] = 1.0 - nominal * scale
-                    # a row that no step inside the trust region can break is left out
-                    reach = 0.0
-                    for v in range(nv):
-                        reach += abs(amat[m, v]) * trust[v]
-                    if reach > min(-alo[m], ahi[m]) * (1.0 - 1e-12):
-                        m += 1
-        if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, x):
-            stats[STAT_QP_SHORT] += 1
-        # 4: exact line search: the plan scaled by 1, 1/2, 1/4, 1/8 and 0 (hold), each
-        #    simulated exactly; the least exact window cost among those meeting eq. 2 wins
-        best_cost = np.inf
-        best_scale = -1.0
-        least_excess = np.inf
-        least_scale = 0.0
-        for t_ in range(5):
-            scale = 0.0 if t_ == 4 else 0.5**t_
-            worst = 0.0
-            for a in range(3):
-                if not moving[a]:
-                    for i in range(n_pred):
-                        trial[a, i] = states[a, 0]
-                    continue
-                _plan_gains(a, scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf, kp_lo,
-                            kp_hi, kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa)
-                _simulate(states[a], params[a], pdT[a], vdT[a], k, n_pred, kpa, kfa, scratch,
-                          trial[a], tmp_u)
-                stats[STAT_WINDOWS] += 1
-                worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
-                                               amax[a], jmax[a], te, n_pred))
-            cost = 0.0
-            j = -1
-            for i in range(n_pred):
-                c = min(k + i, n_total - 1)
-                j, _t, d2 = _nearest(pd, count, ce_window, c, j, trial[0, i], trial[1, i],
-                                     trial[2, i])
-                if j < 0:
-                    d2 = ((trial[0, i] - pd[c, 0]) ** 2 + (trial[1, i] - pd[c, 1]) ** 2
-                          + (trial[2, i] - pd[c, 2]) ** 2)
-                cost += d2
-            cost *= _M2_TO_UM2
-            for a in range(3):
-                if moving[a]:
-                    cost += anchor * ((plan_kp[a, n_pred - 1] - kp_base[a]) ** 2
-                                      + (plan_kf[a, n_pred - 1] - kf_base[a]) ** 2)
-            if worst <= 1e-9 and cost < best_cost:
-                best_cost = cost
-                best_scale = scale
-            if worst < least_excess:
-                least_excess = worst
-                least_scale = scale
-        if best_scale < 0.0:  # nothing meets eq. 2: take the least violating
-            stats[STAT_FALLBACK] += 1
-            best_scale = least_scale
-        if best_scale < 1.0:
-            stats[STAT_SCALED] += 1
+                            amat[m, v] = cv * scale
+                            reach += abs(cv * scale) * trust[v]
+                        for v in range(var_lo[a]):
+                            amat[m, v] = 0.0
+                        for v in range(var_hi[a], nv):
+                            amat[m, v] = 0.0
+                        lo_r = -1.0 - nominal * scale
+                        hi_r = 1.0 - nominal * scale
+                        if reach > min(-lo_r, hi_r) * (1.0 - 1e-12):
+                            alo[m] = lo_r
+                            ahi[m] = hi_r
+                            m += 1
+            for v in range(nv):
+                x[v] = 0.0
+            if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, x):
+                stats[STAT_QP_SHORT] += 1
+            # 4: exact line search along the step: 1, 1/2, 1/4, 0 (the current plan). The
+            #    samples to be committed must meet eq. 2; among such scales, one meeting it over
+            #    the whole window with the least cost wins, else the least excess over the window
+            best_cls = 3
+            best_key = np.inf
+            best_scale = 0.0
+            best_cost = np.inf
+            held_cost = np.inf
+            n_commit = min(commit, w)
+            for t_ in range(4):
+                scale = 0.0 if t_ == 3 else 0.5**t_
+                trial_knots[:] = knots
+                for v in range(nv):
+                    a = var_axis[v]
+                    g = var_gain[v]
+                    jk = var_knot[v]
+                    val = knots[a, g, jk] + scale * x[v]
+                    if g == 0:
+                        val = min(max(val, kp_lo[a]), kp_hi[a])
+                    else:
+                        val = min(max(val, kf_lo[a]), kf_hi[a])
+                    trial_knots[a, g, jk] = val
+                worst = 0.0  # over the window
+                worst_c = 0.0  # over the samples to be committed
+                for a in range(3):
+                    if not moving[a]:
+                        for i in range(w):
+                            trial[a, i] = states[a, 0]
+                        continue
+                    _sim_plan(states, params, pdT, vdT, k, w, trial_knots, a, kspace, kpa, kfa,
+                              trial[a], tmp_u, scratch)
+                    stats[STAT_WINDOWS] += 1
+                    worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
+                                                   amax[a], jmax[a], te, w))
+                    worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
+                                                       amax[a], jmax[a], te, n_commit))
+                cost = _window_cost(pd, count, ce_window, k, w, n_total, trial)
+                for a in range(3):
+                    if moving[a]:
+                        for jk in range(1, nk + 1):
+                            cost += anchor / nk * ((trial_knots[a, 0, jk] - kp_base[a]) ** 2
+                                                   + (trial_knots[a, 1, jk] - kf_base[a]) ** 2)
+                            cost += lam * ((trial_knots[a, 0, jk] - trial_knots[a, 0, jk - 1]) ** 2
+                                           + (trial_knots[a, 1, jk] - trial_knots[a, 1, jk - 1]) ** 2)
+                if worst <= 1e-9:
+                    cls, key = 0, cost
+                elif worst_c <= 1e-9:
+                    cls, key = 1, worst
+                else:
+                    cls, key = 2, worst_c
+                if t_ == 3:
+                    held_cost = cost if cls == 0 else np.inf
+                if cls < best_cls or (cls == best_cls and key < best_key):
+                    best_cls, best_key, best_scale = cls, key, scale
+                    best_cost = cost if cls == 0 else np.inf
+            if best_cls == 2:
+                stats[STAT_FALLBACK] += 1
+            if best_scale < 1.0:
+                stats[STAT_SCALED] += 1
+            for v in range(nv):
+                a = var_axis[v]
+                g = var_gain[v]
+                jk = var_knot[v]
+                val = knots[a, g, jk] + best_scale * x[v]
+                if g == 0:
+                    val = min(max(val, kp_lo[a]), kp_hi[a])
+                else:
+                    val = min(max(val, kf_lo[a]), kf_hi[a])
+                knots[a, g, jk] = val
+            if best_scale == 0.0 or (held_cost < np.inf and best_cost > (1.0 - stop) * held_cost):
+                break
+        # 5: commit the first `commit` samples of the plan, advance the true state
+        stride = min(commit, k1 - k)
         for a in range(3):
             if moving[a]:
-                _plan_gains(a, best_scale, x, nv, var_axis, var_gain, var_blk, blen, kp, kf,
-                            kp_lo, kp_hi, kf_lo, kf_hi, n_pred, plan_kp, plan_kf, kpa, kfa)
-        # 5: apply the first `replan` samples of the plan and advance the true state
-        for i in range(min(replan, k1 - k)):
+                _gains(knots, a, 0, w, kspace, plan_kp[a])
+                _gains(knots, a, 1, w, kspace, plan_kf[a])
+        for i in range(stride):
             for a in range(3):
                 if moving[a]:
                     kp[a] = plan_kp[a, i]
                     kf[a] = plan_kf[a, i]
             apply_gains(k + i, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hist)
+        # the rest of the plan, shifted by the committed samples, starts the next window
+        trial_knots[:] = knots
+        for a in range(3):
+            for g in range(2):
+                for jk in range(nk + 1):
+                    knots[a, g, jk] = _plan_at(trial_knots, a, g, jk * kspace + stride, kspace)
+        k += stride

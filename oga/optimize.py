@@ -80,7 +80,9 @@ class OptimizeResult:
     optimize_time_s : float
         Wall time of the search and its verification, s.
     fallbacks : int
-        Samples where no candidate met eq. 2 and the least violating was taken.
+        Paper mode: samples where no candidate met eq. 2 and the least violating was
+        taken; full mode: iterations where even the current plan broke eq. 2 over the
+        window (the replay still checks every committed sample).
     windows : int
         Prediction windows simulated.
     """
@@ -229,8 +231,7 @@ def optimize(
         Search options (CLI/API names); default the full mode: best fixed
         baseline, every contouring axis, Kp and Kf.
     progress : callable, optional
-        Called with the fraction done (0..1) between chunks of samples (over all
-        the settings full mode tries).
+        Called with the fraction done (0..1) between chunks of samples.
 
     Returns
     -------
@@ -250,10 +251,10 @@ def optimize(
     if not isinstance(options, OptimizeOptions):
         options = options_from_dict(options)
     t0 = time.perf_counter()
-    if options.mode == "full" and options.np < defaults.MPC_MIN_NP:
+    if options.mode == "full" and options.np_value < defaults.MPC_MIN_NP:
         raise OptionError(
-            f"np: full mode needs a horizon of at least {defaults.MPC_MIN_NP} samples "
-            f"(got {options.np}); a shorter one cannot see the jerk limit coming"
+            f"np: full mode needs a window of at least {defaults.MPC_MIN_NP} samples "
+            f"(got {options.np_value}); a shorter one cannot see the jerk limit coming"
         )
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
@@ -304,54 +305,45 @@ def optimize(
     if options.mode == "paper":
         from oga.search import STAT_FALLBACK, STAT_WINDOWS, search_chunk
 
-        attempts = (None,)
-
-        def advance(k0, k1, run, _setting):
+        def advance(k0, k1, run):
             search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
-                         run[3], options.np, options.lam_value, options.anchor_value, kp_base,
+                         run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
                          kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
                          is_moving, *run[4:])
     else:
         from oga.contour import moving_count
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
 
-        attempts = defaults.MPC_ATTEMPTS
-        pad = options.np + 1
+        wlen = options.np_value
+        kspace = defaults.MPC_KNOT_SAMPLES
+        commit = min(defaults.MPC_COMMIT_SAMPLES, wlen // 2)
+        pad = wlen + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
         count = moving_count(pd)
+        # the plan's knots per axis and gain (knot 0: the gain in force), carried across chunks
+        knots = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace + 1,
+                          axis=2)
 
-        def advance(k0, k1, run, setting):
-            blocks, trust_kp, trust_kf = setting
+        def advance(k0, k1, run):
             mpc_chunk(k0, k1, pd, pdT_pad, vdT_pad, params, *run[:3], *gain_bounds, kp_base,
-                      kf_base, vmax, amax, jmax, te, run[3], options.np, blocks, trust_kp,
-                      trust_kf, defaults.MPC_REPLAN, options.lam_value, options.anchor_value,
-                      defaults.CE_WINDOW_SAMPLES, count, is_moving, *run[4:])
+                      kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
+                      defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
+                      options.anchor_value, defaults.CE_WINDOW_SAMPLES, count, is_moving, knots,
+                      *run[4:], defaults.MPC_STOP)
 
-    best = None
-    windows = fallbacks = 0
-    for i_att, setting in enumerate(attempts):
-        # a fresh search state: axis states, gains, command history, outputs, counters
-        run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
-               np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
-        for k0 in range(0, n, _CHUNK):
-            advance(k0, min(k0 + _CHUNK, n), run, setting)
-            if progress is not None:
-                progress((i_att + min(k0 + _CHUNK, n) / n) / len(attempts))
-        kp_out, kf_out, stats = run[4], run[5], run[7]
-        for arr in (kp_out, kf_out):
-            arr.flags.writeable = False
-        windows += int(stats[STAT_WINDOWS])
-        fallbacks += int(stats[STAT_FALLBACK])
-        found = verify(setpoints, machine, kp_out, kf_out, kp_bounds)
-        ratio = found.metrics.mse_m2 / baseline.metrics.mse_m2
-        if best is None or (found.ok, -ratio) > (best[0].ok, -best[1]):
-            best = (found, ratio, GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out))
-        if found.ok and ratio <= defaults.MPC_ACCEPT_RATIO:
-            break
-    if progress is not None:
-        progress(1.0)
-    searched, _ratio, searched_schedule = best
+    # the search state: axis states, gains, command history, outputs, counters
+    run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
+           np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
+    for k0 in range(0, n, _CHUNK):
+        advance(k0, min(k0 + _CHUNK, n), run)
+        if progress is not None:
+            progress(min(k0 + _CHUNK, n) / n)
+    kp_out, kf_out, stats = run[4], run[5], run[7]
+    for arr in (kp_out, kf_out):
+        arr.flags.writeable = False
+    searched = verify(setpoints, machine, kp_out, kf_out, kp_bounds)
+    searched_schedule = GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out)
     kept_baseline = not (searched.ok and searched.metrics.mse_m2 < baseline.metrics.mse_m2)
     if kept_baseline:
         schedule, optimized = GainSchedule(kp_m_min_per_mm=fixed_kp, kf=fixed_kf), baseline
@@ -373,6 +365,6 @@ def optimize(
         adjusted=adjusted,
         kp_bounds=kp_bounds,
         optimize_time_s=time.perf_counter() - t0,
-        fallbacks=fallbacks,
-        windows=windows,
+        fallbacks=int(stats[STAT_FALLBACK]),
+        windows=int(stats[STAT_WINDOWS]),
     )

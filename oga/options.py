@@ -25,9 +25,9 @@ class OptimizeOptions(BaseModel):
     Attributes
     ----------
     mode : {"full", "paper"}
-        ``"full"``: the gain trajectory over the horizon is planned as a small
-        model-predictive problem and re-planned as the horizon recedes
-        (:mod:`oga.mpc`); ``"paper"``: the published method, five candidate
+        ``"full"``: the gain trajectory over a window is planned by sequential
+        QP on the exact model, partly applied, and planned again as the window
+        recedes (:mod:`oga.mpc`); ``"paper"``: the published method, five candidate
         increments per gain and sample, each held over the horizon
         (:mod:`oga.search`).
     baseline : "best" or (kp_m_min_per_mm, kf)
@@ -42,8 +42,9 @@ class OptimizeOptions(BaseModel):
     kp_range : (lo, hi) in (m/min)/mm, or None
         Bounds of the adjusted Kp; None = each axis's stable range. Must lie
         inside the stable range.
-    np : int
-        Prediction horizon in samples.
+    np : int or None
+        Prediction horizon in samples (full mode: the window planned at once);
+        None: the mode's default (:data:`oga.defaults.NP`).
     lam : float or None
         Weight of the gain increments in the cost ``J = E'E + lam dK'dK`` with the
         contour error E in mm in paper mode (the paper's unit) and in um in full
@@ -69,7 +70,7 @@ class OptimizeOptions(BaseModel):
     adjust: tuple[Literal["x", "y", "z"], ...] | None = None
     gains: tuple[Literal["kp", "kf"], ...] = ("kp", "kf")
     kp_range: tuple[Finite, Finite] | None = None
-    np: Annotated[int, Field(ge=1, le=1000)] = defaults.NP
+    np: Annotated[int, Field(ge=1, le=1000)] | None = None
     lam: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     anchor: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     feed_mm_per_min: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(
@@ -117,6 +118,11 @@ class OptimizeOptions(BaseModel):
         return self
 
     @property
+    def np_value(self) -> int:
+        """``np``, or the mode's default."""
+        return defaults.NP[self.mode] if self.np is None else self.np
+
+    @property
     def lam_value(self) -> float:
         """``lam``, or the mode's default."""
         return defaults.LAMBDA[self.mode] if self.lam is None else self.lam
@@ -139,6 +145,7 @@ class OptimizeOptions(BaseModel):
     def as_dict(self) -> dict:
         """Plain JSON-able dict with the CLI/API names, mode defaults filled in."""
         out = self.model_dump(mode="json", by_alias=True)
+        out["np"] = self.np_value
         out["lam"] = self.lam_value
         out["anchor"] = self.anchor_value
         return out

@@ -35,7 +35,7 @@ def add_toolpath_args(p: argparse.ArgumentParser, *, toolpath_required: bool = T
 def add_search_args(p: argparse.ArgumentParser) -> None:
     """The search flags of ``oga optimize`` (names and meaning of the API's options)."""
     p.add_argument("--mode", default=None, choices=("full", "paper"),
-                   help="full (default): gain trajectories planned over the horizon; "
+                   help="full (default): gain trajectories planned over a receding window; "
                         "paper: the published five-candidate search")
     p.add_argument("--baseline", default=None, metavar="best|KP,KF",
                    help="fixed gains to start from and compare with (default best)")
@@ -44,7 +44,8 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gains", default=None, metavar="kp|kp,kf", help="gains to adjust (default kp,kf)")
     p.add_argument("--kp-range", default=None, metavar="LO,HI",
                    help="Kp bounds in (m/min)/mm for adjusted axes (default the stable range)")
-    p.add_argument("--np", type=int, default=None, metavar="N", help="prediction horizon, samples")
+    p.add_argument("--np", type=int, default=None, metavar="N", help="prediction horizon, samples (default 50 in paper mode, "
+                        "the 100-sample window in full mode)")
     p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
     p.add_argument("--anchor", type=float, default=None, metavar="MU",
                    help="weight pulling the gains back to the baseline (0: the paper's cost)")
