@@ -165,10 +165,11 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
                     for i in range(nv):
                         t += g[c, i] * rowv[i]  # n_c' P^-1 n_p = g_c . n_p (P symmetric)
                     rhs[c] = t
-                try:
-                    r = np.linalg.solve(gram[:na, :na], rhs)
-                except Exception:
-                    return False
+                low_g = _chol(gram[:na, :na])
+                for c in range(na):
+                    if low_g[c, c] <= 1e-150:  # dependent active rows
+                        return False
+                _chol_solve(low_g, rhs, r)
             for i in range(nv):
                 t = gp[i]
                 for c in range(na):
@@ -329,8 +330,7 @@ def mpc_chunk(
         var_lo[var_axis[v]] = v
     for v in range(nv):
         var_hi[var_axis[v]] = v + 1
-    mq = np.empty(w)
-    wgt = np.empty(w)
+    mq = np.empty((3, w))
     p0 = np.empty((3, w))
     u0 = np.empty((3, w))
     sp = np.zeros((nv, w))
@@ -436,24 +436,30 @@ def mpc_chunk(
                 dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
                 dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
                 dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
+            # cost |P (dq + S d)|^2 with P = I - t t' per sample: plain loops over the nonzero
+            # part of each sensitivity (a knot cannot act before the previous knot's sample)
             for a in range(3):
-                va0, va1 = var_lo[a], var_hi[a]
-                if va0 == va1:
-                    continue
                 for i in range(w):
                     t = 0.0
                     for b in range(3):
                         t += ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * dq[i, b]
-                    mq[i] = t
-                qvec[va0:va1] = (2.0 * _M2_TO_UM2) * (sp[va0:va1] @ mq)
-                for b in range(3):
-                    vb0, vb1 = var_lo[b], var_hi[b]
-                    if vb0 == vb1:
-                        continue
-                    for i in range(w):
-                        wgt[i] = ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * (
-                            2.0 * _M2_TO_UM2)
-                    pmat[va0:va1, vb0:vb1] = (sp[va0:va1] * wgt) @ sp[vb0:vb1].T
+                    mq[a, i] = t
+            for v in range(nv):
+                a = var_axis[v]
+                s0 = (var_knot[v] - 1) * kspace
+                t = 0.0
+                for i in range(s0, w):
+                    t += sp[v, i] * mq[a, i]
+                qvec[v] = 2.0 * _M2_TO_UM2 * t
+                for u_ in range(v, nv):
+                    b = var_axis[u_]
+                    i0 = max(s0, (var_knot[u_] - 1) * kspace)
+                    t = 0.0
+                    for i in range(i0, w):
+                        t += sp[v, i] * sp[u_, i] * ((1.0 if a == b else 0.0)
+                                                      - tang[i, a] * tang[i, b])
+                    pmat[v, u_] = 2.0 * _M2_TO_UM2 * t
+                    pmat[u_, v] = pmat[v, u_]
             # smoothness (lam on knot-to-knot steps) and anchor (mean over knots)
             for v in range(nv):
                 a = var_axis[v]
