@@ -144,6 +144,22 @@ def test_exported_table_is_never_worse_than_the_baseline(short, machine):
             assert r.schedule is r.searched_schedule
 
 
+def test_full_mode_meets_the_target_on_a_circle_at_another_feed(machine):
+    # both axes reverse twice per turn (friction glitches); the target holds there too
+    sp = plan(load_toolpath(DATA / "circle_r50_f3000.ngc"), machine.planning_limits(),
+              feed_m_s=5000 / 60e3)
+    r = optimize(sp, machine)
+    assert r.status == "ok" and not r.kept_baseline and r.adjusted == ("x", "y")
+    assert r.ratio_mse <= 0.35
+    assert r.optimized.metrics.max_abs_m < r.baseline.metrics.max_abs_m
+
+
+def test_full_mode_window_options(short, machine):
+    assert options_from_dict({}).np_value == 100 and options_from_dict({"mode": "paper"}).np_value == 50
+    with pytest.raises(OptionError, match="np: full mode needs a window of at least 40"):
+        optimize(short, machine, {"np": 39})
+
+
 def test_unknown_axis_or_range_outside_stability_refused(short, machine):
     with pytest.raises(OptionError, match="adjust"):
         optimize(short, machine, {"adjust": "y", "baseline": "3.0,0.8"})
