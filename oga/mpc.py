@@ -99,8 +99,11 @@ def _chol_solve(low, b, out):
 
 
 @njit(cache=True)
-def _qp_active_set(p, q, a, lo, hi, m, x):
+def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
     """Minimise ``x'Px/2 + q'x`` subject to ``lo <= A x <= hi`` (first ``m`` rows of A).
+
+    Row ``r`` of A may be nonzero only in columns ``c0[r] .. c1[r] - 1`` (the rest
+    must be zero; the scans skip it).
 
     The dual active-set method of Goldfarb and Idnani (1983): start from the
     unconstrained minimum, take the most violated row, and move primal and dual
@@ -137,7 +140,7 @@ def _qp_active_set(p, q, a, lo, hi, m, x):
         worst = -1e-10
         for r in range(m):
             t = 0.0
-            for i in range(nv):
+            for i in range(c0[r], c1[r]):
                 t += a[r, i] * x[i]
             if t - lo[r] < worst:
                 worst = t - lo[r]
@@ -331,6 +334,7 @@ def mpc_chunk(
     for v in range(nv):
         var_hi[var_axis[v]] = v + 1
     mq = np.empty((3, w))
+    proj = np.empty((3, 3, w))  # P = I - t t' per window sample
     p0 = np.empty((3, w))
     u0 = np.empty((3, w))
     sp = np.zeros((nv, w))
@@ -348,6 +352,8 @@ def mpc_chunk(
     amat = np.zeros((max_rows, nv))
     alo = np.empty(max_rows)
     ahi = np.empty(max_rows)
+    col0 = np.empty(max_rows, dtype=np.int64)
+    col1 = np.empty(max_rows, dtype=np.int64)
     x = np.zeros(nv)
     trust = np.empty(nv)
     trial = np.empty((3, w))
@@ -439,11 +445,11 @@ def mpc_chunk(
             # cost |P (dq + S d)|^2 with P = I - t t' per sample: plain loops over the nonzero
             # part of each sensitivity (a knot cannot act before the previous knot's sample)
             for a in range(3):
+                for b in range(3):
+                    for i in range(w):
+                        proj[a, b, i] = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
                 for i in range(w):
-                    t = 0.0
-                    for b in range(3):
-                        t += ((1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]) * dq[i, b]
-                    mq[a, i] = t
+                    mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
             for v in range(nv):
                 a = var_axis[v]
                 s0 = (var_knot[v] - 1) * kspace
@@ -456,8 +462,7 @@ def mpc_chunk(
                     i0 = max(s0, (var_knot[u_] - 1) * kspace)
                     t = 0.0
                     for i in range(i0, w):
-                        t += sp[v, i] * sp[u_, i] * ((1.0 if a == b else 0.0)
-                                                      - tang[i, a] * tang[i, b])
+                        t += sp[v, i] * sp[u_, i] * proj[a, b, i]
                     pmat[v, u_] = 2.0 * _M2_TO_UM2 * t
                     pmat[u_, v] = pmat[v, u_]
             # smoothness (lam on knot-to-knot steps) and anchor (mean over knots)
@@ -491,6 +496,8 @@ def mpc_chunk(
                     tr = 0.0
                 alo[m] = max(lo_b, -tr)
                 ahi[m] = min(hi_b, tr)
+                col0[m] = v
+                col1[m] = v + 1
                 trust[v] = tr
                 m += 1
             for a in range(3):
@@ -524,10 +531,12 @@ def mpc_chunk(
                         if reach > min(-lo_r, hi_r) * (1.0 - 1e-12):
                             alo[m] = lo_r
                             ahi[m] = hi_r
+                            col0[m] = var_lo[a]
+                            col1[m] = var_hi[a]
                             m += 1
             for v in range(nv):
                 x[v] = 0.0
-            if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, x):
+            if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, col0, col1, x):
                 stats[STAT_QP_SHORT] += 1
             # 4: exact line search along the step: 1, 1/2, 1/4, 0 (the current plan). The
             #    samples to be committed must meet eq. 2; among such scales, one meeting it over

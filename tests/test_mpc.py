@@ -16,6 +16,11 @@ def random_qp(seed, nv=12, m=60):
     return p, q, a, -np.abs(rng.normal(size=m)), np.abs(rng.normal(size=m))
 
 
+def _dense(a):
+    """Every row may use every column."""
+    return np.zeros(a.shape[0], dtype=np.int64), np.full(a.shape[0], a.shape[1], dtype=np.int64)
+
+
 def kkt_ok(p, q, a, lo, hi, x):
     ax = a @ x
     if not (np.all(ax >= lo - 1e-8) and np.all(ax <= hi + 1e-8)):
@@ -33,7 +38,7 @@ def test_reported_optimum_meets_the_kkt_conditions():
     for seed in range(100):
         p, q, a, lo, hi = random_qp(seed)
         x = np.empty(p.shape[0])
-        if _qp_active_set(p, q, a, lo, hi, a.shape[0], x):
+        if _qp_active_set(p, q, a, lo, hi, a.shape[0], *_dense(a), x):
             solved += 1
             assert kkt_ok(p, q, a, lo, hi, x), seed
     assert solved == 100  # hard random problems, many active rows
@@ -44,5 +49,24 @@ def test_few_active_rows_always_solved():
         p, q, a, lo, hi = random_qp(seed)
         lo, hi = lo - 3.0, hi + 3.0  # a few rows bind at most, as in the MPC's problems
         x = np.empty(p.shape[0])
-        assert _qp_active_set(p, q, a, lo, hi, a.shape[0], x)
+        assert _qp_active_set(p, q, a, lo, hi, a.shape[0], *_dense(a), x)
         assert kkt_ok(p, q, a, lo, hi, x)
+
+
+def test_rows_confined_to_column_ranges_solved_as_dense():
+    # rows of one axis touch only that axis's variables (as the eq. 2 rows do): the solver
+    # scans only those columns, and must reach the dense solver's KKT point
+    for seed in range(30):
+        p, q, a, lo, hi = random_qp(seed)
+        c0 = np.where(np.arange(a.shape[0]) % 2 == 0, 0, 6).astype(np.int64)
+        c1 = c0 + 6
+        for r in range(a.shape[0]):
+            a[r, :c0[r]] = 0.0
+            a[r, c1[r]:] = 0.0
+        x = np.empty(p.shape[0])
+        x_dense = np.empty(p.shape[0])
+        ok = _qp_active_set(p, q, a, lo, hi, a.shape[0], c0, c1, x)
+        assert ok == _qp_active_set(p, q, a, lo, hi, a.shape[0], *_dense(a), x_dense)
+        if ok:
+            assert kkt_ok(p, q, a, lo, hi, x)
+            np.testing.assert_allclose(x, x_dense, rtol=1e-9, atol=1e-12)
