@@ -361,6 +361,9 @@ def mpc_chunk(
     plan_kf = np.empty((3, w))
     trial_knots = knots.copy()
     knot_state = np.empty((3, nk, states.shape[1]))
+    for a in range(3):
+        if not moving[a]:
+            trial[a, :] = states[a, 0]
     idle = np.ones(3, dtype=np.bool_)
     k = k0
     while k < k1:
@@ -426,14 +429,17 @@ def mpc_chunk(
                     su[v, i] = (tmp_u[i] - u0[a, i]) / _H
             # 2: linearised contour error around the nominal prediction
             j = -1
+            nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
             for i in range(w):
                 c = min(k + i, n_total - 1)
-                j, t, _d2 = _nearest(pd, count, ce_window, c, j, p0[0, i], p0[1, i], p0[2, i])
+                j, t, d2 = _nearest(pd, count, ce_window, c, j, p0[0, i], p0[1, i], p0[2, i])
                 if j < 0:
                     for a in range(3):
                         dq[i, a] = p0[a, i] - pd[c, a]
                         tang[i, a] = 0.0
+                        nominal_d2 += dq[i, a] ** 2
                     continue
+                nominal_d2 += d2
                 sx = pd[j + 1, 0] - pd[j, 0]
                 sy = pd[j + 1, 1] - pd[j, 1]
                 sz = pd[j + 1, 2] - pd[j, 2]
@@ -564,17 +570,21 @@ def mpc_chunk(
                 worst_c = 0.0  # over the samples to be committed
                 for a in range(3):
                     if not moving[a]:
-                        for i in range(w):
-                            trial[a, i] = states[a, 0]
                         continue
-                    _sim_plan(states, params, pdT, vdT, k, w, trial_knots, a, kspace, kpa, kfa,
-                              trial[a], tmp_u, scratch)
-                    stats[STAT_WINDOWS] += 1
+                    if scale == 0.0:  # the plan itself: its nominal prediction
+                        tmp_u[:] = u0[a]
+                    else:
+                        _sim_plan(states, params, pdT, vdT, k, w, trial_knots, a, kspace, kpa,
+                                  kfa, trial[a], tmp_u, scratch)
+                        stats[STAT_WINDOWS] += 1
                     worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
                                                    amax[a], jmax[a], te, w))
                     worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
                                                        amax[a], jmax[a], te, n_commit))
-                cost = _window_cost(pd, count, ce_window, k, w, n_total, trial)
+                if scale == 0.0:
+                    cost = nominal_d2 * _M2_TO_UM2
+                else:
+                    cost = _window_cost(pd, count, ce_window, k, w, n_total, trial)
                 for a in range(3):
                     if moving[a]:
                         for jk in range(1, nk + 1):
