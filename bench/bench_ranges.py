@@ -1,4 +1,7 @@
-"""Gain-ranges speed: the full Kp x Kf grid on reference_xz (target: under 10 s).
+"""Gain-ranges speed: the full Kp x Kf grid on reference_xz (target: under 10 s), and the
+best-fixed-gains stage of ``oga optimize`` before (``gain_ranges(..).best_fixed``) and
+after (:func:`oga.ranges.best_fixed_gains`) per team toolpath, with its real-time factor
+(toolpath duration over compute time; the whole optimize targets 20x).
 
 Run: python bench/bench_ranges.py   (prints figures; no assertion)
 """
@@ -12,10 +15,12 @@ from feedplan.plan import plan
 from feedplan.read import load_toolpath
 from oga.defaults import TOL_M
 from oga.machine import load_machine
-from oga.ranges import gain_ranges, kinematic_range
+from oga.ranges import best_fixed_gains, gain_ranges, kinematic_range
 from oga.stability import stable_range
 
-TOOLPATH = Path(__file__).resolve().parents[1] / "tests" / "data" / "reference_xz.ngc"
+DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
+TOOLPATH = DATA / "reference_xz.ngc"
+BEST_FIXED_TOOLPATHS = ("reference_xz", "circle_r50_f3000", "helix_r20", "freeform_xz")
 TARGET_S = 10.0
 
 
@@ -52,6 +57,20 @@ def main() -> None:
     if b is not None:
         print(f"best fixed: Kp {b.kp[r.axes[0]]} Kf {b.kf[r.axes[0]]}, "
               f"MSE(CE) {b.mse_ce_m2 * 1e12:.1f} um^2")
+
+    print("\nbest fixed gains (the optimize stage): before = gain_ranges(..).best_fixed, "
+          "after = best_fixed_gains; RT = toolpath duration / time")
+    for name in BEST_FIXED_TOOLPATHS:
+        sp = plan(load_toolpath(DATA / f"{name}.ngc"), machine.axis_limits(), tol_m=TOL_M,
+                  dt=machine.te)
+        best_fixed_gains(sp, machine)  # compile or load the caches
+        t_old, old = _best_of(lambda: gain_ranges(sp, machine).best_fixed)
+        t_new, new = _best_of(lambda: best_fixed_gains(sp, machine), repeat=5)
+        same = (new.kp, new.kf, new.mse_ce_m2) == (old.kp, old.kf, old.mse_ce_m2)
+        dur = len(sp) * machine.te
+        print(f"  {name:18s} {dur:5.2f} s of motion: before {t_old:6.3f} s ({dur / t_old:5.1f}x RT)"
+              f"  after {t_new:6.3f} s ({dur / t_new:5.1f}x RT)  speed-up {t_old / t_new:4.1f}"
+              f"  same result: {same}")
 
 
 if __name__ == "__main__":

@@ -39,6 +39,8 @@ __all__ = [
     "moving_count",
     "window_bounds",
     "ce_series",
+    "ce_at",
+    "path_index",
     "contour_error",
     "contour_error_of",
     "plane_axes",
@@ -264,15 +266,29 @@ def ce_series(pd, pa, window, e1, e2, signed):
         Contour error in metres.
     """
     n = pd.shape[0]
-    count = moving_count(pd)
-    centre, radius = _block_spheres(pd)
+    count, centre, radius = path_index(pd)
     out = np.empty(n)
     for k in range(n):
-        lo, hi = window_bounds(count, k, window)
-        x, y, z = pa[k, 0], pa[k, 1], pa[k, 2]
-        bi, bt, best = _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z)
-        out[k] = _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
+        out[k] = ce_at(pd, count, centre, radius, k, pa[k, 0], pa[k, 1], pa[k, 2], window, e1,
+                       e2, signed)
     return out
+
+
+@njit(cache=True)
+def path_index(pd):
+    """What :func:`ce_at` needs besides the path: ``(count, centre, radius)``, the
+    :func:`moving_count` of ``pd`` (N, 3) and a bounding sphere per block of segments."""
+    centre, radius = _block_spheres(pd)
+    return moving_count(pd), centre, radius
+
+
+@njit(cache=True)
+def ce_at(pd, count, centre, radius, k, x, y, z, window, e1, e2, signed):
+    """Contour error (m) of the point ``(x, y, z)`` (m) taken at sample ``k``, as in
+    :func:`ce_series`; ``count, centre, radius`` from :func:`path_index`."""
+    lo, hi = window_bounds(count, k, window)
+    bi, bt, best = _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z)
+    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
 
 
 #: Segments per block of :func:`_block_spheres`.

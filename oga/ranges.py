@@ -22,6 +22,11 @@ over ``machine.gains.kf_range`` in ``kf_step`` steps; values are exact decimals
 (``1.1``, not ``1.1000000000000001``).
 Every axis configuration is simulated once; the equal-gain contour error combines
 the axes' runs of the same configuration.
+
+:func:`best_fixed_gains` finds the same best fixed gains without the tables, in one
+compiled pass over the equal-gain grid: a configuration's simulation stops at its first
+eq. 2 violation, and its contour error is summed only until the partial sum of squares
+proves that it cannot beat the best so far (exact pruning, see :func:`_equal_gain_search`).
 """
 
 from __future__ import annotations
@@ -30,14 +35,15 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import ce_series, contour_error_of, plane_axes
+from oga.contour import ce_at, ce_series, contour_error_of, path_index, plane_axes
 from oga.defaults import CE_WINDOW_SAMPLES
 from oga.errors import InputError, OptionError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.metrics import ContourMetrics, contour_metrics
-from oga.simulate import axis_params, simulate, simulate_axis
+from oga.simulate import axis_params, rest_state, run, simulate, simulate_axis
 from oga.kinematics import command_peaks
 from oga.stability import decimal_grid
 
@@ -47,11 +53,21 @@ __all__ = [
     "Ranges",
     "kinematic_range",
     "gain_ranges",
+    "best_fixed_gains",
     "stability_to_dict",
 ]
 
-#: Decimals kept on grid values (removes float noise of lo + i * step).
+#: um^2 per m^2 (the JSON's unit of squared errors).
 _UM2 = 1e12
+#: Relative margin on sums of squared contour errors compared in different summation
+#: orders: the rounding of a sum of n >= 0 terms is below n * 1.1e-16 relative, so 1e-6
+#: keeps every comparison sound up to 10^9 samples (and costs nothing in pruning).
+_SUM_SLACK = 1e-6
+#: Samples simulated between two eq. 2 and pruning checks in :func:`_equal_gain_search`.
+_CHUNK = 128
+#: Share of the best squared contour error summed while simulating in
+#: :func:`_equal_gain_search` (speed only: the result does not depend on it).
+_HEAVY_SHARE = 0.9
 
 
 @dataclass(frozen=True, eq=False)
@@ -330,6 +346,38 @@ def kinematic_range(
     return _kinematic(axis, machine, kp_grid, kf_grid, per_axis[axis])
 
 
+def _equal_grid(setpoints: Setpoints, machine: Machine):
+    """Contouring axes, their stable ranges and Kp grids, the common Kp grid and the Kf grid.
+
+    Returns ``(axes, stability, grids, common, kf_grid)``; InputError when no axis
+    moves, MachineError when the machine lacks a moving axis.
+    """
+    from oga.stability import stable_range
+
+    axes = tuple(AXES[c] for c in setpoints.moving_axes)
+    if not axes:
+        raise InputError(f"{setpoints.source or 'toolpath'}: no axis moves")
+    for a in axes:
+        machine.axis(a)
+    stability = {a: stable_range(machine, a) for a in axes}
+    grids = {a: _stable_grid(s) for a, s in stability.items()}
+    common = grids[axes[0]]
+    for a in axes[1:]:
+        common = np.intersect1d(common, grids[a])
+    return axes, stability, grids, common, _kf_grid(machine)
+
+
+def _best_fixed(setpoints, machine, axes, kp: float, kf: float, mse_ce_m2: float) -> BestFixed:
+    """The BestFixed of the equal gains ``(kp, kf)``, its contour-error figures simulated."""
+    sim = simulate(setpoints, machine, kp, kf)
+    metrics = contour_metrics(
+        contour_error_of(setpoints, sim.pos), setpoints.pos, sim.pos, ~setpoints.rapid
+    )
+    return BestFixed(
+        kp={a: kp for a in axes}, kf={a: kf for a in axes}, mse_ce_m2=mse_ce_m2, metrics=metrics
+    )
+
+
 def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
     """Stability and kinematic ranges of the contouring axes, and the best fixed gains.
 
@@ -351,19 +399,7 @@ def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
     MachineError
         The toolpath moves an axis the machine lacks.
     """
-    from oga.stability import stable_range
-
-    axes = tuple(AXES[c] for c in setpoints.moving_axes)
-    if not axes:
-        raise InputError(f"{setpoints.source or 'toolpath'}: no axis moves")
-    for a in axes:
-        machine.axis(a)
-    stability = {a: stable_range(machine, a) for a in axes}
-    grids = {a: _stable_grid(s) for a, s in stability.items()}
-    common = grids[axes[0]]
-    for a in axes[1:]:
-        common = np.intersect1d(common, grids[a])
-    kf_grid = _kf_grid(machine)
+    axes, stability, grids, common, kf_grid = _equal_grid(setpoints, machine)
     per_axis, mse_ce = _sweep(setpoints, machine, grids, kf_grid, common)
     kinematic = {a: _kinematic(a, machine, grids[a], kf_grid, per_axis[a]) for a in axes}
     feasible = np.ones(mse_ce.shape, dtype=bool)
@@ -373,16 +409,8 @@ def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
     best = None
     if feasible.any():
         i, j = np.unravel_index(np.argmin(np.where(feasible, mse_ce, np.inf)), mse_ce.shape)
-        kp, kf = float(common[i]), float(kf_grid[j])
-        sim = simulate(setpoints, machine, kp, kf)
-        metrics = contour_metrics(
-            contour_error_of(setpoints, sim.pos), setpoints.pos, sim.pos, ~setpoints.rapid
-        )
-        best = BestFixed(
-            kp={a: kp for a in axes},
-            kf={a: kf for a in axes},
-            mse_ce_m2=float(mse_ce[i, j]),
-            metrics=metrics,
+        best = _best_fixed(
+            setpoints, machine, axes, float(common[i]), float(kf_grid[j]), float(mse_ce[i, j])
         )
     return Ranges(
         machine=machine.name,
@@ -395,3 +423,263 @@ def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
         feasible=feasible,
         best_fixed=best,
     )
+
+
+def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None:
+    """The best equal fixed gains (paper case C1) without the full tables of :func:`gain_ranges`.
+
+    Returns exactly ``gain_ranges(setpoints, machine).best_fixed`` (same gains, same
+    MSE to the last bit, same choice among equal MSEs: the first in Kp-major grid
+    order), several times faster: one compiled pass (:func:`_equal_gain_search`)
+    simulates each equal-gain configuration until its first eq. 2 violation and sums
+    its squared contour error only while it can still beat the best so far. The few
+    configurations left within rounding of the least sum are then evaluated exactly as
+    :func:`gain_ranges` does.
+
+    Parameters
+    ----------
+    setpoints : Setpoints
+        Planned motion; its period must be the machine's Te.
+    machine : Machine
+        Machine description.
+
+    Returns
+    -------
+    BestFixed or None
+        None when no equal-gain configuration is feasible on every contouring axis
+        (as ``Ranges.best_fixed``).
+
+    Raises
+    ------
+    InputError
+        No axis moves, or no feed move.
+    MachineError
+        The toolpath moves an axis the machine lacks.
+    OptionError
+        Sample period different from Te.
+    """
+    axes, _stability, _grids, common, kf_grid = _equal_grid(setpoints, machine)
+    feed = _feed_mask(setpoints, machine)
+    cols = np.array([AXES.index(a) for a in axes])
+    pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
+    limits = np.array([
+        [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3]
+        for lim in (machine.axis(a).limits for a in axes)
+    ])
+    # heuristic visiting order (speed only, the result does not depend on it): stiff loops
+    # and strong feed-forward first, as the least contour error usually lies at the top of
+    # the stable range, at the largest feasible Kf
+    n_kp, n_kf = len(common), len(kf_grid)
+    visit = np.array(
+        [(i, j) for i in range(n_kp - 1, -1, -1) for j in range(n_kf - 1, -1, -1)], np.int64
+    ).reshape(-1, 2)
+    e1, e2, signed = plane_axes(setpoints.plane)
+    sse = _equal_gain_search(
+        np.stack([axis_params(machine, a) for a in axes]),
+        np.ascontiguousarray(pos[:, cols].T),
+        np.ascontiguousarray(np.asarray(setpoints.vel, dtype=np.float64)[:, cols].T),
+        cols, pos, feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits, visit,
+        CE_WINDOW_SAMPLES, e1, e2, signed, _SUM_SLACK, _HEAVY_SHARE,
+    )
+    if not np.isfinite(sse).any():
+        return None
+    # every configuration that may hold the least MSE(CE), Kp-major like gain_ranges' argmin
+    near = np.argwhere(sse <= sse.min() * (1.0 + _SUM_SLACK))
+    mse = [_mse_ce(setpoints, machine, axes, float(common[i]), float(kf_grid[j]), feed)
+           for i, j in near]
+    k = int(np.argmin(mse))
+    i, j = near[k]
+    return _best_fixed(setpoints, machine, axes, float(common[i]), float(kf_grid[j]), mse[k])
+
+
+def _mse_ce(setpoints, machine, axes, kp: float, kf: float, feed) -> float:
+    """MSE(CE) over the feed samples of equal gains ``(kp, kf)``, evaluated as :func:`_sweep`
+    does (same simulations, same contour error, same numpy mean: the same bits)."""
+    pa = np.array(setpoints.pos, dtype=np.float64)
+    for a in axes:
+        c = AXES.index(a)
+        pd = np.ascontiguousarray(setpoints.pos[:, c])
+        pa[:, c], _ = simulate_axis(
+            axis_params(machine, a), pd[0], pd, np.ascontiguousarray(setpoints.vel[:, c]),
+            kp * KP_SI_PER_M_MIN_PER_MM, kf,
+        )
+    ce = ce_series(setpoints.pos, pa, CE_WINDOW_SAMPLES, *plane_axes(setpoints.plane))[feed]
+    return float(np.mean(ce * ce))
+
+
+@njit(cache=True)
+def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act, u) -> bool:
+    """Simulate one axis over samples ``k0 .. k1 - 1`` and check eq. 2 there.
+
+    :func:`oga.simulate.run` advances ``state`` exactly as one run over all the
+    samples would; :func:`oga.kinematics.command_peaks` checks the new samples with
+    the same arithmetic as :func:`_sweep`, the two commands before ``k0`` taken as
+    history (they were checked with the previous samples).
+
+    Parameters
+    ----------
+    state : ndarray
+        Axis state at sample ``k0``; on return at sample ``k1``.
+    params : ndarray
+        :func:`oga.simulate.axis_params` of the axis.
+    pd, vd, kp_si, kf : ndarray, shape (N,)
+        Setpoints (m, m/s) and gains (1/s, factor) per sample.
+    feed : ndarray of bool, shape (N,)
+        Samples where eq. 2 applies.
+    te : float
+        Sample period, s.
+    lim : ndarray, shape (3,)
+        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3).
+    k0, k1 : int
+        Sample range.
+    p_act, u : ndarray, shape (N,)
+        Receive the measured positions (m) and commands (m/s) of the range.
+
+    Returns
+    -------
+    bool
+        Whether eq. 2 holds at every feed sample of the range.
+    """
+    run(state, params, pd[k0:k1], vd[k0:k1], kp_si[k0:k1], kf[k0:k1], p_act[k0:k1], u[k0:k1])
+    h = max(k0 - 2, 0)
+    check = feed[h:k1].copy()
+    check[: k0 - h] = False
+    v_pk, a_pk, j_pk = command_peaks(u[h:k1], check, te)
+    return v_pk <= lim[0] and a_pk <= lim[1] and j_pk <= lim[2]
+
+
+@njit(cache=True)
+def _heavy_samples(ce2, feed, share):
+    """The feed samples of largest ``ce2`` that together hold ``share`` of its sum over feed.
+
+    Returns a bool mask of shape (N,).
+    """
+    idx = np.nonzero(feed)[0]
+    idx = idx[np.argsort(-ce2[idx])]
+    target = share * ce2[idx].sum()
+    heavy = np.zeros(ce2.size, dtype=np.bool_)
+    acc = 0.0
+    for k in idx:
+        if acc >= target:
+            break
+        heavy[k] = True
+        acc += ce2[k]
+    return heavy
+
+
+@njit(cache=True)
+def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, visit,
+                       window, e1, e2, signed, slack, share):
+    """Sum of squared contour errors of the equal-gain configurations, pruned exactly.
+
+    The configurations are visited in the order ``visit``. The moving axes are
+    simulated together, ``_CHUNK`` samples at a time (:func:`_run_checked`); a
+    configuration is dropped at its first eq. 2 violation. After each chunk the
+    squared contour error (as :func:`oga.contour.ce_series`) of its "heavy" feed
+    samples is added to a running sum; once the simulation is complete and feasible,
+    that of the other feed samples. The heavy samples are those holding ``share`` of
+    the squared error of the best configuration so far (every feed sample before
+    one is known): they make the sum grow early, which stops both the contour error
+    and the simulation of a losing configuration soon. Speed only: every feed sample
+    is summed unless the configuration is pruned.
+
+    Pruning: a sum of non-negative terms only grows, so once the running sum exceeds
+    the best complete sum (times ``1 + slack``, covering the rounding of both sums)
+    the configuration's MSE is provably larger than that of a feasible configuration;
+    it cannot be the least, feasible or not, and is abandoned there (checked after
+    every term).
+
+    Parameters
+    ----------
+    params : ndarray, shape (A, P)
+        Packed parameters of the A moving axes (:func:`oga.simulate.axis_params`).
+    pd, vd : ndarray, shape (A, N)
+        Their setpoint positions (m) and velocities (m/s).
+    cols : ndarray of int, shape (A,)
+        Their columns in ``pos``.
+    pos : ndarray, shape (N, 3)
+        Setpoint positions of x, y, z (the path; axes not simulated hold them), m.
+    feed : ndarray of bool, shape (N,)
+        Feed samples (eq. 2 and the MSE apply there).
+    te : float
+        Sample period, s.
+    kp_si : ndarray, shape (P,)
+        Kp grid, 1/s.
+    kf : ndarray, shape (F,)
+        Kf grid.
+    limits : ndarray, shape (A, 3)
+        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) of each moving axis.
+    visit : ndarray of int, shape (M, 2)
+        Grid indices ``(i, j)`` in visiting order (speed only).
+    window, e1, e2, signed
+        Contour-error window and plane (:func:`oga.contour.ce_series`).
+    slack : float
+        Relative margin of the pruning test.
+    share : float
+        Share of the best squared error the heavy samples hold, in (0, 1].
+
+    Returns
+    -------
+    ndarray, shape (P, F)
+        Sum of the squared contour errors over the feed samples, m^2, of the
+        feasible configurations not pruned; ``inf`` elsewhere (all ``inf``: none is
+        feasible).
+    """
+    n_ax, n = pd.shape
+    sse = np.full((kp_si.size, kf.size), np.inf)
+    pa = pos.copy()
+    p_act = np.empty((n_ax, n))
+    u = np.empty((n_ax, n))  # per axis: each chunk's check reads the previous two commands
+    kp_k = np.empty(n)
+    kf_k = np.empty(n)
+    ce2 = np.zeros(n)
+    states = np.empty((n_ax, rest_state(params[0], 0.0).size))
+    count, centre, radius = path_index(pos)
+    heavy = feed.copy()
+    best = np.inf
+    for m in range(visit.shape[0]):
+        i, j = visit[m, 0], visit[m, 1]
+        kp_k[:] = kp_si[i]
+        kf_k[:] = kf[j]
+        for a in range(n_ax):
+            states[a] = rest_state(params[a], pd[a, 0])
+        bound = best * (1.0 + slack)
+        s = 0.0
+        alive = True
+        for k0 in range(0, n, _CHUNK):
+            k1 = min(k0 + _CHUNK, n)
+            for a in range(n_ax):
+                if not _run_checked(states[a], params[a], pd[a], vd[a], kp_k, kf_k, feed, te,
+                                    limits[a], k0, k1, p_act[a], u[a]):
+                    alive = False
+                    break
+                pa[k0:k1, cols[a]] = p_act[a, k0:k1]
+            if not alive:
+                break
+            for k in range(k0, k1):
+                if heavy[k]:
+                    ce2[k] = ce_at(pos, count, centre, radius, k, pa[k, 0], pa[k, 1],
+                                   pa[k, 2], window, e1, e2, signed) ** 2
+                    s += ce2[k]
+                    if s > bound:
+                        alive = False
+                        break
+            if not alive:
+                break
+        if not alive:
+            continue
+        for k in range(n):
+            if feed[k] and not heavy[k]:
+                ce2[k] = ce_at(pos, count, centre, radius, k, pa[k, 0], pa[k, 1], pa[k, 2],
+                               window, e1, e2, signed) ** 2
+                s += ce2[k]
+                if s > bound:
+                    alive = False
+                    break
+        if not alive:
+            continue
+        sse[i, j] = s
+        if s < best:
+            best = s
+            heavy = _heavy_samples(ce2, feed, share)
+    return sse

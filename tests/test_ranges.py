@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +13,8 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of
 from oga.errors import InputError, OptionError
 from oga.machine import load_machine, machine_from_dict
-from oga.ranges import gain_ranges, kinematic_range
-from oga.stability import decimal_grid
+from oga.ranges import best_fixed_gains, gain_ranges, kinematic_range
+from oga.stability import decimal_grid, stable_range
 from oga.simulate import simulate
 
 UCP = load_machine("ucp710")
@@ -203,6 +204,92 @@ def test_no_feasible_equal_gains_gives_no_best_fixed():
     assert r.kinematic["x"].count == 0 and not r.feasible.any()
     assert r.best_fixed is None
     assert r.to_dict()["best_fixed"]["found"] is False
+
+
+# ------------------------------------------------------- best_fixed_gains (fast path)
+
+DATA = Path(__file__).parent / "data"
+MCV = load_machine("mcv-op")
+
+
+def _planned(name, machine):
+    from feedplan.plan import plan
+    from feedplan.read import load_toolpath
+    from oga.defaults import TOL_M
+
+    return plan(load_toolpath(DATA / name), machine.axis_limits(), tol_m=TOL_M, dt=machine.te)
+
+
+@pytest.mark.parametrize("machine, name", [
+    (UCP, "reference_xz.ngc"), (UCP, "circle_r50_f3000.ngc"), (UCP, "helix_r20.ngc"),
+    (UCP, "freeform_xz.ngc"), (MCV, "circle_r50_f3000.ngc"),
+])
+def test_best_fixed_gains_equals_the_full_tables(machine, name):
+    sp = _planned(name, machine)
+    full = gain_ranges(sp, machine)
+    fast = best_fixed_gains(sp, machine)
+    ref = full.best_fixed
+    assert ref is not None and fast is not None
+    assert fast.kp == ref.kp and fast.kf == ref.kf
+    assert fast.mse_ce_m2 == ref.mse_ce_m2  # the same bits
+    assert fast.metrics == ref.metrics
+    # the grid discriminates: feasible and infeasible configurations, a spread of MSEs
+    assert full.feasible.any() and not full.feasible.all()
+    assert np.ptp(full.mse_ce_m2[full.feasible]) > 0.5 * ref.mse_ce_m2
+
+
+def test_best_fixed_gains_equals_the_tables_when_the_free_minimum_is_infeasible():
+    m = _small_grid_machine()
+    r = gain_ranges(SP, m)
+    assert not r.feasible[np.unravel_index(np.argmin(r.mse_ce_m2), r.mse_ce_m2.shape)]
+    fast = best_fixed_gains(SP, m)
+    assert (fast.kp, fast.kf, fast.mse_ce_m2) == (r.best_fixed.kp, r.best_fixed.kf,
+                                                  r.best_fixed.mse_ce_m2)
+
+
+@pytest.mark.parametrize("machine, name", [(UCP, "short_xz.ngc"), (MCV, "circle_r50_f3000.ngc")])
+def test_best_fixed_gains_is_the_brute_force_minimum(machine, name):
+    # every equal-gain pair of the grid (stable Kp on every moving axis x Kf range)
+    # simulated, contour error and eq. 2 evaluated independently of oga.ranges
+    sp = _planned(name, machine)
+    axes = [AXES[c] for c in sp.moving_axes]
+    kp_grid = None
+    for a in axes:
+        st = stable_range(machine, a)
+        g = {float(k) for k in st.kp if st.kp_min <= k <= st.kp_max}
+        kp_grid = g if kp_grid is None else kp_grid & g
+    lo, hi = machine.gains.kf_range
+    kf_grid = decimal_grid(lo, hi, machine.gains.kf_step)
+    feed = ~sp.rapid
+    best = best_fixed_gains(sp, machine)
+    kp0, kf0 = best.kp[axes[0]], best.kf[axes[0]]
+    assert all(best.kp[a] == kp0 and best.kf[a] == kf0 for a in axes)
+    seen_best, n_feasible, n_infeasible = False, 0, 0
+    for kp in sorted(kp_grid):
+        for kf in kf_grid:
+            sim = simulate(sp, machine, kp, float(kf))
+            ok = True
+            for a in axes:
+                lim = machine.axis(a).limits
+                v, acc, jk = _eq2_peaks(sim.u[:, AXES.index(a)], feed, machine.te)
+                ok &= v <= lim.vmax_m_s and acc <= lim.amax_m_s2 and jk <= lim.jmax_m_s3
+            if not ok:
+                n_infeasible += 1
+                continue
+            n_feasible += 1
+            mse = np.mean(contour_error_of(sp, sim.pos)[feed] ** 2)
+            if (kp, float(kf)) == (kp0, kf0):
+                seen_best = True
+                assert mse == pytest.approx(best.mse_ce_m2, rel=1e-12)
+            else:
+                assert mse >= best.mse_ce_m2 * (1 - 1e-12)
+    assert seen_best and n_feasible > 1 and n_infeasible > 0
+
+
+def test_best_fixed_gains_none_when_nothing_is_feasible():
+    data = _small_grid_machine().model_dump(mode="json")
+    data["axes"]["x"]["limits"]["jmax_m_s3"] = 0.1
+    assert best_fixed_gains(SP, machine_from_dict(data)) is None
 
 
 # ------------------------------------------------------------------------ CLI

@@ -204,7 +204,7 @@ def grid_tune(
 
 
 def best_fixed(setpoints: Setpoints, machine: Machine):
-    """The best equal fixed gains on this toolpath (:func:`oga.ranges.gain_ranges`), memoised.
+    """The best equal fixed gains on this toolpath (:func:`oga.ranges.best_fixed_gains`), memoised.
 
     Returns
     -------
@@ -217,9 +217,9 @@ def best_fixed(setpoints: Setpoints, machine: Machine):
     """
     key = (setpoints, machine.digest())  # Setpoints hash by identity
     if key not in _BEST:
-        from oga.ranges import gain_ranges
+        from oga.ranges import best_fixed_gains
 
-        _BEST[key] = gain_ranges(setpoints, machine).best_fixed
+        _BEST[key] = best_fixed_gains(setpoints, machine)
         if len(_BEST) > _BEST_KEPT:
             _BEST.popitem(last=False)
     best = _BEST[key]
