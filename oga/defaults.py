@@ -57,8 +57,9 @@ LAMBDA = {"paper": 0.01, "full": 100.0}
 ANCHOR = {"paper": 0.0, "full": 300.0}
 #: Full mode: samples between two knots of the planned gain trajectory (linear between).
 MPC_KNOT_SAMPLES = 10
-#: Full mode: samples of each plan applied before the window recedes and is planned again.
-MPC_COMMIT_SAMPLES = 25
+#: Full mode: samples of each plan applied before the window recedes and is planned again
+#: (rounded down to whole knot intervals).
+MPC_COMMIT_SAMPLES = 20
 #: Full mode: sequential-QP iterations per window at most (each re-linearised on the plan).
 MPC_ITERATIONS = 3
 #: Full mode: an iteration that lowers the window's exact cost by less than this share ends

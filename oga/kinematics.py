@@ -48,8 +48,9 @@ def command_peaks(u, check, te):
 
 
 @njit(cache=True)
-def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n):
-    """Largest excess over 1 of ``|u|/V``, ``|du|/(A Te)``, ``|d2u|/(J Te^2)`` over ``u[:n]``.
+def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, check):
+    """Largest excess over 1 of ``|u|/V``, ``|du|/(A Te)``, ``|d2u|/(J Te^2)`` over ``u[:n]``
+    at the samples where ``check`` is True (feed samples: eq. 2 concerns contouring).
 
     Parameters
     ----------
@@ -63,6 +64,8 @@ def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n):
         Sample period, s.
     n : int
         Samples to check.
+    check : ndarray of bool, shape (>= n,)
+        Samples where eq. 2 applies (the differences still reach back to the others).
 
     Returns
     -------
@@ -72,8 +75,9 @@ def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n):
     worst = 0.0
     for i in range(n):
         v = u[i]
-        worst = max(worst, abs(v) / vmax - 1.0, abs(v - u1) / (amax * te) - 1.0,
-                    abs(v - 2.0 * u1 + u2) / (jmax * te * te) - 1.0)
+        if check[i]:
+            worst = max(worst, abs(v) / vmax - 1.0, abs(v - u1) / (amax * te) - 1.0,
+                        abs(v - 2.0 * u1 + u2) / (jmax * te * te) - 1.0)
         u2 = u1
         u1 = v
     return worst

@@ -25,7 +25,9 @@ window of ``w`` samples, piecewise linear between knots ``kspace`` samples apart
 4. exact line search: the step scaled by 1, 1/2, 1/4 and 0 (the current plan)
    is simulated exactly from the true state; among the scales whose velocity
    command meets eq. 2 over the whole window, the one with the least exact cost
-   is taken, so an iteration never makes the exact prediction worse;
+   is taken, so an iteration never makes the exact prediction worse; where none
+   does, a scale that keeps eq. 2 over the samples committed now and next (the
+   next window's fallback), at least now, with the least excess beyond;
 5. steps 1-4 are repeated ``iters`` times (sequential QP, each linearised
    around the last plan) or until the line search keeps the plan;
 6. the first ``commit`` samples of the plan are applied, the true state is
@@ -303,16 +305,19 @@ def _window_cost(pd, count, ce_window, k, w, n_total, trial):
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
-    lam, anchor, ce_window, count, moving, knots, kp_out, kf_out, u_out, stats, stop=0.0,
+    lam, anchor, ce_window, count, moving, feed, knots, kp_out, kf_out, u_out, stats, stop,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
-    ``knots`` (3, 2, w // kspace + 1) carries the plan between calls: knot 0 is the
+    ``knots`` (3, 2, w // kspace) carries the plan between calls: knot 0 is the
     gain applied at the sample before the window, knot j the gain at window sample
-    j K - 1; it is shifted by ``commit`` samples after each window.
+    j K - 1; it is shifted by ``commit`` samples (whole knot intervals) after each
+    window. ``feed`` (bool, padded like ``pdT``) marks the samples where eq. 2 applies
+    (feed moves; rapids and the padding are not checked, as in :mod:`oga.verify`);
+    ``stop`` is :data:`oga.defaults.MPC_STOP`.
     """
     n_total = pd.shape[0]
-    nk = w // kspace  # free knots per gain: 1 .. nk
+    nk = knots.shape[2] - 1  # free knots per gain: 1 .. nk
     var_axis = np.empty(6 * nk, dtype=np.int64)
     var_gain = np.empty(6 * nk, dtype=np.int64)
     var_knot = np.empty(6 * nk, dtype=np.int64)
@@ -513,6 +518,8 @@ def mpc_chunk(
                         _LIN_MARGIN * jmax[a] * te * te)
                 for r in range(3):
                     for i in range(w):
+                        if not feed[k + i]:  # eq. 2 concerns contouring (feed) samples
+                            continue
                         nominal = u0[a, i]
                         if r >= 1:
                             nominal -= (1.0 if r == 1 else 2.0) * (u0[a, i - 1] if i >= 1 else u_hist[a, 0])
@@ -544,15 +551,19 @@ def mpc_chunk(
                 x[v] = 0.0
             if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, col0, col1, x):
                 stats[STAT_QP_SHORT] += 1
-            # 4: exact line search along the step: 1, 1/2, 1/4, 0 (the current plan). The
-            #    samples to be committed must meet eq. 2; among such scales, one meeting it over
-            #    the whole window with the least cost wins, else the least excess over the window
-            best_cls = 3
+            # 4: exact line search along the step: 1, 1/2, 1/4, 0 (the current plan). Eq. 2
+            #    (feed samples) must hold on the samples to be committed now; it should also
+            #    hold on those committed next (the plan, shifted, is the next window's fallback)
+            #    and over the whole window. Classes: 0 the whole window, 1 the next two
+            #    commits, 2 this commit, 3 none (fallback); the least class wins, then the
+            #    least cost (class 0) or the least excess over the window (1, 2) or commit (3)
+            best_cls = 4
             best_key = np.inf
             best_scale = 0.0
             best_cost = np.inf
             held_cost = np.inf
             n_commit = min(commit, w)
+            n_next = min(2 * commit, w)
             for t_ in range(4):
                 scale = 0.0 if t_ == 3 else 0.5**t_
                 trial_knots[:] = knots
@@ -567,6 +578,7 @@ def mpc_chunk(
                         val = min(max(val, kf_lo[a]), kf_hi[a])
                     trial_knots[a, g, jk] = val
                 worst = 0.0  # over the window
+                worst_n = 0.0  # over this commit and the next
                 worst_c = 0.0  # over the samples to be committed
                 for a in range(3):
                     if not moving[a]:
@@ -577,10 +589,13 @@ def mpc_chunk(
                         _sim_plan(states, params, pdT, vdT, k, w, trial_knots, a, kspace, kpa,
                                   kfa, trial[a], tmp_u, scratch)
                         stats[STAT_WINDOWS] += 1
+                    fk = feed[k:k + w]
                     worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
-                                                   amax[a], jmax[a], te, w))
+                                                   amax[a], jmax[a], te, w, fk))
+                    worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
+                                                       amax[a], jmax[a], te, n_next, fk))
                     worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
-                                                       amax[a], jmax[a], te, n_commit))
+                                                       amax[a], jmax[a], te, n_commit, fk))
                 if scale == 0.0:
                     cost = nominal_d2 * _M2_TO_UM2
                 else:
@@ -594,16 +609,18 @@ def mpc_chunk(
                                            + (trial_knots[a, 1, jk] - trial_knots[a, 1, jk - 1]) ** 2)
                 if worst <= 1e-9:
                     cls, key = 0, cost
-                elif worst_c <= 1e-9:
+                elif worst_n <= 1e-9:
                     cls, key = 1, worst
+                elif worst_c <= 1e-9:
+                    cls, key = 2, worst
                 else:
-                    cls, key = 2, worst_c
+                    cls, key = 3, worst_c
                 if t_ == 3:
                     held_cost = cost if cls == 0 else np.inf
                 if cls < best_cls or (cls == best_cls and key < best_key):
                     best_cls, best_key, best_scale = cls, key, scale
                     best_cost = cost if cls == 0 else np.inf
-            if best_cls == 2:
+            if best_cls == 3:
                 stats[STAT_FALLBACK] += 1
             if best_scale < 1.0:
                 stats[STAT_SCALED] += 1

@@ -190,9 +190,9 @@ def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, flo
 
 def _baseline(setpoints, machine, options, moving):
     if options.baseline == "best":
-        from oga.ranges import gain_ranges
+        from oga.ranges import best_fixed_gains
 
-        best = gain_ranges(setpoints, machine).best_fixed
+        best = best_fixed_gains(setpoints, machine)
         if best is None:
             raise OptionError(
                 "baseline: no equal fixed gains meet the kinematic limits on this toolpath; "
@@ -316,21 +316,25 @@ def optimize(
 
         wlen = options.np_value
         kspace = defaults.MPC_KNOT_SAMPLES
-        commit = min(defaults.MPC_COMMIT_SAMPLES, wlen // 2)
+        # whole knot intervals, so that the shifted plan is the same gain trajectory
+        commit = max(min(defaults.MPC_COMMIT_SAMPLES, wlen // 2) // kspace, 1) * kspace
         pad = wlen + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
+        feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
         count = moving_count(pd)
         # the plan's knots per axis and gain (knot 0: the gain in force), carried across chunks
-        knots = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace + 1,
+        # (the last one interval before the window's end: the plan comes to rest, and the
+        # kink where it does is checked against eq. 2 inside the window)
+        knots = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
                           axis=2)
 
         def advance(k0, k1, run):
             mpc_chunk(k0, k1, pd, pdT_pad, vdT_pad, params, *run[:3], *gain_bounds, kp_base,
                       kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
-                      options.anchor_value, defaults.CE_WINDOW_SAMPLES, count, is_moving, knots,
-                      *run[4:], defaults.MPC_STOP)
+                      options.anchor_value, defaults.CE_WINDOW_SAMPLES, count, is_moving,
+                      feed_pad, knots, *run[4:], defaults.MPC_STOP)
 
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),

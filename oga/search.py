@@ -178,7 +178,8 @@ def _candidates(
 
 
 @njit(cache=True)
-def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te, u):
+def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te, u,
+                      every):
     """Eq. 2 excess (:func:`oga.kinematics.eq2_excess`) of a candidate's predicted commands.
 
     The commands of the window's samples ``k .. k+n-1`` are rebuilt into ``u`` from
@@ -190,7 +191,7 @@ def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, 
         i = min(k + m, last)
         p = p_now if m == 0 else pred[m - 1]
         u[m] = kp_si * (pd[i] - p) + (kf * vd[i] if k + m <= last else 0.0)
-    return eq2_excess(u, u1, u2, vmax, amax, jmax, te, n)
+    return eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, every)
 
 
 @njit(cache=True)
@@ -267,6 +268,7 @@ def search_chunk(
     choice = np.zeros(3, dtype=np.int64)
     viol = np.zeros((3, MAX_CANDIDATES))
     u_scratch = np.empty(n_pred)
+    every = np.ones(n_pred, dtype=np.bool_)  # eq. 2 on every window sample (rapids too)
     allowed = np.ones((3, MAX_CANDIDATES), dtype=np.bool_)
     te2 = te * te
     for k in range(k0, k1):
@@ -302,7 +304,7 @@ def search_chunk(
                 viol[a, c] = _window_violation(
                     states[a, 0], pred[a, c], pdT[a], vdT[a], k, n_pred, kp_si,
                     kf[a] + dkf[a, c], u_hist[a, 0], u_hist[a, 1], vmax[a], amax[a], jmax[a], te,
-                    u_scratch,
+                    u_scratch, every,
                 )
                 least = min(least, max(viol[a, c], _SLACK))
             for c in range(ncand[a]):  # only the candidates that keep eq. 2 (or least violate it)

@@ -203,5 +203,13 @@ def test_eq2_excess_matches_numpy():
         v = np.abs(u) / 0.5
         a = np.abs(np.diff(ext)[1:]) / te / 2.5
         j = np.abs(np.diff(ext, 2)) / te**2 / 10.0
-        expected = max(0.0, (np.maximum(np.maximum(v, a), j) - 1.0).max())
-        assert eq2_excess(u, u1, u2, 0.5, 2.5, 10.0, te, len(u)) == pytest.approx(expected, abs=1e-12)
+        ratio = np.maximum(np.maximum(v, a), j)
+        expected = max(0.0, (ratio - 1.0).max())
+        every = np.ones(len(u), dtype=bool)
+        assert eq2_excess(u, u1, u2, 0.5, 2.5, 10.0, te, len(u), every) == pytest.approx(
+            expected, abs=1e-12)
+        # only the checked (feed) samples count; their differences still reach the others
+        check = rng.random(len(u)) < 0.5
+        expected = max(0.0, (ratio[check] - 1.0).max(initial=0.0))
+        assert eq2_excess(u, u1, u2, 0.5, 2.5, 10.0, te, len(u), check) == pytest.approx(
+            expected, abs=1e-12)

@@ -178,7 +178,7 @@ def test_window_violation_is_eq2_on_the_rebuilt_commands(short, machine):
         excess = max(np.max(np.abs(u)) / vmax, np.max(np.abs(np.diff(up)[1:])) / (amax * 1e-3),
                      np.max(np.abs(np.diff(up, 2))) / (jmax * 1e-6)) - 1.0
         got = _window_violation(state[0], pred, zd, vz, k, n, kp * C, 0.9, us[-1], us[-2],
-                                vmax, amax, jmax, 1e-3, np.empty(n))
+                                vmax, amax, jmax, 1e-3, np.empty(n), np.ones(n, dtype=bool))
         assert got == pytest.approx(max(excess, 0.0), rel=1e-9, abs=1e-12)
         assert (got > 0.0) == (kp != 1.6)
 
@@ -242,7 +242,7 @@ def test_the_choice_is_the_least_cost_combination(short, machine, adjust):
                     viol = _window_violation(state[a][0], pred, ref[a], vel[a], k, n_pred,
                                              (prev + d) * C, 0.9, *hist[a], lim.vmax_m_s[a],
                                              lim.amax_m_s2[a], lim.jmax_m_s3[a], 1e-3,
-                                             np.empty(n_pred))
+                                             np.empty(n_pred), np.ones(n_pred, dtype=bool))
                     rows.append((d, pred, viol))
                 least = min(max(v, 1e-9) for _, _, v in rows)
                 cands[a] = [(d, p) for d, p, v in rows if v <= least]
