@@ -68,7 +68,9 @@ def main() -> None:
                               machine.planning_limits(), feed_m_s=feed_m_s), machine)
     sp, machine = planned["reference_xz"]
     optimize(sp, machine, {**PAPER, "np": 5})  # compile / load caches
-    optimize(sp, machine, {"np": 40})
+    for name in ("reference_xz", "circle_r50_f3000@F8000/mcv-op"):  # each machine's kernels
+        if name in planned:
+            optimize(*planned[name], {"np": 40})
     print(f"{'toolpath':22s} {'mode':6s} {'samples':>7s} {'base':>7s} {'rms0 um':>8s} "
           f"{'rms um':>8s} {'max0 um':>8s} {'max um':>8s} {'ratio':>7s} {'RT':>8s} {'RT search':>9s}"
           "  status")
