@@ -70,7 +70,9 @@ class OptimizeOptions(BaseModel):
     adjust: tuple[Literal["x", "y", "z"], ...] | None = None
     gains: tuple[Literal["kp", "kf"], ...] = ("kp", "kf")
     kp_range: tuple[Finite, Finite] | None = None
-    np: Annotated[int, Field(ge=1, le=1000)] | None = None
+    np: Annotated[int, Field(ge=1, le=1000)] | None = Field(
+        None, json_schema_extra={"default_per_mode": defaults.NP}
+    )
     lam: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     anchor: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     feed_mm_per_min: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(

@@ -147,7 +147,11 @@ def test_page_takes_the_reference_program_to_a_report(browser, tmp_path, shots):
         page.goto(server.url + "/")
         page.wait_for_selector("#machine option[value=ucp710]", state="attached")
         assert page.input_value("#machine") == "ucp710"
-        assert page.get_attribute("#np", "placeholder") == "default 50"  # from /openapi.json
+        # the horizon's default per mode, from /openapi.json
+        assert page.get_attribute("#np", "placeholder") == "default 100"
+        page.select_option("#mode", "paper")
+        assert page.get_attribute("#np", "placeholder") == "default 50"
+        page.select_option("#mode", "full")
 
         # a malformed program: the API's 422 in words, with line and column
         page.fill("#program", "G21 G18\nG1 X1 Y\n")

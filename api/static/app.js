@@ -88,6 +88,14 @@ function sayError(err) {
 
 // -- the server: machines, option defaults, recent jobs ---------------------------------------
 
+// the horizon's default depends on the mode (from /openapi.json)
+let npDefaults = {};
+
+function showNpDefault() {
+  const value = npDefaults[$("mode").value];
+  $("np").placeholder = value === undefined ? "default" : `default ${value}`;
+}
+
 async function loadServer() {
   try {
     const health = await getJson("/healthz");
@@ -101,7 +109,8 @@ async function loadServer() {
       { value: m.name, textContent: `${m.name} (axes ${m.axes.join(", ").toUpperCase()})` })));
     if (machines.items.some((m) => m.name === was)) select.value = was;
     const defaults = schema.components.schemas.OptimizeOptions.properties;
-    $("np").placeholder = `default ${defaults.np.default}`;
+    npDefaults = defaults.np.default_per_mode;
+    showNpDefault();
     $("tolerance").placeholder = `default ${defaults.tolerance.default}`;
     say("info");
     await loadJobs();
@@ -340,6 +349,7 @@ document.addEventListener("DOMContentLoaded", () => {
   $("api-key").addEventListener("change", keyChanged);
   $("file").addEventListener("change", () => readFile().catch(sayError));
   $("baseline").addEventListener("change", showBaselineFields);
+  $("mode").addEventListener("change", showNpDefault);
   $("job-form").addEventListener("submit", submit);
   $("cancel").addEventListener("click", cancel);
   $("open-report").addEventListener("click", openReport);
