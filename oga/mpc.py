@@ -278,6 +278,21 @@ def _gains(knots, a, g, w, kspace, out):
 
 
 @njit(cache=True)
+def _step_knots(knots, scale, x, nv, var_axis, var_gain, var_knot, kp_lo, kp_hi, kf_lo, kf_hi):
+    """Add ``scale * x`` to the free knots in place, each held inside its gain's bounds."""
+    for v in range(nv):
+        a = var_axis[v]
+        g = var_gain[v]
+        jk = var_knot[v]
+        val = knots[a, g, jk] + scale * x[v]
+        if g == 0:
+            val = min(max(val, kp_lo[a]), kp_hi[a])
+        else:
+            val = min(max(val, kf_lo[a]), kf_hi[a])
+        knots[a, g, jk] = val
+
+
+@njit(cache=True)
 def _sim_plan(states, params, pdT, vdT, k, w, knots, a, kspace, kpa, kfa, out_p, out_u, scratch):
     _gains(knots, a, 0, w, kspace, kpa)
     _gains(knots, a, 1, w, kspace, kfa)
@@ -567,16 +582,8 @@ def mpc_chunk(
             for t_ in range(4):
                 scale = 0.0 if t_ == 3 else 0.5**t_
                 trial_knots[:] = knots
-                for v in range(nv):
-                    a = var_axis[v]
-                    g = var_gain[v]
-                    jk = var_knot[v]
-                    val = knots[a, g, jk] + scale * x[v]
-                    if g == 0:
-                        val = min(max(val, kp_lo[a]), kp_hi[a])
-                    else:
-                        val = min(max(val, kf_lo[a]), kf_hi[a])
-                    trial_knots[a, g, jk] = val
+                _step_knots(trial_knots, scale, x, nv, var_axis, var_gain, var_knot, kp_lo, kp_hi,
+                            kf_lo, kf_hi)
                 worst = 0.0  # over the window
                 worst_n = 0.0  # over this commit and the next
                 worst_c = 0.0  # over the samples to be committed
@@ -624,16 +631,8 @@ def mpc_chunk(
                 stats[STAT_FALLBACK] += 1
             if best_scale < 1.0:
                 stats[STAT_SCALED] += 1
-            for v in range(nv):
-                a = var_axis[v]
-                g = var_gain[v]
-                jk = var_knot[v]
-                val = knots[a, g, jk] + best_scale * x[v]
-                if g == 0:
-                    val = min(max(val, kp_lo[a]), kp_hi[a])
-                else:
-                    val = min(max(val, kf_lo[a]), kf_hi[a])
-                knots[a, g, jk] = val
+            _step_knots(knots, best_scale, x, nv, var_axis, var_gain, var_knot, kp_lo, kp_hi, kf_lo,
+                        kf_hi)
             if best_scale == 0.0 or (held_cost < np.inf and best_cost > (1.0 - stop) * held_cost):
                 break
         # 5: commit the first `commit` samples of the plan, advance the true state
