@@ -324,10 +324,16 @@ def mpc_chunk(
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
+    The arguments shared with :func:`oga.search.search_chunk` mean the same there
+    (``pdT``/``vdT`` padded by ``w + 1`` samples past the end); ``kp_base``,
+    ``kf_base`` (3,) are the baseline gains the anchor pulls to; ``w`` the window,
+    ``kspace`` the samples between knots, ``commit`` the samples applied per window
+    (a multiple of ``kspace``), ``iters`` the iterations per window at most,
+    ``trust_kp``/``trust_kf`` the trust region of one iteration's knot change
+    ((m/min)/mm, 1), ``count`` from :func:`oga.contour.moving_count`.
     ``knots`` (3, 2, w // kspace) carries the plan between calls: knot 0 is the
     gain applied at the sample before the window, knot j the gain at window sample
-    j K - 1; it is shifted by ``commit`` samples (whole knot intervals) after each
-    window. ``feed`` (bool, padded like ``pdT``) marks the samples where eq. 2 applies
+    ``j kspace - 1``; it is shifted by ``commit`` samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where eq. 2 applies
     (feed moves; rapids and the padding are not checked, as in :mod:`oga.verify`);
     ``stop`` is :data:`oga.defaults.MPC_STOP`.
     """
