@@ -51,21 +51,23 @@ TOL_M = 20e-6
 NP = {"paper": 50, "full": 100}
 #: Weight of the gain increments in the cost per mode, per unit^2 of increment (paper: 0.01),
 #: against E'E in the mode's unit: mm^2 in paper mode (the paper's), um^2 in full mode
-#: (there on the steps between knots).
+#: (there on the steps between the spline's control points).
 LAMBDA = {"paper": 0.01, "full": 100.0}
 #: Weight pulling the gains back to the baseline per mode, same units (paper: none).
 ANCHOR = {"paper": 0.0, "full": 300.0}
-#: Full mode: samples between two knots of the planned gain trajectory (linear between).
+#: Full mode: samples between two control points of the planned gain trajectory (a
+#: quadratic B-spline).
 MPC_KNOT_SAMPLES = 10
 #: Full mode: samples of each plan applied before the window recedes and is planned again
-#: (rounded down to whole knot intervals).
+#: (rounded down to whole spline intervals).
 MPC_COMMIT_SAMPLES = 20
 #: Full mode: sequential-QP iterations per window at most (each re-linearised on the plan).
 MPC_ITERATIONS = 3
 #: Full mode: an iteration that lowers the window's exact cost by less than this share ends
 #: the window's iterations.
 MPC_STOP = 0.05
-#: Full mode: trust region of one iteration's knot change, (m/min)/mm for Kp and 1 for Kf.
+#: Full mode: trust region of one iteration's control-point change, (m/min)/mm for Kp and 1
+#: for Kf.
 MPC_TRUST = (0.3, 0.05)
 #: Full mode: shortest window accepted, samples (dead time plus the loop's settling).
 MPC_MIN_NP = 40

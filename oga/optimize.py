@@ -316,17 +316,16 @@ def optimize(
 
         wlen = options.np_value
         kspace = defaults.MPC_KNOT_SAMPLES
-        # whole knot intervals, so that the shifted plan is the same gain trajectory
+        # whole spline intervals, so that the shifted plan is the same gain trajectory
         commit = max(min(defaults.MPC_COMMIT_SAMPLES, wlen // 2) // kspace, 1) * kspace
         pad = wlen + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
         feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
         count = moving_count(pd)
-        # the plan's knots per axis and gain (knot 0: the gain in force), carried across chunks
-        # (the last one interval before the window's end: the plan comes to rest, and the
-        # kink where it does is checked against eq. 2 inside the window)
-        knots = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
+        # the plan's spline control points per axis and gain, carried across chunks (as many
+        # as leave the plan at rest over the window's last interval, checked against eq. 2)
+        points = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
                           axis=2)
 
         def advance(k0, k1, run):
@@ -334,7 +333,7 @@ def optimize(
                       kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, defaults.CE_WINDOW_SAMPLES, count, is_moving,
-                      feed_pad, knots, *run[4:], defaults.MPC_STOP)
+                      feed_pad, points, *run[4:], defaults.MPC_STOP)
 
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
