@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from oga.mpc import _qp_active_set
 
@@ -70,3 +71,23 @@ def test_rows_confined_to_column_ranges_solved_as_dense():
         if ok:
             assert kkt_ok(p, q, a, lo, hi, x)
             np.testing.assert_allclose(x, x_dense, rtol=1e-9, atol=1e-12)
+
+
+def test_plan_is_the_quadratic_b_spline_of_its_control_points():
+    # the planned gain against scipy's B-spline with the same control points: points
+    # c_-1, c_0, c_1, ... sit at uniform knots kspace samples apart, and the last repeats
+    from scipy.interpolate import BSpline
+
+    from oga.mpc import _plan_at
+
+    kspace, n_pts = 10, 9
+    rng = np.random.default_rng(7)
+    points = rng.uniform(1.0, 3.0, size=(3, 2, n_pts))
+    ext = np.concatenate([points[1, 0], np.full(3, points[1, 0, -1])])  # rest beyond the last
+    knots = kspace * (np.arange(len(ext) + 3) - 2.0)  # c_j's support starts at (j - 1) kspace
+    spline = BSpline(knots, ext, 2)
+    for tau in range(0, 100):
+        assert _plan_at(points, 1, 0, tau, kspace) == pytest.approx(float(spline(tau)), rel=1e-12)
+    # value and slope at tau = 0 depend on the two fixed points only (continuity with the past)
+    assert _plan_at(points, 1, 0, 0, kspace) == pytest.approx(
+        0.5 * (points[1, 0, 0] + points[1, 0, 1]))
