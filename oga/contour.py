@@ -266,27 +266,31 @@ def ce_series(pd, pa, window, e1, e2, signed):
         Contour error in metres.
     """
     n = pd.shape[0]
-    count, centre, radius = path_index(pd)
+    centre, radius, lo, hi = path_index(pd, window)
     out = np.empty(n)
     for k in range(n):
-        out[k] = ce_at(pd, count, centre, radius, k, pa[k, 0], pa[k, 1], pa[k, 2], window, e1,
+        out[k] = ce_at(pd, centre, radius, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2], e1,
                        e2, signed)
     return out
 
 
 @njit(cache=True)
-def path_index(pd):
-    """What :func:`ce_at` needs besides the path: ``(count, centre, radius)``, the
-    :func:`moving_count` of ``pd`` (N, 3) and a bounding sphere per block of segments."""
+def path_index(pd, window):
+    """What :func:`ce_at` needs besides the path ``pd`` (N, 3): ``(centre, radius, lo, hi)``,
+    a bounding sphere per block of segments and every sample's :func:`window_bounds`
+    (int arrays, shape (N,))."""
     centre, radius = _block_spheres(pd)
-    return moving_count(pd), centre, radius
+    count = moving_count(pd)
+    lo = np.searchsorted(count, count - window, side="left")
+    hi = np.searchsorted(count, count + window, side="right") - 1
+    return centre, radius, lo, hi
 
 
 @njit(cache=True)
-def ce_at(pd, count, centre, radius, k, x, y, z, window, e1, e2, signed):
+def ce_at(pd, centre, radius, lo, hi, k, x, y, z, e1, e2, signed):
     """Contour error (m) of the point ``(x, y, z)`` (m) taken at sample ``k``, as in
-    :func:`ce_series`; ``count, centre, radius`` from :func:`path_index`."""
-    lo, hi = window_bounds(count, k, window)
+    :func:`ce_series`; ``centre, radius`` and the window ``lo, hi`` of sample ``k``
+    from :func:`path_index`."""
     bi, bt, best = _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z)
     return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
 
@@ -350,19 +354,22 @@ def _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z):
     best = np.inf
     bi = -1
     bt = 0.0
+    reach = np.sqrt(bound)
     for b in range(lo // _BLOCK, (hi - 1) // _BLOCK + 1):
         dx = x - centre[b, 0]
         dy = y - centre[b, 1]
         dz = z - centre[b, 2]
-        gap = np.sqrt(dx * dx + dy * dy + dz * dz) - radius[b]
-        if gap > 0.0 and gap * gap > bound:
+        far = radius[b] + reach  # the sphere lies beyond the bound (no square root per block)
+        if dx * dx + dy * dy + dz * dz > far * far:
             continue
         j, t, d2 = nearest_segment(pd, max(lo, b * _BLOCK), min(hi, (b + 1) * _BLOCK), x, y, z)
         if d2 < best:
             best = d2
             bi = j
             bt = t
-            bound = min(bound, d2)
+            if d2 < bound:
+                bound = d2
+                reach = np.sqrt(d2)
     if best > bound:  # the bound was not a distance to the window's path: no pruning
         return nearest_segment(pd, lo, hi, x, y, z)
     return bi, bt, best

@@ -634,7 +634,7 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
     kf_k = np.empty(n)
     ce2 = np.zeros(n)
     states = np.empty((n_ax, rest_state(params[0], 0.0).size))
-    count, centre, radius = path_index(pos)
+    centre, radius, lo, hi = path_index(pos, window)
     heavy = feed.copy()
     best = np.inf
     for m in range(visit.shape[0]):
@@ -658,8 +658,8 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
                 break
             for k in range(k0, k1):
                 if heavy[k]:
-                    ce2[k] = ce_at(pos, count, centre, radius, k, pa[k, 0], pa[k, 1],
-                                   pa[k, 2], window, e1, e2, signed) ** 2
+                    ce2[k] = ce_at(pos, centre, radius, lo[k], hi[k], k, pa[k, 0], pa[k, 1],
+                                   pa[k, 2], e1, e2, signed) ** 2
                     s += ce2[k]
                     if s > bound:
                         alive = False
@@ -670,8 +670,8 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
             continue
         for k in range(n):
             if feed[k] and not heavy[k]:
-                ce2[k] = ce_at(pos, count, centre, radius, k, pa[k, 0], pa[k, 1], pa[k, 2],
-                               window, e1, e2, signed) ** 2
+                ce2[k] = ce_at(pos, centre, radius, lo[k], hi[k], k, pa[k, 0], pa[k, 1],
+                               pa[k, 2], e1, e2, signed) ** 2
                 s += ce2[k]
                 if s > bound:
                     alive = False
