@@ -262,7 +262,6 @@ def _nearest(pd, count, ce_window, c, j_prev, x, y, z):
     return nearest_segment(pd, lo, hi, x, y, z)
 
 
-
 @njit(cache=True)
 def _plan_at(points, a, g, tau, kspace):
     """Gain ``g`` (0 Kp, 1 Kf) of axis ``a`` at ``tau`` samples after the last applied one.
@@ -303,13 +302,23 @@ def _step_points(points, scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_
 
 
 @njit(cache=True)
-def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p, out_u, scratch):
+def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p, out_u, scratch,
+              blocks):
+    """Exact prediction of axis ``a`` over the window along the plan ``points``: positions
+    into ``out_p``, commands into ``out_u``, and the state at the start of every spline
+    interval into ``blocks[a, j]`` (where the sensitivity simulations start)."""
     _gains(points, a, 0, w, kspace, kpa)
     _gains(points, a, 1, w, kspace, kfa)
     for i in range(w):
         kpa[i] *= _C
     scratch[:] = states[a]
-    run(scratch, params[a], pdT[a, k:k + w], vdT[a, k:k + w], kpa, kfa, out_p, out_u)
+    nb = blocks.shape[1]
+    for j in range(nb):
+        i0 = j * kspace
+        i1 = w if j == nb - 1 else i0 + kspace
+        blocks[a, j, :] = scratch
+        run(scratch, params[a], pdT[a, k + i0:k + i1], vdT[a, k + i0:k + i1], kpa[i0:i1],
+            kfa[i0:i1], out_p[i0:i1], out_u[i0:i1])
 
 
 @njit(cache=True)
@@ -398,6 +407,7 @@ def mpc_chunk(
     plan_kf = np.empty((3, w))
     trial_points = points.copy()
     block_state = np.empty((3, nk, states.shape[1]))
+    trial_blocks = np.empty((3, nk, states.shape[1]))
     for a in range(3):
         if not moving[a]:
             trial[a, :] = states[a, 0]
@@ -419,17 +429,8 @@ def mpc_chunk(
                         p0[a, i] = states[a, 0]
                         u0[a, i] = 0.0
                     continue
-                _gains(points, a, 0, w, kspace, kpa)
-                _gains(points, a, 1, w, kspace, kfa)
-                for i in range(w):
-                    kpa[i] *= _C
-                scratch[:] = states[a]
-                for j in range(nk):
-                    i0 = j * kspace
-                    i1 = w if j == nk - 1 else i0 + kspace
-                    block_state[a, j, :] = scratch
-                    run(scratch, params[a], pdT[a, k + i0:k + i1], vdT[a, k + i0:k + i1],
-                        kpa[i0:i1], kfa[i0:i1], p0[a, i0:i1], u0[a, i0:i1])
+                _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, p0[a],
+                          u0[a], scratch, block_state)
                 stats[STAT_WINDOWS] += 1
             # sensitivities: each control point raised by _H, simulated from the first
             # sample its basis function reaches
@@ -602,7 +603,7 @@ def mpc_chunk(
                         tmp_u[:] = u0[a]
                     else:
                         _sim_plan(states, params, pdT, vdT, k, w, trial_points, a, kspace, kpa,
-                                  kfa, trial[a], tmp_u, scratch)
+                                  kfa, trial[a], tmp_u, scratch, trial_blocks)
                         stats[STAT_WINDOWS] += 1
                     fk = feed[k:k + w]
                     worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],

@@ -18,7 +18,6 @@ from feedplan.read import load_toolpath
 from oga.contour import contour_error_of
 from oga.errors import OptimizeError, OptionError
 from oga.export import table_csv
-from oga.machine import load_machine
 from oga.optimize import optimize
 from oga.options import options_from_dict
 from oga.simulate import simulate
@@ -26,17 +25,6 @@ from oga.verify import command_ratios, verify
 
 DATA = Path(__file__).parent / "data"
 PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7")
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("ucp710")
-
-
-@pytest.fixture(scope="module")
-def short(machine):
-    """A short XZ contour (line, concave and convex arc, line) planned for ucp710."""
-    return plan(load_toolpath(DATA / "short_xz.ngc"), machine.planning_limits())
 
 
 def eq2_peaks(u, te, mask):

@@ -8,37 +8,22 @@ brute force with the exact point-to-polyline contour error.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from feedplan.plan import plan
-from feedplan.read import load_toolpath
 from oga import defaults
 from oga.contour import ce_point
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.optimize import optimize
 from oga.search import _candidates, _fractions, _interval, _window_violation, apply_gains
 from oga.simulate import axis_params, rest_state, step, window
 
-DATA = Path(__file__).parent / "data"
 C = KP_SI_PER_M_MIN_PER_MM
 A1, A2 = defaults.A1, defaults.A2
 finite = st.floats(-2.0, 2.0, allow_nan=False)
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("ucp710")
-
-
-@pytest.fixture(scope="module")
-def short(machine):
-    """A short XZ contour (line, concave and convex arc, line) planned for ucp710."""
-    return plan(load_toolpath(DATA / "short_xz.ngc"), machine.planning_limits())
 
 
 def eq2_interval(u1, u2, vmax, amax, jmax, te):
