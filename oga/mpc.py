@@ -12,10 +12,10 @@ piecewise-linear gains the MSE ratios were 1.4 to 30 times higher on the team's
 contours), coming to rest one interval before the window's end, and recedes:
 
 1. from the current true state, simulate each axis over the window along the
-   current plan on the exact nonlinear model (the nominal prediction), and once
-   more per adjusted gain and free control point with that point raised by a small
-   step (simulated from the first sample its basis function reaches): finite-difference
-   sensitivities of the predicted positions and velocity commands to the points
+   current plan on the exact nonlinear model (the nominal prediction) and, in the
+   same pass, the derivatives of its predicted positions and velocity commands with
+   respect to every free control point of its gains (forward mode,
+   :func:`oga.tangent.run_tangent`; one pass instead of a re-simulation per point)
    (an axis whose setpoint stands still over the whole window is not adjusted);
 2. the predicted contour error is linearised around the nominal prediction
    (distance to the line of the nearest path segment, as in :mod:`oga.search`),
@@ -55,6 +55,7 @@ from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.search import apply_gains
 from oga.simulate import run
+from oga.tangent import run_tangent
 
 __all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
 
@@ -65,8 +66,6 @@ STAT_QP_SHORT = 3  # iterations whose QP stopped short of the optimum (the line 
 
 _C = KP_SI_PER_M_MIN_PER_MM
 _M2_TO_UM2 = 1e12
-#: Finite-difference step of the sensitivities: (m/min)/mm for Kp, 1 for Kf.
-_H = 1e-3
 #: Share of the eq. 2 limits the linearised constraints may use (the exact check uses 1).
 _LIN_MARGIN = 0.95
 
@@ -302,23 +301,37 @@ def _step_points(points, scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_
 
 
 @njit(cache=True)
-def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p, out_u, scratch,
-              blocks):
-    """Exact prediction of axis ``a`` over the window along the plan ``points``: positions
-    into ``out_p``, commands into ``out_u``, and the state at the start of every spline
-    interval into ``blocks[a, j]`` (where the sensitivity simulations start)."""
+def _plan_gains(points, a, w, kspace, kpa, kfa):
+    """The plan's Kp (1/s) and Kf of axis ``a`` at every window sample, into ``kpa``, ``kfa``."""
     _gains(points, a, 0, w, kspace, kpa)
     _gains(points, a, 1, w, kspace, kfa)
     for i in range(w):
         kpa[i] *= _C
+
+
+@njit(cache=True)
+def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p, out_u, scratch):
+    """Exact prediction of axis ``a`` over the window along the plan ``points``: positions
+    into ``out_p``, commands into ``out_u``."""
+    _plan_gains(points, a, w, kspace, kpa, kfa)
     scratch[:] = states[a]
-    nb = blocks.shape[1]
-    for j in range(nb):
-        i0 = j * kspace
-        i1 = w if j == nb - 1 else i0 + kspace
-        blocks[a, j, :] = scratch
-        run(scratch, params[a], pdT[a, k + i0:k + i1], vdT[a, k + i0:k + i1], kpa[i0:i1],
-            kfa[i0:i1], out_p[i0:i1], out_u[i0:i1])
+    run(scratch, params[a], pdT[a, k:k + w], vdT[a, k:k + w], kpa, kfa, out_p, out_u)
+
+
+@njit(cache=True)
+def _basis(jk, tau, kspace, last):
+    """Weight of control point ``jk`` in :func:`_plan_at` at ``tau`` (the derivative of the
+    gain with respect to that point)."""
+    m = tau // kspace
+    f = (tau - m * kspace) / kspace
+    out = 0.0
+    if min(m, last) == jk:
+        out += 0.5 * (1.0 - f) ** 2
+    if min(m + 1, last) == jk:
+        out += 0.5 + f - f * f
+    if min(m + 2, last) == jk:
+        out += 0.5 * f * f
+    return out
 
 
 @njit(cache=True)
@@ -379,6 +392,31 @@ def mpc_chunk(
         var_lo[var_axis[v]] = v
     for v in range(nv):
         var_hi[var_axis[v]] = v + 1
+    # per axis, its free points as tangent directions in the order of their first sample:
+    # dir_var[a, d] is the variable of direction d; the gain's change per unit of the point
+    # is its B-spline basis function (Kp in 1/s per (m/min)/mm)
+    n_dir = var_hi - var_lo
+    dir_var = np.zeros((3, max(1, 2 * nk)), dtype=np.int64)
+    dir_start = np.zeros((3, max(1, 2 * nk)), dtype=np.int64)
+    dir_kp = np.zeros((3, w, max(1, 2 * nk)))
+    dir_kf = np.zeros((3, w, max(1, 2 * nk)))
+    for a in range(3):
+        d = 0
+        for jk in range(2, nk + 2):
+            for v in range(var_lo[a], var_hi[a]):
+                if var_point[v] != jk:
+                    continue
+                dir_var[a, d] = v
+                dir_start[a, d] = (jk - 2) * kspace
+                for i in range(w):
+                    b = _basis(jk, i + 1, kspace, nk + 1)
+                    if var_gain[v] == 0:
+                        dir_kp[a, i, d] = _C * b
+                    else:
+                        dir_kf[a, i, d] = b
+                d += 1
+    tan_p = np.empty((w, max(1, 2 * nk)))
+    tan_u = np.empty((w, max(1, 2 * nk)))
     mq = np.empty((3, w))
     proj = np.empty((3, 3, w))  # P = I - t t' per window sample
     p0 = np.empty((3, w))
@@ -388,7 +426,6 @@ def mpc_chunk(
     kpa = np.empty(w)
     kfa = np.empty(w)
     scratch = np.empty(states.shape[1])
-    tmp_p = np.empty(w)
     tmp_u = np.empty(w)
     dq = np.empty((w, 3))
     tang = np.empty((w, 3))
@@ -406,8 +443,6 @@ def mpc_chunk(
     plan_kp = np.empty((3, w))
     plan_kf = np.empty((3, w))
     trial_points = points.copy()
-    block_state = np.empty((3, nk, states.shape[1]))
-    trial_blocks = np.empty((3, nk, states.shape[1]))
     for a in range(3):
         if not moving[a]:
             trial[a, :] = states[a, 0]
@@ -422,40 +457,33 @@ def mpc_chunk(
                         idle[a] = False
                         break
         for _it in range(iters):
-            # 1: nominal prediction along the plan, keeping the state at every interval start
+            # 1: nominal prediction along the plan and, in the same pass, its derivatives
+            #    with respect to every free control point of the axis (forward mode)
             for a in range(3):
                 if not moving[a]:
                     for i in range(w):
                         p0[a, i] = states[a, 0]
                         u0[a, i] = 0.0
                     continue
-                _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, p0[a],
-                          u0[a], scratch, block_state)
                 stats[STAT_WINDOWS] += 1
-            # sensitivities: each control point raised by _H, simulated from the first
-            # sample its basis function reaches
-            for v in range(nv):
-                a = var_axis[v]
-                jk = var_point[v]
-                start = (jk - 2) * kspace
-                for i in range(w):
-                    sp[v, i] = 0.0
-                    su[v, i] = 0.0
-                if idle[a]:
+                nd = n_dir[a]
+                if idle[a] or nd == 0:
+                    _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, p0[a],
+                              u0[a], scratch)
+                    for v in range(var_lo[a], var_hi[a]):
+                        sp[v, :] = 0.0
+                        su[v, :] = 0.0
                     continue
-                points[a, var_gain[v], jk] += _H
-                _gains(points, a, 0, w, kspace, kpa)
-                _gains(points, a, 1, w, kspace, kfa)
-                points[a, var_gain[v], jk] -= _H
-                for i in range(start, w):
-                    kpa[i] *= _C
-                scratch[:] = block_state[a, jk - 2, :]
-                run(scratch, params[a], pdT[a, k + start:k + w], vdT[a, k + start:k + w],
-                    kpa[start:], kfa[start:], tmp_p[start:], tmp_u[start:])
-                stats[STAT_WINDOWS] += 1
-                for i in range(start, w):
-                    sp[v, i] = (tmp_p[i] - p0[a, i]) / _H
-                    su[v, i] = (tmp_u[i] - u0[a, i]) / _H
+                _plan_gains(points, a, w, kspace, kpa, kfa)
+                scratch[:] = states[a]
+                run_tangent(scratch, params[a], pdT[a, k:k + w], vdT[a, k:k + w], kpa, kfa,
+                            dir_kp[a, :, :nd], dir_kf[a, :, :nd], dir_start[a, :nd], p0[a], u0[a],
+                            tan_p[:, :nd], tan_u[:, :nd])
+                for d in range(nd):
+                    v = dir_var[a, d]
+                    for i in range(w):
+                        sp[v, i] = tan_p[i, d]
+                        su[v, i] = tan_u[i, d]
             # 2: linearised contour error around the nominal prediction
             j = -1
             nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
@@ -588,7 +616,8 @@ def mpc_chunk(
             held_cost = np.inf
             n_commit = min(commit, w)
             n_next = min(2 * commit, w)
-            for t_ in range(4):
+            for o in range(4):
+                t_ = (o + 3) % 4  # the plan itself first (no simulation), then 1, 1/2, 1/4
                 scale = 0.0 if t_ == 3 else 0.5**t_
                 trial_points[:] = points
                 _step_points(trial_points, scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_hi,
@@ -603,7 +632,7 @@ def mpc_chunk(
                         tmp_u[:] = u0[a]
                     else:
                         _sim_plan(states, params, pdT, vdT, k, w, trial_points, a, kspace, kpa,
-                                  kfa, trial[a], tmp_u, scratch, trial_blocks)
+                                  kfa, trial[a], tmp_u, scratch)
                         stats[STAT_WINDOWS] += 1
                     fk = feed[k:k + w]
                     worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
@@ -636,6 +665,8 @@ def mpc_chunk(
                 if cls < best_cls or (cls == best_cls and key < best_key):
                     best_cls, best_key, best_scale = cls, key, scale
                     best_cost = cost if cls == 0 else np.inf
+                if t_ == 0 and cls == 0 and cost < held_cost:
+                    break  # the full step keeps eq. 2 and lowers the exact cost: taken
             if best_cls == 3:
                 stats[STAT_FALLBACK] += 1
             if best_scale < 1.0:

@@ -364,39 +364,62 @@ def friction_nonlinear(params: np.ndarray, v: float) -> float:
     return (params[_FC] + params[_DFS] * math.exp(-r2)) * s
 
 
+@njit(cache=True, inline="always")
+def _pi_substep(ud, v, i, kv, inv_tn, h, flim):
+    """One sub-step of the velocity PI with anti-windup: ``(F_cmd, I after, linear, integrating)``.
+
+    ``linear``: the force command is not limited; ``integrating``: the integral
+    moved (it is frozen while the command is limited, unless the error drives it
+    back out of the limit).
+    """
+    e = ud - v
+    raw = kv * (e + i * inv_tn)
+    if raw > flim:
+        fc = flim
+    elif raw < -flim:
+        fc = -flim
+    else:
+        fc = raw
+    integrating = fc == raw or e * raw < 0.0
+    if integrating:
+        i += h * e
+    return fc, i, fc == raw, integrating
+
+
 @njit(cache=True)
 def _substeps(params, p, v, f, i, ud, load):
     """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held."""
-    # x = [p, v, F]: position integrates, force does not depend on p or v, and the
-    # friction input does not reach F (structural zeros of substep_matrices)
-    a01, a02, a11, a12, a22 = (
-        params[_AD + 1], params[_AD + 2], params[_AD + 4], params[_AD + 5], params[_AD + 8]
-    )
-    b00, b01, b10, b11, b20 = (
-        params[_BD], params[_BD + 1], params[_BD + 2], params[_BD + 3], params[_BD + 4]
-    )
+    c = _substep_coefs(params)
     kv = params[_KV]
     inv_tn = params[_INV_TN]
     h = params[_H]
     flim = params[_FLIM]
     for _ in range(int(params[_NSUB])):
-        e = ud - v
-        raw = kv * (e + i * inv_tn)
-        if raw > flim:
-            fc = flim
-        elif raw < -flim:
-            fc = -flim
-        else:
-            fc = raw
-        if fc == raw or e * raw < 0.0:
-            i += h * e
+        fc, i, _linear, _integrating = _pi_substep(ud, v, i, kv, inv_tn, h, flim)
         fn = friction_nonlinear(params, v) + load
-        p, v, f = (
-            p + a01 * v + a02 * f + b00 * fc + b01 * fn,
-            a11 * v + a12 * f + b10 * fc + b11 * fn,
-            a22 * f + b20 * fc,
-        )
+        p, v, f = _mechanics(c, p, v, f, fc, fn)
     return p, v, f, i
+
+
+@njit(cache=True, inline="always")
+def _substep_coefs(params):
+    """The nonzero entries of the sub-step matrices: ``(a01, a02, a11, a12, a22, b00, b01,
+    b10, b11, b20)``. In x = [p, v, F] the position integrates, the force depends on
+    neither p nor v, and the friction input does not reach F (structural zeros of
+    :func:`oga.linear.substep_matrices`)."""
+    return (params[_AD + 1], params[_AD + 2], params[_AD + 4], params[_AD + 5], params[_AD + 8],
+            params[_BD], params[_BD + 1], params[_BD + 2], params[_BD + 3], params[_BD + 4])
+
+
+@njit(cache=True, inline="always")
+def _mechanics(c, p, v, f, fc, fn):
+    """The linear mechanics over one sub-step, force command ``fc`` and friction ``fn`` held;
+    ``c`` from :func:`_substep_coefs`. Linear: applied to derivatives it gives theirs."""
+    return (
+        p + c[0] * v + c[1] * f + c[5] * fc + c[6] * fn,
+        c[2] * v + c[3] * f + c[7] * fc + c[8] * fn,
+        c[4] * f + c[9] * fc,
+    )
 
 
 @njit(cache=True)
@@ -431,15 +454,22 @@ def _advance(params, p, v, f, i, ud, load):
     if params[_LIFTED] != 0.0:
         fn = friction_nonlinear(params, v) + load
         if _lifted_guard(params, v, f, i, ud, fn):
-            a = params[_LA : _LA + 16]
-            b = params[_LB : _LB + 8]
-            return (
-                p + a[1] * v + a[2] * f + a[3] * i + b[0] * ud + b[1] * fn,
-                a[5] * v + a[6] * f + a[7] * i + b[2] * ud + b[3] * fn,
-                a[9] * v + a[10] * f + a[11] * i + b[4] * ud + b[5] * fn,
-                a[13] * v + a[14] * f + a[15] * i + b[6] * ud + b[7] * fn,
-            )
+            return _lifted(params, p, v, f, i, ud, fn)
     return _substeps(params, p, v, f, i, ud, load)
+
+
+@njit(cache=True, inline="always")
+def _lifted(params, p, v, f, i, ud, fn):
+    """The lifted linear map over one Te (valid where :func:`_lifted_guard` holds). Linear:
+    applied to derivatives (with that of ``fn`` zero) it gives theirs."""
+    a = params[_LA : _LA + 16]
+    b = params[_LB : _LB + 8]
+    return (
+        p + a[1] * v + a[2] * f + a[3] * i + b[0] * ud + b[1] * fn,
+        a[5] * v + a[6] * f + a[7] * i + b[2] * ud + b[3] * fn,
+        a[9] * v + a[10] * f + a[11] * i + b[4] * ud + b[5] * fn,
+        a[13] * v + a[14] * f + a[15] * i + b[6] * ud + b[7] * fn,
+    )
 
 
 @njit(cache=True)

@@ -1,0 +1,253 @@
+"""Forward-mode derivatives of the axis simulation with respect to its gain sequences.
+
+:func:`run_tangent` simulates one axis exactly as :func:`oga.simulate.run` does
+(the same arithmetic: the same positions and commands to the last bit) and, in
+the same pass, propagates ``D`` tangent directions: for a direction
+``(dKp_k, dKf_k)`` over the samples, the derivatives of every measured position
+``p_k`` and velocity command ``u_k`` along it. The full-mode search
+(:mod:`oga.mpc`) needs exactly these (its sensitivities); one pass with the
+directions side by side replaces a finite-difference re-simulation per direction.
+
+The derivative follows the branch the nominal simulation takes at each period:
+
+- the lifted linear map over Te (:func:`oga.simulate._lifted`), taken only where
+  the friction force is provably constant over the period: its derivative there
+  is zero, and the map is linear;
+- otherwise the sub-steps: the velocity PI (its derivative is zero while the force
+  command is limited, the integral's while it is frozen by the anti-windup), the
+  nonlinear friction through its slope ``dF_n/dv`` at each sub-step start, and the
+  linear mechanics;
+- ARX axes: the identified difference equation, the input-equivalent friction
+  through its slope.
+
+The derivative is exact for the computation performed (a piecewise-smooth
+function: at a switch of the force limit or of the anti-windup it is one of the
+one-sided derivatives). Only the gains are differentiated: the initial state and
+the setpoints are data.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from oga.simulate import (
+    _A_B0,
+    _A_COEF,
+    _A_FC,
+    _A_INV_EPS,
+    _A_NV,
+    _A_NW,
+    _A_TE,
+    _A_VISC,
+    _ARX,
+    _DEAD,
+    _DFS,
+    _F,
+    _FC,
+    _FLIM,
+    _H,
+    _I,
+    _INV_EPS,
+    _INV_TN,
+    _INV_VS,
+    _KIND,
+    _KV,
+    _LIFTED,
+    _LINE,
+    _NSUB,
+    _P,
+    _R2_CUT,
+    _TANH_CUT,
+    _V,
+    _arx_drive,
+    _lifted,
+    _lifted_guard,
+    _mechanics,
+    _pi_substep,
+    _smooth_sign,
+    _substep_coefs,
+    friction_nonlinear,
+)
+
+__all__ = ["run_tangent", "friction_slope"]
+
+
+@njit(cache=True, inline="always")
+def _smooth_sign_slope(x: float) -> float:
+    """Derivative of :func:`oga.simulate._smooth_sign` at ``x`` (zero where it is exactly +-1)."""
+    if x > _TANH_CUT or x < -_TANH_CUT:
+        return 0.0
+    s = _smooth_sign(x)
+    return 1.0 - s * s
+
+
+@njit(cache=True)
+def friction_slope(params: np.ndarray, v: float) -> float:
+    """Slope of the axis friction at velocity ``v`` (m/s).
+
+    Cascade: ``dF_n/dv`` of :func:`oga.simulate.friction_nonlinear` (N s/m; the
+    viscous part is in the linear mechanics); ARX: the derivative of
+    :func:`oga.simulate.friction_command_m_s` ((m/s)/(m/s)).
+    """
+    if params[_KIND] == _ARX:
+        inv_eps = params[_A_INV_EPS]
+        return params[_A_FC] * _smooth_sign_slope(v * inv_eps) * inv_eps + params[_A_VISC]
+    inv_eps = params[_INV_EPS]
+    s = _smooth_sign(v * inv_eps)
+    ds = _smooth_sign_slope(v * inv_eps) * inv_eps
+    r = v * params[_INV_VS]
+    r2 = r * r
+    if r2 > params[_R2_CUT]:
+        return params[_FC] * ds
+    ex = math.exp(-r2)
+    return (params[_FC] + params[_DFS] * ex) * ds - 2.0 * r * params[_INV_VS] * params[_DFS] * ex * s
+
+
+@njit(cache=True)
+def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd):
+    """:func:`oga.simulate._substeps` (no load) with the tangents of ``(p, v, F, I)`` of the
+    first ``nd`` directions advanced in place; returns the nominal ``(p, v, F, I)``."""
+    c = _substep_coefs(params)
+    kv = params[_KV]
+    inv_tn = params[_INV_TN]
+    h = params[_H]
+    flim = params[_FLIM]
+    for _ in range(int(params[_NSUB])):
+        fc, i_next, linear, integrating = _pi_substep(ud, v, i, kv, inv_tn, h, flim)
+        fn = friction_nonlinear(params, v)
+        slope = friction_slope(params, v)
+        kv_lin = kv if linear else 0.0  # a limited force command does not move
+        h_int = h if integrating else 0.0  # nor does a frozen integral
+        for d in range(nd):
+            de = dud[d] - dv[d]
+            dfc = kv_lin * (de + di[d] * inv_tn)
+            di[d] += h_int * de
+            dp[d], dv[d], df[d] = _mechanics(c, dp[d], dv[d], df[d], dfc, slope * dv[d])
+        i = i_next
+        p, v, f = _mechanics(c, p, v, f, fc, fn)
+    return p, v, f, i
+
+
+@njit(cache=True)
+def _lifted_tangent(params, dp, dv, df, di, dud, nd):
+    """The tangents of the first ``nd`` directions through the lifted map, in place
+    (the friction force is constant there: its derivative is zero)."""
+    for d in range(nd):
+        dp[d], dv[d], df[d], di[d] = _lifted(params, dp[d], dv[d], df[d], di[d], dud[d], 0.0)
+
+
+@njit(cache=True)
+def _arx_tangent(state, params, dst, du, nd):
+    """The tangent of :func:`oga.simulate._arx_drive` (no load) for the first ``nd``
+    directions, in place: ``dst`` (S, D) holds the state's derivatives, ``du`` (D,) the
+    command's. Call it before the nominal drive (it reads the state at the period's start)."""
+    nv = int(params[_A_NV])
+    nw = int(params[_A_NW])
+    slope = friction_slope(params, state[1])
+    b0 = params[_A_B0]
+    te = params[_A_TE]
+    for d in range(nd):
+        dw = du[d] - slope * dst[1, d]
+        dvel = b0 * dw
+        for j in range(nv):
+            dvel -= params[_A_COEF + j] * dst[1 + j, d]
+        for j in range(nw):
+            dvel += params[_A_COEF + nv + j] * dst[1 + nv + j, d]
+        for j in range(nv - 1, 0, -1):
+            dst[1 + j, d] = dst[j, d]
+        dst[1, d] = dvel
+        if nw > 0:
+            for j in range(nw - 1, 0, -1):
+                dst[1 + nv + j, d] = dst[nv + j, d]
+            dst[1 + nv, d] = dw
+        dst[0, d] += te * dvel
+
+
+@njit(cache=True)
+def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out_u, sp, su):
+    """:func:`oga.simulate.run` and its derivatives along ``D`` gain directions, in one pass.
+
+    Parameters
+    ----------
+    state : ndarray, shape (state size,)
+        Axis state at sample 0; on return the state at sample N (as ``run``).
+    params : ndarray
+        From :func:`oga.simulate.axis_params`.
+    pd, vd, kp_si, kf : ndarray, shape (N,)
+        Setpoints (m, m/s) and the nominal gains (1/s, factor) per sample.
+    dkp_si, dkf : ndarray, shape (N, D)
+        The directions: per sample and direction the change of Kp (1/s per unit of
+        the direction's parameter) and of Kf (per unit).
+    start : ndarray of int, shape (D,)
+        Non-decreasing; direction ``d`` is zero before sample ``start[d]`` (its
+        derivatives are zero there and are not propagated: speed only).
+    out_p, out_u : ndarray, shape (N,)
+        Receive the positions ``p_k`` (m) and commands ``u_k`` (m/s), the same bits
+        as ``run``.
+    sp, su : ndarray, shape (N, D)
+        Receive ``dp_k/dtheta_d`` (m per unit) and ``du_k/dtheta_d`` (m/s per unit).
+    """
+    n = pd.shape[0]
+    nd_all = start.shape[0]
+    nd = 0  # active directions: start[d] <= k
+    if params[_KIND] == _ARX:
+        dst = np.zeros((state.shape[0], nd_all))
+        du = np.empty(nd_all)
+        for k in range(n):
+            while nd < nd_all and start[nd] <= k:
+                nd += 1
+            e = pd[k] - state[_P]
+            out_p[k] = state[_P]
+            out_u[k] = kp_si[k] * e + kf[k] * vd[k]
+            for d in range(nd):
+                sp[k, d] = dst[0, d]
+                du[d] = dkp_si[k, d] * e - kp_si[k] * dst[0, d] + dkf[k, d] * vd[k]
+                su[k, d] = du[d]
+            for d in range(nd, nd_all):
+                sp[k, d] = 0.0
+                su[k, d] = 0.0
+            _arx_tangent(state, params, dst, du, nd)
+            _arx_drive(state, params, out_u[k], 0.0)
+        return
+    dead = int(params[_DEAD])
+    lifted = params[_LIFTED] != 0.0
+    dp = np.zeros(nd_all)
+    dv = np.zeros(nd_all)
+    df = np.zeros(nd_all)
+    di = np.zeros(nd_all)
+    dud = np.zeros(nd_all)
+    p, v, f, i = state[_P], state[_V], state[_F], state[_I]
+    for k in range(n):
+        while nd < nd_all and start[nd] <= k:
+            nd += 1
+        out_p[k] = p
+        e = pd[k] - p
+        u = kp_si[k] * e + kf[k] * vd[k]
+        out_u[k] = u
+        for d in range(nd):
+            sp[k, d] = dp[d]
+            su[k, d] = dkp_si[k, d] * e - kp_si[k] * dp[d] + dkf[k, d] * vd[k]
+        for d in range(nd, nd_all):
+            sp[k, d] = 0.0
+            su[k, d] = 0.0
+        m = k - dead  # the command applied now is u_m; the line's initial commands are data
+        if m >= 0:
+            ud = out_u[m]
+            for d in range(nd):
+                dud[d] = su[m, d]
+        else:
+            ud = state[_LINE + dead - 1 - k]
+            for d in range(nd):
+                dud[d] = 0.0
+        fn = friction_nonlinear(params, v)
+        if lifted and _lifted_guard(params, v, f, i, ud, fn):
+            _lifted_tangent(params, dp, dv, df, di, dud, nd)
+            p, v, f, i = _lifted(params, p, v, f, i, ud, fn)
+        else:  # the sub-steps (also at rest, where they change nothing: the same bits as run)
+            p, v, f, i = _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd)
+    for j in range(dead - 1, -1, -1):  # the dead-time line at sample n, as run
+        state[_LINE + j] = out_u[n - 1 - j] if n - 1 - j >= 0 else state[_LINE + j - n]
+    state[_P], state[_V], state[_F], state[_I] = p, v, f, i
