@@ -375,16 +375,26 @@ def mpc_chunk(
     var_axis = np.empty(6 * nk, dtype=np.int64)
     var_gain = np.empty(6 * nk, dtype=np.int64)
     var_point = np.empty(6 * nk, dtype=np.int64)
+    var_prev = np.empty(6 * nk, dtype=np.int64)  # the same gain's previous free point, or -1
+    var_start = np.empty(6 * nk, dtype=np.int64)  # first window sample its basis reaches
+    # variables per axis in the order of their first sample (point, then gain): the order of
+    # the tangent directions, so that run_tangent writes each axis's block of sp, su directly
     nv = 0
     for a in range(3):
         if not moving[a]:
             continue
+        n_gain = 0
         for g in range(2):
             if (g == 0 and adj_kp[a]) or (g == 1 and adj_kf[a]):
-                for j in range(2, nk + 2):
+                n_gain += 1
+        for j in range(2, nk + 2):
+            for g in range(2):
+                if (g == 0 and adj_kp[a]) or (g == 1 and adj_kf[a]):
                     var_axis[nv] = a
                     var_gain[nv] = g
                     var_point[nv] = j
+                    var_prev[nv] = nv - n_gain if j > 2 else -1
+                    var_start[nv] = (j - 2) * kspace
                     nv += 1
     var_lo = np.zeros(3, dtype=np.int64)
     var_hi = np.zeros(3, dtype=np.int64)
@@ -392,37 +402,24 @@ def mpc_chunk(
         var_lo[var_axis[v]] = v
     for v in range(nv):
         var_hi[var_axis[v]] = v + 1
-    # per axis, its free points as tangent directions in the order of their first sample:
-    # dir_var[a, d] is the variable of direction d; the gain's change per unit of the point
-    # is its B-spline basis function (Kp in 1/s per (m/min)/mm)
-    n_dir = var_hi - var_lo
-    dir_var = np.zeros((3, max(1, 2 * nk)), dtype=np.int64)
-    dir_start = np.zeros((3, max(1, 2 * nk)), dtype=np.int64)
-    dir_kp = np.zeros((3, w, max(1, 2 * nk)))
-    dir_kf = np.zeros((3, w, max(1, 2 * nk)))
-    for a in range(3):
-        d = 0
-        for jk in range(2, nk + 2):
-            for v in range(var_lo[a], var_hi[a]):
-                if var_point[v] != jk:
-                    continue
-                dir_var[a, d] = v
-                dir_start[a, d] = (jk - 2) * kspace
-                for i in range(w):
-                    b = _basis(jk, i + 1, kspace, nk + 1)
-                    if var_gain[v] == 0:
-                        dir_kp[a, i, d] = _C * b
-                    else:
-                        dir_kf[a, i, d] = b
-                d += 1
-    tan_p = np.empty((w, max(1, 2 * nk)))
-    tan_u = np.empty((w, max(1, 2 * nk)))
+    # the gain's change per unit of each free point: its B-spline basis function (Kp in 1/s
+    # per (m/min)/mm), per window sample
+    dir_kp = np.zeros((w, nv))
+    dir_kf = np.zeros((w, nv))
+    for v in range(nv):
+        for i in range(w):
+            b = _basis(var_point[v], i + 1, kspace, nk + 1)
+            if var_gain[v] == 0:
+                dir_kp[i, v] = _C * b
+            else:
+                dir_kf[i, v] = b
     mq = np.empty((3, w))
+    act_hi = np.empty(3, dtype=np.int64)  # per axis: end of its variables active at a sample
     proj = np.empty((3, 3, w))  # P = I - t t' per window sample
     p0 = np.empty((3, w))
     u0 = np.empty((3, w))
-    sp = np.zeros((nv, w))
-    su = np.zeros((nv, w))
+    sp = np.zeros((w, nv))  # d p0 / d point, m per unit, per window sample and variable
+    su = np.zeros((w, nv))  # d u0 / d point, m/s per unit
     kpa = np.empty(w)
     kfa = np.empty(w)
     scratch = np.empty(states.shape[1])
@@ -466,24 +463,18 @@ def mpc_chunk(
                         u0[a, i] = 0.0
                     continue
                 stats[STAT_WINDOWS] += 1
-                nd = n_dir[a]
-                if idle[a] or nd == 0:
+                lo_v, hi_v = var_lo[a], var_hi[a]
+                if idle[a] or lo_v == hi_v:
                     _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, p0[a],
                               u0[a], scratch)
-                    for v in range(var_lo[a], var_hi[a]):
-                        sp[v, :] = 0.0
-                        su[v, :] = 0.0
+                    sp[:, lo_v:hi_v] = 0.0
+                    su[:, lo_v:hi_v] = 0.0
                     continue
                 _plan_gains(points, a, w, kspace, kpa, kfa)
                 scratch[:] = states[a]
                 run_tangent(scratch, params[a], pdT[a, k:k + w], vdT[a, k:k + w], kpa, kfa,
-                            dir_kp[a, :, :nd], dir_kf[a, :, :nd], dir_start[a, :nd], p0[a], u0[a],
-                            tan_p[:, :nd], tan_u[:, :nd])
-                for d in range(nd):
-                    v = dir_var[a, d]
-                    for i in range(w):
-                        sp[v, i] = tan_p[i, d]
-                        su[v, i] = tan_u[i, d]
+                            dir_kp[:, lo_v:hi_v], dir_kf[:, lo_v:hi_v], var_start[lo_v:hi_v],
+                            p0[a], u0[a], sp[:, lo_v:hi_v], su[:, lo_v:hi_v])
             # 2: linearised contour error around the nominal prediction
             j = -1
             nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
@@ -505,28 +496,36 @@ def mpc_chunk(
                 dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
                 dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
                 dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
-            # cost |P (dq + S d)|^2 with P = I - t t' per sample: plain loops over the nonzero
-            # part of each sensitivity (a control point acts from its basis function's start)
+            # cost |P (dq + S d)|^2 with P = I - t t' per sample, summed sample by sample over
+            # the variables already active there (a point acts from its basis function's
+            # start; sp is zero before): contiguous row updates, upper triangle of pmat
             for a in range(3):
                 for b in range(3):
                     for i in range(w):
                         proj[a, b, i] = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
                 for i in range(w):
                     mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
+            pmat[:, :] = 0.0
+            qvec[:] = 0.0
+            for i in range(w):
+                for a in range(3):
+                    act_hi[a] = var_lo[a]
+                    while act_hi[a] < var_hi[a] and var_start[act_hi[a]] <= i:
+                        act_hi[a] += 1
+                for v in range(nv):
+                    a = var_axis[v]
+                    if v >= act_hi[a]:
+                        continue
+                    c = sp[i, v]
+                    qvec[v] += c * mq[a, i]
+                    for b in range(a, 3):
+                        cb = c * proj[a, b, i]
+                        for u_ in range(max(v, var_lo[b]), act_hi[b]):
+                            pmat[v, u_] += cb * sp[i, u_]
             for v in range(nv):
-                a = var_axis[v]
-                s0 = (var_point[v] - 2) * kspace
-                t = 0.0
-                for i in range(s0, w):
-                    t += sp[v, i] * mq[a, i]
-                qvec[v] = 2.0 * _M2_TO_UM2 * t
+                qvec[v] *= 2.0 * _M2_TO_UM2
                 for u_ in range(v, nv):
-                    b = var_axis[u_]
-                    i0 = max(s0, (var_point[u_] - 2) * kspace)
-                    t = 0.0
-                    for i in range(i0, w):
-                        t += sp[v, i] * sp[u_, i] * proj[a, b, i]
-                    pmat[v, u_] = 2.0 * _M2_TO_UM2 * t
+                    pmat[v, u_] *= 2.0 * _M2_TO_UM2
                     pmat[u_, v] = pmat[v, u_]
             # smoothness (lam on steps between control points) and anchor (mean over them)
             for v in range(nv):
@@ -538,11 +537,12 @@ def mpc_chunk(
                 step_prev = kv - points[a, g, jk - 1]
                 pmat[v, v] += 2.0 * lam + 2.0 * anchor / nk
                 qvec[v] += 2.0 * lam * step_prev + 2.0 * anchor * (kv - base) / nk
-                if jk > 2:  # the step from the previous free control point
-                    pmat[v, v - 1] -= 2.0 * lam
-                    pmat[v - 1, v] -= 2.0 * lam
-                    pmat[v - 1, v - 1] += 2.0 * lam
-                    qvec[v - 1] -= 2.0 * lam * step_prev
+                vp = var_prev[v]
+                if vp >= 0:  # the step from the previous free control point
+                    pmat[v, vp] -= 2.0 * lam
+                    pmat[vp, v] -= 2.0 * lam
+                    pmat[vp, vp] += 2.0 * lam
+                    qvec[vp] -= 2.0 * lam * step_prev
             # 3: constraints: gain bounds and trust region per control point; eq. 2 rows
             m = 0
             for v in range(nv):
@@ -580,11 +580,11 @@ def mpc_chunk(
                         scale = 1.0 / lims[r]
                         reach = 0.0
                         for v in range(var_lo[a], var_hi[a]):
-                            cv = su[v, i]
+                            cv = su[i, v]
                             if r >= 1 and i >= 1:
-                                cv -= (1.0 if r == 1 else 2.0) * su[v, i - 1]
+                                cv -= (1.0 if r == 1 else 2.0) * su[i - 1, v]
                             if r == 2 and i >= 2:
-                                cv += su[v, i - 2]
+                                cv += su[i - 2, v]
                             amat[m, v] = cv * scale
                             reach += abs(cv * scale) * trust[v]
                         for v in range(var_lo[a]):
