@@ -414,7 +414,7 @@ def mpc_chunk(
             else:
                 dir_kf[i, v] = b
     mq = np.empty((3, w))
-    act_hi = np.empty(3, dtype=np.int64)  # per axis: end of its variables active at a sample
+    spp = np.empty((w, nv))  # sp with each column weighted by P's entry for one row axis
     proj = np.empty((3, 3, w))  # P = I - t t' per window sample
     p0 = np.empty((3, w))
     u0 = np.empty((3, w))
@@ -496,32 +496,24 @@ def mpc_chunk(
                 dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
                 dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
                 dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
-            # cost |P (dq + S d)|^2 with P = I - t t' per sample, summed sample by sample over
-            # the variables already active there (a point acts from its basis function's
-            # start; sp is zero before): contiguous row updates, upper triangle of pmat
+            # cost |P (dq + S d)|^2 with P = I - t t' per sample: Hessian 2 S' P S and gradient
+            # 2 S' P dq, one small matrix product per axis's block of rows
             for a in range(3):
                 for b in range(3):
                     for i in range(w):
                         proj[a, b, i] = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
                 for i in range(w):
                     mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
-            pmat[:, :] = 0.0
-            qvec[:] = 0.0
-            for i in range(w):
-                for a in range(3):
-                    act_hi[a] = var_lo[a]
-                    while act_hi[a] < var_hi[a] and var_start[act_hi[a]] <= i:
-                        act_hi[a] += 1
-                for v in range(nv):
-                    a = var_axis[v]
-                    if v >= act_hi[a]:
-                        continue
-                    c = sp[i, v]
-                    qvec[v] += c * mq[a, i]
-                    for b in range(a, 3):
-                        cb = c * proj[a, b, i]
-                        for u_ in range(max(v, var_lo[b]), act_hi[b]):
-                            pmat[v, u_] += cb * sp[i, u_]
+            for a in range(3):  # the rows of axis a: S_a' (P_a. o S) and S_a' mq_a
+                lo_v, hi_v = var_lo[a], var_hi[a]
+                if lo_v == hi_v:
+                    continue
+                for i in range(w):
+                    for u_ in range(nv):
+                        spp[i, u_] = sp[i, u_] * proj[a, var_axis[u_], i]
+                s_a = np.ascontiguousarray(sp[:, lo_v:hi_v].T)
+                pmat[lo_v:hi_v, :] = np.dot(s_a, spp)
+                qvec[lo_v:hi_v] = np.dot(s_a, mq[a])
             for v in range(nv):
                 qvec[v] *= 2.0 * _M2_TO_UM2
                 for u_ in range(v, nv):
