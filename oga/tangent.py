@@ -76,12 +76,29 @@ __all__ = ["run_tangent", "friction_slope"]
 
 
 @njit(cache=True, inline="always")
-def _smooth_sign_slope(x: float) -> float:
-    """Derivative of :func:`oga.simulate._smooth_sign` at ``x`` (zero where it is exactly +-1)."""
-    if x > _TANH_CUT or x < -_TANH_CUT:
-        return 0.0
+def _smooth_sign_and_slope(x: float) -> tuple[float, float]:
+    """:func:`oga.simulate._smooth_sign` at ``x`` and its derivative (zero where it is
+    exactly +-1)."""
     s = _smooth_sign(x)
-    return 1.0 - s * s
+    if x > _TANH_CUT or x < -_TANH_CUT:
+        return s, 0.0
+    return s, 1.0 - s * s
+
+
+@njit(cache=True, inline="always")
+def _cascade_friction(params, v):
+    """``(F_n, dF_n/dv)`` of a cascade axis at ``v`` (N, N s/m), sharing the exponentials;
+    ``F_n`` the same bits as :func:`oga.simulate.friction_nonlinear`."""
+    inv_eps = params[_INV_EPS]
+    s, ds = _smooth_sign_and_slope(v * inv_eps)
+    ds *= inv_eps
+    r = v * params[_INV_VS]
+    r2 = r * r
+    if r2 > params[_R2_CUT]:
+        return params[_FC] * s, params[_FC] * ds
+    ex = math.exp(-r2)
+    g = params[_FC] + params[_DFS] * ex
+    return g * s, g * ds - 2.0 * r * params[_INV_VS] * params[_DFS] * ex * s
 
 
 @njit(cache=True)
@@ -94,16 +111,9 @@ def friction_slope(params: np.ndarray, v: float) -> float:
     """
     if params[_KIND] == _ARX:
         inv_eps = params[_A_INV_EPS]
-        return params[_A_FC] * _smooth_sign_slope(v * inv_eps) * inv_eps + params[_A_VISC]
-    inv_eps = params[_INV_EPS]
-    s = _smooth_sign(v * inv_eps)
-    ds = _smooth_sign_slope(v * inv_eps) * inv_eps
-    r = v * params[_INV_VS]
-    r2 = r * r
-    if r2 > params[_R2_CUT]:
-        return params[_FC] * ds
-    ex = math.exp(-r2)
-    return (params[_FC] + params[_DFS] * ex) * ds - 2.0 * r * params[_INV_VS] * params[_DFS] * ex * s
+        _s, ds = _smooth_sign_and_slope(v * inv_eps)
+        return params[_A_FC] * ds * inv_eps + params[_A_VISC]
+    return _cascade_friction(params, v)[1]
 
 
 @njit(cache=True)
@@ -117,8 +127,7 @@ def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd):
     flim = params[_FLIM]
     for _ in range(int(params[_NSUB])):
         fc, i_next, linear, integrating = _pi_substep(ud, v, i, kv, inv_tn, h, flim)
-        fn = friction_nonlinear(params, v)
-        slope = friction_slope(params, v)
+        fn, slope = _cascade_friction(params, v)
         kv_lin = kv if linear else 0.0  # a limited force command does not move
         h_int = h if integrating else 0.0  # nor does a frozen integral
         for d in range(nd):
