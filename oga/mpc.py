@@ -108,8 +108,8 @@ def _chol_solve(low, b, out):
 def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
     """Minimise ``x'Px/2 + q'x`` subject to ``lo <= A x <= hi`` (first ``m`` rows of A).
 
-    Row ``r`` of A may be nonzero only in columns ``c0[r] .. c1[r] - 1`` (the rest
-    must be zero; the scans skip it).
+    Row ``r`` of A is read only in columns ``c0[r] .. c1[r] - 1``: its other entries are
+    taken as zero, whatever the array holds there.
 
     The dual active-set method of Goldfarb and Idnani (1983): start from the
     unconstrained minimum, take the most violated row, and move primal and dual
@@ -158,7 +158,8 @@ def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
                 ps = -1
         if pr < 0:
             return True
-        for i in range(nv):
+        rowv[:] = 0.0
+        for i in range(c0[pr], c1[pr]):
             rowv[i] = ps * a[pr, i]
         bp = lo[pr] if ps > 0 else -hi[pr]
         _chol_solve(low, rowv, gp)
@@ -541,8 +542,7 @@ def mpc_chunk(
                 a = var_axis[v]
                 g = var_gain[v]
                 kv = points[a, g, var_point[v]]
-                for c in range(nv):
-                    amat[m, c] = 1.0 if c == v else 0.0
+                amat[m, v] = 1.0
                 if g == 0:
                     lo_b, hi_b, tr = kp_lo[a] - kv, kp_hi[a] - kv, trust_kp
                 else:
@@ -579,10 +579,6 @@ def mpc_chunk(
                                 cv += su[i - 2, v]
                             amat[m, v] = cv * scale
                             reach += abs(cv * scale) * trust[v]
-                        for v in range(var_lo[a]):
-                            amat[m, v] = 0.0
-                        for v in range(var_hi[a], nv):
-                            amat[m, v] = 0.0
                         lo_r = -1.0 - nominal * scale
                         hi_r = 1.0 - nominal * scale
                         if reach > min(-lo_r, hi_r) * (1.0 - 1e-12):

@@ -56,17 +56,22 @@ def test_few_active_rows_always_solved():
 
 def test_rows_confined_to_column_ranges_solved_as_dense():
     # rows of one axis touch only that axis's variables (as the eq. 2 rows do): the solver
-    # scans only those columns, and must reach the dense solver's KKT point
+    # reads only those columns (whatever the array holds elsewhere), and must reach the
+    # dense solver's KKT point of the matrix with zeros there
+    rng = np.random.default_rng(7)
     for seed in range(30):
         p, q, a, lo, hi = random_qp(seed)
         c0 = np.where(np.arange(a.shape[0]) % 2 == 0, 0, 6).astype(np.int64)
         c1 = c0 + 6
+        garbage = a.copy()
         for r in range(a.shape[0]):
             a[r, :c0[r]] = 0.0
             a[r, c1[r]:] = 0.0
+            garbage[r, :c0[r]] = rng.normal(size=c0[r]) * 1e3
+            garbage[r, c1[r]:] = rng.normal(size=a.shape[1] - c1[r]) * 1e3
         x = np.empty(p.shape[0])
         x_dense = np.empty(p.shape[0])
-        ok = _qp_active_set(p, q, a, lo, hi, a.shape[0], c0, c1, x)
+        ok = _qp_active_set(p, q, garbage, lo, hi, a.shape[0], c0, c1, x)
         assert ok == _qp_active_set(p, q, a, lo, hi, a.shape[0], *_dense(a), x_dense)
         if ok:
             assert kkt_ok(p, q, a, lo, hi, x)
