@@ -26,12 +26,14 @@ contours), coming to rest one interval before the window's end, and recedes:
    where the linearisation holds, and eq. 2 on the linearised velocity command
    over the whole window (with a small margin); the QP is solved exactly by the
    dual active-set method of Goldfarb and Idnani;
-4. exact line search: the step scaled by 1, 1/2, 1/4 and 0 (the current plan)
-   is simulated exactly from the true state; among the scales whose velocity
-   command meets eq. 2 over the whole window, the one with the least exact cost
-   is taken, so an iteration never makes the exact prediction worse; where none
-   does, a scale that keeps eq. 2 over the samples committed now and next (the
-   next window's fallback), at least now, with the least excess beyond;
+4. exact line search: the full step is simulated exactly from the true state and
+   taken if its velocity command meets eq. 2 over the whole window and it lowers the
+   window's exact cost below the current plan's (the usual case); otherwise the steps
+   scaled by 1/2 and 1/4 are simulated too and, among the scales (0: the current plan)
+   whose command meets eq. 2 over the whole window, the one with the least exact cost
+   is taken, so an iteration never makes the exact prediction worse; where none does,
+   a scale that keeps eq. 2 over the samples committed now and next (the next window's
+   fallback), at least now, with the least excess beyond;
 5. steps 1-4 are repeated ``iters`` times at most (sequential QP, each linearised
    around the last plan), until the line search keeps the plan or an iteration
    lowers the window's exact cost by less than ``stop``;
