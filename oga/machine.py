@@ -47,6 +47,7 @@ __all__ = [
     "PRESETS",
     "load_machine",
     "machine_from_dict",
+    "json_digest",
 ]
 
 #: 1 (m/min)/mm expressed in 1/s.
@@ -264,9 +265,24 @@ class Machine(_Frozen):
     def digest(self) -> str:
         """SHA-256 of the canonical JSON of this machine (identifies it in a table)."""
         # without the unset model kind (an axis has exactly one)
-        data = self.model_dump(mode="json", exclude_none=True)
-        blob = json.dumps(data, sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(blob.encode()).hexdigest()
+        return json_digest(self.model_dump(mode="json", exclude_none=True))
+
+
+def json_digest(data) -> str:
+    """SHA-256 (hex) of the canonical JSON of ``data`` (sorted keys, no spaces).
+
+    Parameters
+    ----------
+    data : JSON-serialisable object
+        E.g. a ``model_dump(mode="json")``.
+
+    Returns
+    -------
+    str
+        64 hex digits.
+    """
+    blob = json.dumps(data, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()
 
 
 def _format_validation(err: ValidationError, where: str) -> str:

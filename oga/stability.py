@@ -9,11 +9,18 @@ found between grid points is refined with Brent's method. The phase margin is th
 least ``180 + arg L`` over the gain crossovers, the gain margin the least
 ``-20 log10 |L|`` over the phase crossovers (the Nyquist frequency included, where
 ``L`` is real).
+
+``L = Kp H`` with ``H`` the loop at ``Kp = 1 1/s``: the lifted inner loops, ``H`` on the
+grid and the phase crossovers (a positive Kp moves neither ``arg L`` nor the zeros of
+``Im L``) are computed once per axis model and timing; each Kp adds its gain crossovers
+and a closed-loop eigenvalue problem. Both are memoised (a few dozen entries) by what
+they depend on, not by axis name.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +28,7 @@ from scipy.optimize import brentq
 
 from oga.errors import OptionError
 from oga.linear import position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
 
 __all__ = ["Margins", "StabilityRange", "decimal_grid", "margins", "stable_range"]
 
@@ -117,21 +124,178 @@ class StabilityRange:
 
 
 def _response(a, b, c, w, te):
-    """``L(exp(j w Te))`` for every frequency of ``w`` (shape (n,)), complex (n,)."""
+    """``C (zI - A)^-1 B`` at ``z = exp(j w Te)`` for every frequency of ``w`` (one batched solve).
+
+    Parameters
+    ----------
+    a, b, c : ndarray, shapes (n, n), (n, 1), (1, n)
+        Discrete state space of period ``te``.
+    w : array_like, shape (G,)
+        Frequencies, rad/s.
+    te : float
+        Period, s.
+
+    Returns
+    -------
+    ndarray of complex, shape (G,)
+    """
     z = np.exp(1j * np.asarray(w, dtype=np.float64) * te)
     n = a.shape[0]
-    mats = z[:, None, None] * np.eye(n) - a
+    mats = np.empty((z.size, n, n), dtype=complex)  # zI - A, stacked
+    mats[:] = -a
+    diag = np.arange(n)
+    mats[:, diag, diag] += z[:, None]
     x = np.linalg.solve(mats, np.broadcast_to(b.astype(complex), (z.size, n, 1)))
     return (c @ x)[:, 0, 0]
 
 
 def _root(f, lo: float, hi: float, f_lo: float, f_hi: float) -> float:
-    """The root of ``f`` in ``[lo, hi]`` (Brent), where ``f_lo``, ``f_hi`` bracket it."""
+    """The root of ``f`` in ``[lo, hi]`` (Brent), where ``f_lo``, ``f_hi`` bracket it.
+
+    ``f_lo`` and ``f_hi`` (the grid's values) stand for ``f`` at the ends, where Brent's
+    method starts: two evaluations fewer, and the signs are the ones the bracket was
+    chosen by.
+    """
     if f_lo == 0.0:
         return lo
     if f_hi == 0.0:
         return hi
-    return brentq(f, lo, hi, xtol=1e-12, rtol=1e-14)
+    ends = {lo: f_lo, hi: f_hi}
+
+    def g(w):
+        return ends[w] if w in ends else f(w)
+
+    return brentq(g, lo, hi, xtol=1e-12, rtol=1e-14)
+
+
+class _Loop:
+    """The part of one axis's position loop that does not depend on Kp.
+
+    The open loop is ``L = Kp H`` with ``H`` the open loop of
+    :func:`oga.linear.position_open_loop` at ``Kp = 1 1/s`` (the lifted inner loops and the
+    dead time). ``H`` on the frequency grid, its unwrapped phase and the phase crossovers
+    (``Im H = 0`` with ``Re H < 0``: a positive Kp moves none of them) are computed here once;
+    a Kp then costs its gain crossovers and one eigenvalue problem (:func:`_margins`).
+
+    Attributes
+    ----------
+    a, b, c : ndarray, shapes (n, n), (n, 1), (1, n)
+        State space of ``H`` (period Te): input the velocity command (m/s), output the
+        position (m) times ``Kp = 1 1/s``, so ``H`` is in s.
+    te : float
+        Period, s.
+    w : ndarray, shape (G,)
+        The logarithmic frequency grid, rad/s.
+    h : ndarray of complex, shape (G,)
+        ``H(exp(j w Te))`` on the grid, s.
+    log_mag : ndarray, shape (G,)
+        ``ln |H|`` on the grid (``H`` in s).
+    phase : ndarray, shape (G,)
+        Unwrapped ``arg H`` on the grid, rad (``arg L`` for every Kp > 0).
+    gm_db : float
+        ``min -20 log10 |H|`` over the phase crossovers, dB (``inf`` if none): the gain
+        margin at Kp (1/s) is ``gm_db - 20 log10 Kp``.
+    w_phase_crossover_rad_s : float
+        Where ``gm_db`` is read, rad/s (``nan`` if no phase crossover).
+    """
+
+    def __init__(self, machine: Machine, axis: str):
+        self.a, self.b, self.c, _ = position_open_loop(machine, axis, 1.0)
+        self.te = machine.te
+        self.w = np.geomspace(_W_LOW_TE / self.te, math.pi / self.te, _GRID_POINTS)
+        self.h = _response(self.a, self.b, self.c, self.w, self.te)
+        self.log_mag = np.log(np.abs(self.h))
+        self.phase = np.unwrap(np.angle(self.h))
+        for arr in (self.a, self.b, self.c, self.w, self.h, self.log_mag, self.phase):
+            arr.flags.writeable = False
+
+        def imag(w):
+            return self.response(w).imag
+
+        w, h = self.w, self.h
+        turns = np.floor((self.phase + math.pi) / (2.0 * math.pi))  # changes where it passes -180
+        crossings = [
+            _root(imag, w[i], w[i + 1], h[i].imag, h[i + 1].imag)
+            for i in np.flatnonzero(turns[:-1] != turns[1:])
+        ]
+        if h[-1].real < 0.0:  # at Nyquist H is real: a phase crossover if negative
+            crossings.append(w[-1])
+        self.gm_db, self.w_phase_crossover_rad_s = math.inf, math.nan
+        for wc in crossings:
+            gm_i = -20.0 * math.log10(abs(self.response(wc)))
+            if gm_i < self.gm_db:
+                self.gm_db, self.w_phase_crossover_rad_s = gm_i, float(wc)
+
+    def response(self, w: float) -> complex:
+        """``H(exp(j w Te))`` at one frequency ``w`` (rad/s), s."""
+        return _response(self.a, self.b, self.c, np.atleast_1d(w), self.te)[0]
+
+
+def _margins(loop: _Loop, kp: float) -> Margins:
+    """The :class:`Margins` of ``L = Kp H`` at ``kp`` ((m/min)/mm, positive and finite)."""
+    kp_si = kp * KP_SI_PER_M_MIN_PER_MM
+    log_kp = math.log(kp_si)
+    w, h, phase = loop.w, loop.h, loop.phase
+
+    def log_mag(w):
+        return math.log(abs(loop.response(w))) + log_kp
+
+    mag = loop.log_mag + log_kp  # ln |L| on the grid
+    pm, w_gc = math.inf, math.nan
+    for i in np.flatnonzero(np.sign(mag[:-1]) != np.sign(mag[1:])):
+        wc = _root(log_mag, w[i], w[i + 1], mag[i], mag[i + 1])
+        # the unwrapped phase at wc: the grid phase plus the (small) change from w[i]
+        ph = phase[i] + np.angle(loop.response(wc) / h[i])
+        pm_i = (math.degrees(ph) + 360.0) % 360.0 - 180.0
+        if pm_i < pm:
+            pm, w_gc = pm_i, wc
+
+    stable = bool(np.max(np.abs(np.linalg.eigvals(loop.a - loop.b @ (kp_si * loop.c)))) < 1.0)
+    return Margins(
+        kp_m_min_per_mm=kp,
+        pm_deg=float(pm),
+        gm_db=float(loop.gm_db - 20.0 * math.log10(kp_si)),
+        w_gain_crossover_rad_s=float(w_gc),
+        w_phase_crossover_rad_s=loop.w_phase_crossover_rad_s,
+        stable=stable,
+    )
+
+
+#: The Kp-independent loops (:class:`_Loop`, about 160 kB each) of the last few axis models,
+#: by :func:`_loop_key`: the lifted inner loops and the frequency grid are most of the cost.
+_LOOPS: OrderedDict[str, _Loop] = OrderedDict()
+_LOOPS_KEPT = 16
+#: Margins over the Kp grid, ``(kp, pm_deg, gm_db, stable)``, by (loop key, Kp span, Kp step).
+_TABLES: OrderedDict[tuple, tuple[np.ndarray, ...]] = OrderedDict()
+_TABLES_KEPT = 64
+
+
+def _memo(store: OrderedDict, key, kept: int, compute):
+    """``store[key]``, computed by ``compute()`` if missing; keeps the ``kept`` latest used."""
+    try:
+        store.move_to_end(key)
+        return store[key]
+    except KeyError:
+        value = store[key] = compute()
+        while len(store) > kept:
+            store.popitem(last=False)
+        return value
+
+
+def _loop_key(machine: Machine, axis: str) -> str:
+    """What the position loop of ``axis`` depends on: its model (not its limits) and the timing.
+
+    Axes with the same model (X and Y of ucp710) share the key, whatever their names.
+    MachineError if the machine lacks the axis.
+    """
+    model = machine.axis(axis).model_dump(mode="json", exclude_none=True, exclude={"limits"})
+    return json_digest({"model": model, "timing": machine.timing.model_dump(mode="json")})
+
+
+def _loop(machine: Machine, axis: str, key: str | None = None) -> _Loop:
+    """The memoised :class:`_Loop` of ``axis`` (``key``: its :func:`_loop_key`, if known)."""
+    key = _loop_key(machine, axis) if key is None else key
+    return _memo(_LOOPS, key, _LOOPS_KEPT, lambda: _Loop(machine, axis))
 
 
 def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
@@ -161,54 +325,7 @@ def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
         raise OptionError(f"kp_m_min_per_mm: expected a number, got {kp_m_min_per_mm!r}") from None
     if not (math.isfinite(kp) and kp > 0.0):
         raise OptionError(f"kp_m_min_per_mm: must be positive and finite, got {kp}")
-    a, b, c, _ = position_open_loop(machine, axis, kp * KP_SI_PER_M_MIN_PER_MM)
-    te = machine.te
-
-    def resp(w):
-        return _response(a, b, c, np.atleast_1d(w), te)[0]
-
-    def log_mag(w):
-        return math.log(abs(resp(w)))
-
-    def imag(w):
-        return resp(w).imag
-
-    w = np.geomspace(_W_LOW_TE / te, math.pi / te, _GRID_POINTS)
-    lw = _response(a, b, c, w, te)
-    mag = np.log(np.abs(lw))
-    phase = np.unwrap(np.angle(lw))
-
-    pm, w_gc = math.inf, math.nan
-    for i in np.flatnonzero(np.sign(mag[:-1]) != np.sign(mag[1:])):
-        wc = _root(log_mag, w[i], w[i + 1], mag[i], mag[i + 1])
-        # the unwrapped phase at wc: the grid phase plus the (small) change from w[i]
-        ph = phase[i] + np.angle(resp(wc) / lw[i])
-        pm_i = (math.degrees(ph) + 360.0) % 360.0 - 180.0
-        if pm_i < pm:
-            pm, w_gc = pm_i, wc
-
-    turns = np.floor((phase + math.pi) / (2.0 * math.pi))  # changes where the phase passes -180
-    crossings = [
-        _root(imag, w[i], w[i + 1], lw[i].imag, lw[i + 1].imag)
-        for i in np.flatnonzero(turns[:-1] != turns[1:])
-    ]
-    if lw[-1].real < 0.0:  # at Nyquist L is real: a phase crossover if negative
-        crossings.append(w[-1])
-    gm, w_pc = math.inf, math.nan
-    for wc in crossings:
-        gm_i = -20.0 * math.log10(abs(resp(wc)))
-        if gm_i < gm:
-            gm, w_pc = gm_i, wc
-
-    stable = bool(np.max(np.abs(np.linalg.eigvals(a - b @ c))) < 1.0)
-    return Margins(
-        kp_m_min_per_mm=kp,
-        pm_deg=float(pm),
-        gm_db=float(gm),
-        w_gain_crossover_rad_s=float(w_gc),
-        w_phase_crossover_rad_s=float(w_pc),
-        stable=stable,
-    )
+    return _margins(_loop(machine, axis), kp)
 
 
 def decimal_grid(lo: float, hi: float, step: float) -> np.ndarray:
@@ -225,10 +342,6 @@ def decimal_grid(lo: float, hi: float, step: float) -> np.ndarray:
     return np.round(lo + np.arange(n) * step, _KP_DECIMALS)
 
 
-#: stable_range results by (machine digest, axis): the margins take about a second per axis.
-_RANGES: dict[tuple[str, str], "StabilityRange"] = {}
-
-
 def stable_range(machine: Machine, axis: str) -> StabilityRange:
     """The stable Kp range of one axis over the machine's Kp grid.
 
@@ -237,6 +350,9 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     ``PM >= pm_min_deg`` and ``GM >= gm_min_db``, and it lies inside
     ``kp_bounds_m_min_per_mm``. The range is the contiguous run of qualifying
     grid values (the lowest run if there are several, with status ``"disjoint"``).
+
+    The margins over the grid are memoised by what they depend on (the axis model,
+    the timing and the grid), so axes with the same model are computed once.
 
     Parameters
     ----------
@@ -249,20 +365,31 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     -------
     StabilityRange
     """
-    machine.axis(axis)
-    key = (machine.digest(), axis)
-    if key not in _RANGES:
-        _RANGES[key] = _stable_range(machine, axis)
-    return _RANGES[key]
-
-
-def _stable_range(machine: Machine, axis: str) -> StabilityRange:
     g = machine.gains
+    loop_key = _loop_key(machine, axis)
+    kp, pm, gm, stable = _memo(
+        _TABLES,
+        (loop_key, g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm),
+        _TABLES_KEPT,
+        lambda: _margin_table(_loop(machine, axis, loop_key), g),
+    )
+    return _summarise(axis, g, kp, pm, gm, stable)
+
+
+def _margin_table(loop: _Loop, g: GainSettings) -> tuple[np.ndarray, ...]:
+    """``(kp, pm_deg, gm_db, stable)`` over the Kp grid of ``g``, read-only arrays of shape (M,)."""
     kp = decimal_grid(*g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm)
-    found = [margins(machine, axis, k) for k in kp]
+    found = [_margins(loop, float(k)) for k in kp]
     pm = np.array([m.pm_deg for m in found])
     gm = np.array([m.gm_db for m in found])
     stable = np.array([m.stable for m in found])
+    for arr in (kp, pm, gm, stable):
+        arr.flags.writeable = False
+    return kp, pm, gm, stable
+
+
+def _summarise(axis: str, g: GainSettings, kp, pm, gm, stable) -> StabilityRange:
+    """The :class:`StabilityRange` of ``axis`` from its margins over the Kp grid."""
     lo_b, hi_b = g.kp_bounds_m_min_per_mm
     inside = (kp >= lo_b - 1e-9) & (kp <= hi_b + 1e-9)
     good = stable & (pm >= g.pm_min_deg) & (gm >= g.gm_min_db) & inside
@@ -284,8 +411,6 @@ def _stable_range(machine: Machine, axis: str) -> StabilityRange:
                 f"axis {axis}: several runs meet {criteria}; the lowest "
                 f"[{kp_min}, {kp_max}] is used, not {others}"
             )
-    for arr in (kp, pm, gm, stable):
-        arr.flags.writeable = False
     return StabilityRange(
         axis=axis,
         status=status,

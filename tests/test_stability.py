@@ -90,6 +90,26 @@ def test_ucp710_stable_range_is_1_to_3(axis):
     assert r.pm_deg[below] >= 70.0 and r.gm_db[below] >= 10.0
 
 
+def test_stable_range_follows_the_axis_model_not_its_name():
+    # X and Y of ucp710 have the same model: the same margins, each under its own name
+    x, y = stable_range(UCP, "x"), stable_range(UCP, "y")
+    assert np.array_equal(x.pm_deg, y.pm_deg) and np.array_equal(x.gm_db, y.gm_db)
+    assert (x.axis, y.axis) == ("x", "y")
+    assert y.message == x.message.replace("axis x:", "axis y:")
+    # a Y with half the velocity-loop gain is another loop: its own margins (python-control
+    # agrees), a shorter range, and X is unchanged
+    data = UCP.model_dump()
+    data["axes"]["y"]["cascade"]["kv_n_s_m"] /= 2
+    soft = machine_from_dict(data)
+    soft_y = stable_range(soft, "y")
+    i = int(np.flatnonzero(soft_y.kp == 3.0)[0])
+    _, gm_db, pm, _, _ = _control_margins(soft, "y", 3.0)
+    assert soft_y.pm_deg[i] == pytest.approx(pm, abs=0.5)  # 39.8 deg against 70.3 for X
+    assert soft_y.gm_db[i] == pytest.approx(gm_db, abs=0.2)
+    assert soft_y.kp_max < x.kp_max
+    assert np.array_equal(stable_range(soft, "x").pm_deg, x.pm_deg)
+
+
 def test_stable_range_respects_bounds_and_reports_empty():
     r = stable_range(_with_gains(kp_bounds_m_min_per_mm=(2.0, 2.5)), "x")
     assert (r.status, r.kp_min, r.kp_max) == ("ok", 2.0, 2.5)
