@@ -21,6 +21,15 @@ and leaving that vertex (the 2-D pseudo-normal), which is consistent on both
 sides of a corner, even a sharp reversal. Zero-length segments (the path
 standing still, repeated setpoints at start and end) have no direction and
 are skipped: their point is shared with the neighbouring moving segments.
+
+Speed
+-----
+:func:`ce_series` (and :func:`ce_at` in other compiled loops) finds each sample's
+nearest segment from the previous sample's: an index of the path
+(:func:`path_index`: bounding spheres and clearances of segments, leaves of 4 and
+blocks of 16) proves that no other segment of the window can be nearer, usually by
+looking at three segments. The answer is exactly that of the plain scan of
+:func:`nearest_segment` over the window (the same segment, the same bits).
 """
 
 from __future__ import annotations
@@ -40,6 +49,7 @@ __all__ = [
     "window_bounds",
     "ce_series",
     "ce_at",
+    "ce2_at",
     "path_index",
     "contour_error",
     "contour_error_of",
@@ -158,14 +168,20 @@ def ce_point(pd, lo, hi, x, y, z, e1, e2, signed):
     return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
 
 
+@njit(cache=True, inline="always")
+def _point_d2(pd, i, x, y, z):
+    """Squared distance (m^2) from the point (x, y, z) to the vertex ``pd[i]``."""
+    rx = x - pd[i, 0]
+    ry = y - pd[i, 1]
+    rz = z - pd[i, 2]
+    return rx * rx + ry * ry + rz * rz
+
+
 @njit(cache=True)
 def _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best):
     """:func:`ce_point` from the nearest segment ``(bi, bt, best)`` of the window ``lo..hi``."""
     if bi < 0:  # standing still over the whole window
-        rx = x - pd[lo, 0]
-        ry = y - pd[lo, 1]
-        rz = z - pd[lo, 2]
-        return np.sqrt(rx * rx + ry * ry + rz * rz)
+        return np.sqrt(_point_d2(pd, lo, x, y, z))
     dist = np.sqrt(best)
     if not signed or dist == 0.0:
         return dist
@@ -246,6 +262,25 @@ def window_bounds(count, k, window):
 
 
 @njit(cache=True)
+def _windows(count, window):
+    """:func:`window_bounds` of every sample, ``(lo, hi)`` int arrays of shape (N,), in one
+    merge-like pass (``count`` and so both bounds are non-decreasing in ``k``)."""
+    n = count.shape[0]
+    lo = np.empty(n, dtype=np.int64)
+    hi = np.empty(n, dtype=np.int64)
+    a = 0  # first index with count >= count[k] - window
+    b = 0  # first index with count > count[k] + window
+    for k in range(n):
+        while a < n and count[a] < count[k] - window:
+            a += 1
+        while b < n and count[b] <= count[k] + window:
+            b += 1
+        lo[k] = a
+        hi[k] = b - 1
+    return lo, hi
+
+
+@njit(cache=True)
 def ce_series(pd, pa, window, e1, e2, signed):
     """Contour error of every sample ``pa[k]`` against ``pd`` near ``k``.
 
@@ -266,103 +301,205 @@ def ce_series(pd, pa, window, e1, e2, signed):
         Contour error in metres.
     """
     n = pd.shape[0]
-    centre, radius, lo, hi = path_index(pd, window)
+    tree, lo, hi = path_index(pd, window)
     out = np.empty(n)
+    near = -1
     for k in range(n):
-        out[k] = ce_at(pd, centre, radius, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2], e1,
-                       e2, signed)
+        out[k], near = ce_at(pd, tree, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2], e1, e2,
+                             signed, near)
     return out
 
 
 @njit(cache=True)
 def path_index(pd, window):
-    """What :func:`ce_at` needs besides the path ``pd`` (N, 3): ``(centre, radius, lo, hi)``,
-    a bounding sphere per block of segments and every sample's :func:`window_bounds`
-    (int arrays, shape (N,))."""
-    centre, radius = _block_spheres(pd)
-    count = moving_count(pd)
-    lo = np.searchsorted(count, count - window, side="left")
-    hi = np.searchsorted(count, count + window, side="right") - 1
-    return centre, radius, lo, hi
+    """What :func:`ce_at` needs besides the path: ``(tree, lo, hi)``.
+
+    Parameters
+    ----------
+    pd : ndarray, shape (N, 3), float64
+        Polyline vertices (setpoints), metres.
+    window : int
+        Moving segments searched before and after each sample (:func:`window_bounds`).
+
+    Returns
+    -------
+    tree : tuple
+        ``(segs, leaves, blocks, span)``: per segment, per leaf of ``_LEAF`` segments
+        and per block of ``_BLOCK`` segments, a bounding sphere and a clearance, arrays of
+        shape (n, 5) holding the centre, the radius and the clearance, metres
+        (:func:`_spheres`, :func:`_clearance`); ``span`` (int) the block distance the
+        clearances cover.
+    lo, hi : ndarray of int64, shape (N,)
+        Every sample's :func:`window_bounds`.
+    """
+    lo, hi = _windows(moving_count(pd), window)
+    span = 0  # blocks between the first and the last block of a sample's window
+    for k in range(pd.shape[0]):
+        if hi[k] > lo[k]:
+            span = max(span, (hi[k] - 1) // _BLOCK - lo[k] // _BLOCK)
+    span = min(span, _CLEAR_BLOCKS)
+    blocks = _spheres(pd, _BLOCK)
+    _clearance(blocks, blocks[:0], span)
+    leaves = _spheres(pd, _LEAF)
+    _clearance(leaves, blocks, 2 * _FAN - 1)
+    segs = _spheres(pd, 1)
+    _clearance(segs, leaves, 2 * _FAN - 1)
+    return (segs, leaves, blocks, span), lo, hi
+
+
+@njit(cache=True, inline="always")
+def ce_at(pd, tree, lo, hi, k, x, y, z, e1, e2, signed, hint):
+    """Contour error of the point ``(x, y, z)`` taken at sample ``k``, as :func:`ce_series`.
+
+    The result does not depend on ``hint``, only the time it takes: pass the segment
+    this function returned for a nearby point (the previous sample's), or -1.
+
+    Parameters
+    ----------
+    pd : ndarray, shape (N, 3), float64
+        Desired positions (setpoints), metres.
+    tree : tuple
+        From :func:`path_index`.
+    lo, hi : int
+        Window of sample ``k`` from :func:`path_index`.
+    k : int
+        Sample index.
+    x, y, z : float
+        The actual point, metres.
+    e1, e2, signed
+        Plane axes and signing (see :func:`ce_point`).
+    hint : int
+        A segment index likely to be the nearest (any value is safe), -1 for none.
+
+    Returns
+    -------
+    ce : float
+        Contour error, metres (as :func:`ce_point` over ``lo..hi``).
+    i : int
+        The nearest segment (the first of least distance, as :func:`nearest_segment`),
+        -1 if the window stands still: the hint for the next sample.
+    """
+    bi, bt, best = _nearest_pruned(pd, tree, lo, hi, k, x, y, z, hint)
+    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best), bi
+
+
+@njit(cache=True, inline="always")
+def ce2_at(pd, tree, lo, hi, k, x, y, z, hint):
+    """Squared contour error of the point ``(x, y, z)`` taken at sample ``k``, cheaper than
+    squaring :func:`ce_at` (no sign, no square root).
+
+    The squared distance that :func:`ce_at` takes the root of: ``ce_at(...)[0] ** 2``
+    up to the rounding of the root and the square (2 ulp). Arguments as :func:`ce_at`.
+
+    Returns
+    -------
+    ce2 : float
+        Squared contour error, m^2.
+    i : int
+        The nearest segment as :func:`ce_at` returns it (the hint for the next sample).
+    """
+    bi, _bt, best = _nearest_pruned(pd, tree, lo, hi, k, x, y, z, hint)
+    if bi < 0:  # standing still over the whole window
+        return _point_d2(pd, lo, x, y, z), bi
+    return best, bi
+
+
+#: Nodes per node of the next level of the path index: level 0 the segments, level 1
+#: the leaves of ``_LEAF`` segments, level 2 the blocks of ``_BLOCK`` segments.
+_FAN = 4
+_LEAF = _FAN
+_BLOCK = _FAN * _FAN
+#: Largest block distance the clearances cover (bounds their cost on long windows).
+_CLEAR_BLOCKS = 64
+#: Relative and absolute (m) enlargement of every sphere and shrinking of every
+#: clearance: far above the rounding of the distances compared, so every test is safe.
+_REL = 1e-9
+_ABS = 1e-12
 
 
 @njit(cache=True)
-def ce_at(pd, centre, radius, lo, hi, k, x, y, z, e1, e2, signed):
-    """Contour error (m) of the point ``(x, y, z)`` (m) taken at sample ``k``, as in
-    :func:`ce_series`; ``centre, radius`` and the window ``lo, hi`` of sample ``k``
-    from :func:`path_index`."""
-    bi, bt, best = _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z)
-    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
+def _spheres(pd, size):
+    """A sphere around each run of ``size`` consecutive segments (their vertices).
 
-
-#: Segments per block of :func:`_block_spheres`.
-_BLOCK = 16
-
-
-@njit(cache=True)
-def _block_spheres(pd):
-    """A sphere around each block of ``_BLOCK`` consecutive segments (their vertices).
-
-    Returns ``(centre (B, 3), radius (B,))`` with block ``b`` holding the segments
-    ``b * _BLOCK .. (b + 1) * _BLOCK - 1``. The radius is enlarged by a relative
-    1e-9 and 1e-12 m, far above rounding, so the distance bound it gives is safe.
+    Returns an array of shape (B, 5): centre (3), radius, and a clearance column (set by
+    :func:`_clearance`), metres; row ``b`` holds the segments ``b * size .. (b + 1) *
+    size - 1``. The radius is enlarged by ``_REL`` and ``_ABS``, so the distance bound
+    it gives is safe.
     """
     n_seg = max(pd.shape[0] - 1, 0)
-    nb = (n_seg + _BLOCK - 1) // _BLOCK
-    centre = np.empty((nb, 3))
-    radius = np.empty(nb)
+    nb = (n_seg + size - 1) // size
+    out = np.empty((nb, 5))
     for b in range(nb):
-        i0 = b * _BLOCK
-        i1 = min(i0 + _BLOCK, n_seg)  # last vertex of the block
+        i0 = b * size
+        i1 = min(i0 + size, n_seg)  # last vertex of the run
         for a in range(3):
             lo_a = pd[i0, a]
             hi_a = pd[i0, a]
             for i in range(i0 + 1, i1 + 1):
                 lo_a = min(lo_a, pd[i, a])
                 hi_a = max(hi_a, pd[i, a])
-            centre[b, a] = 0.5 * (lo_a + hi_a)
+            out[b, a] = 0.5 * (lo_a + hi_a)
         r2 = 0.0
         for i in range(i0, i1 + 1):
-            dx = pd[i, 0] - centre[b, 0]
-            dy = pd[i, 1] - centre[b, 1]
-            dz = pd[i, 2] - centre[b, 2]
-            r2 = max(r2, dx * dx + dy * dy + dz * dz)
-        radius[b] = np.sqrt(r2) * (1.0 + 1e-9) + 1e-12
-    return centre, radius
+            r2 = max(r2, _point_d2(pd, i, out[b, 0], out[b, 1], out[b, 2]))
+        out[b, 3] = np.sqrt(r2) * (1.0 + _REL) + _ABS
+        out[b, 4] = np.inf
+    return out
 
 
 @njit(cache=True)
-def _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z):
-    """:func:`nearest_segment` over ``lo..hi``, skipping blocks that provably hold no nearest segment.
+def _clearance(nodes, parent, reach):
+    """Fill ``nodes[:, 4]`` with each node's clearance, metres.
 
-    An upper bound of the least squared distance comes from the setpoint ``pd[k]``
-    (a point of the path, where a moving segment of the window ends) and from the
-    segments of the block holding vertex ``k``; a block whose sphere lies farther
-    than the bound cannot hold the minimum and is skipped. The others are scanned in
-    index order with the same strict comparison as :func:`nearest_segment`, so the
-    answer is the same: the first segment with the least distance. Should the
-    bound not be met (``pd[k]`` on no moving segment of the window), every block is
-    scanned.
+    The clearance of node ``a`` of a level is a lower bound of the distance from its
+    segments to every segment of the path outside nodes ``a - 1 .. a + 1``, up to
+    ``span`` blocks away (:func:`path_index`): a point within ``r`` of a segment of
+    node ``a`` whose clearance exceeds ``2 r`` is farther than ``r`` from all of them.
+    Top level (the blocks, ``parent`` empty): from the spheres of the blocks 2 to
+    ``reach`` away. Lower levels (``parent`` the level above, already filled, and
+    ``reach = 2 _FAN - 1``): the parent's clearance (the segments outside the parent
+    and its two neighbours), lowered with the spheres of the nodes 2 or more away
+    inside those three parents. Shrunk by ``_REL`` and ``_ABS``; ``inf`` when there is
+    no such segment, 0 when one touches.
     """
-    if hi <= lo:
-        return -1, 0.0, np.inf
-    kc = min(max(k, lo), hi)
-    bound = (x - pd[kc, 0]) ** 2 + (y - pd[kc, 1]) ** 2 + (z - pd[kc, 2]) ** 2
-    kb = min(kc, hi - 1) // _BLOCK
-    _j, _t, d2 = nearest_segment(pd, max(lo, kb * _BLOCK), min(hi, (kb + 1) * _BLOCK), x, y, z)
-    bound = min(bound, d2)
-    best = np.inf
-    bi = -1
-    bt = 0.0
+    n = nodes.shape[0]
+    top = parent.shape[0] == 0
+    if not top:
+        for a in range(n):
+            nodes[a, 4] = parent[a // _FAN, 4]
+    for d in range(2, reach + 1):  # nearest first: most farther pairs skip the root
+        for a in range(n - d):
+            b = a + d
+            if not top and b // _FAN - a // _FAN > 1:
+                continue
+            ra = nodes[a, 3] + nodes[b, 3]
+            cut = max(nodes[a, 4], nodes[b, 4]) + ra
+            d2 = _point_d2(nodes, a, nodes[b, 0], nodes[b, 1], nodes[b, 2])
+            if d2 >= cut * cut:  # lowers neither clearance
+                continue
+            g = np.sqrt(d2) - ra
+            nodes[a, 4] = min(nodes[a, 4], g)
+            nodes[b, 4] = min(nodes[b, 4], g)
+    for a in range(n):
+        g = nodes[a, 4]
+        nodes[a, 4] = g * (1.0 - _REL) - _ABS if g > 0.0 else 0.0
+
+
+@njit(cache=True, inline="always")
+def _scan_leaves(pd, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best):
+    """Fold the segments of leaves ``a0 .. a1`` in the window ``lo..hi`` into the nearest so
+    far ``(bi, bt, best)``, in index order with :func:`nearest_segment`'s strict comparison.
+
+    A leaf whose sphere lies farther than ``sqrt(bound)`` (an upper bound of the least
+    squared distance, lowered by every distance found) is skipped. Returns
+    ``(bound, bi, bt, best)``.
+    """
     reach = np.sqrt(bound)
-    for b in range(lo // _BLOCK, (hi - 1) // _BLOCK + 1):
-        dx = x - centre[b, 0]
-        dy = y - centre[b, 1]
-        dz = z - centre[b, 2]
-        far = radius[b] + reach  # the sphere lies beyond the bound (no square root per block)
-        if dx * dx + dy * dy + dz * dz > far * far:
+    for a in range(max(a0, lo // _LEAF), min(a1, (hi - 1) // _LEAF) + 1):
+        far = leaves[a, 3] + reach
+        if _point_d2(leaves, a, x, y, z) > far * far:  # no root per leaf
             continue
-        j, t, d2 = nearest_segment(pd, max(lo, b * _BLOCK), min(hi, (b + 1) * _BLOCK), x, y, z)
+        j, t, d2 = nearest_segment(pd, max(lo, a * _LEAF), min(hi, (a + 1) * _LEAF), x, y, z)
         if d2 < best:
             best = d2
             bi = j
@@ -370,6 +507,74 @@ def _nearest_pruned(pd, centre, radius, lo, hi, k, x, y, z):
             if d2 < bound:
                 bound = d2
                 reach = np.sqrt(d2)
+    return bound, bi, bt, best
+
+
+@njit(cache=True)
+def _scan_blocks(pd, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
+    """:func:`_scan_leaves` over the blocks ``b0 .. b1`` whose sphere lies within
+    ``sqrt(bound)`` of the point; returns ``(bound, bi, bt, best)``."""
+    bi = -1
+    bt = 0.0
+    best = np.inf
+    reach = np.sqrt(bound)
+    for b in range(max(b0, lo // _BLOCK), min(b1, (hi - 1) // _BLOCK) + 1):
+        far = blocks[b, 3] + reach
+        if _point_d2(blocks, b, x, y, z) > far * far:
+            continue
+        was = bound
+        bound, bi, bt, best = _scan_leaves(pd, leaves, b * _FAN, (b + 1) * _FAN - 1, lo, hi,
+                                           x, y, z, bound, bi, bt, best)
+        if bound < was:
+            reach = np.sqrt(bound)
+    return bound, bi, bt, best
+
+
+@njit(cache=True, inline="always")
+def _nearest_pruned(pd, tree, lo, hi, k, x, y, z, hint):
+    """:func:`nearest_segment` over ``lo..hi``, scanning only the segments that may be nearest.
+
+    With a ``hint`` segment of the window at distance ``r``: at the lowest level
+    (segment, leaf, block) where the clearance of the hint's node exceeds ``2 r`` (and
+    covers the window), every segment of the window outside that node and the two
+    next to it is farther than ``r`` (:func:`_clearance`), and only those are
+    scanned. Otherwise every block of the window is, with an upper bound of the least
+    squared distance from the hint, from the setpoint ``pd[k]`` (a point of the path,
+    where a moving segment of the window ends) and, without a hint, from the block
+    holding vertex ``k``. A block or leaf whose sphere lies farther than the bound
+    cannot hold the minimum and is skipped; the others are scanned in index order
+    with :func:`nearest_segment`'s strict comparison, so the answer is the same
+    whatever the hint: the first segment with the least distance. Should the bound
+    not be met (``pd[k]`` on no moving segment of the window), every segment is
+    scanned.
+    """
+    if hi <= lo:
+        return -1, 0.0, np.inf
+    segs, leaves, blocks, span = tree
+    kc = min(max(k, lo), hi)
+    if lo <= hint < hi:
+        _j, _t, d2 = nearest_segment(pd, hint, hint + 1, x, y, z)
+        blk = hint // _BLOCK
+        if d2 < np.inf and lo // _BLOCK >= blk - span and (hi - 1) // _BLOCK <= blk + span:
+            far2 = 4.0 * d2 * (1.0 + _REL)
+            if segs[hint, 4] ** 2 > far2:  # the hint or a segment next to it
+                return nearest_segment(pd, max(lo, hint - 1), min(hi, hint + 2), x, y, z)
+            leaf = hint // _LEAF
+            if leaves[leaf, 4] ** 2 > far2:
+                _b, bi, bt, best = _scan_leaves(pd, leaves, leaf - 1, leaf + 1, lo, hi, x, y, z,
+                                                d2, -1, 0.0, np.inf)
+                return bi, bt, best
+            if blocks[blk, 4] ** 2 > far2:
+                _b, bi, bt, best = _scan_blocks(pd, leaves, blocks, blk - 1, blk + 1, lo, hi,
+                                                x, y, z, d2)
+                return bi, bt, best
+    else:
+        kb = min(kc, hi - 1) // _BLOCK
+        _j, _t, d2 = nearest_segment(pd, max(lo, kb * _BLOCK), min(hi, (kb + 1) * _BLOCK),
+                                     x, y, z)
+    bound = min(_point_d2(pd, kc, x, y, z), d2)
+    bound, bi, bt, best = _scan_blocks(pd, leaves, blocks, 0, blocks.shape[0], lo, hi, x, y, z,
+                                       bound)
     if best > bound:  # the bound was not a distance to the window's path: no pruning
         return nearest_segment(pd, lo, hi, x, y, z)
     return bi, bt, best

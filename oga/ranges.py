@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import ce_at, ce_series, contour_error_of, path_index, plane_axes
+from oga.contour import ce2_at, ce_series, contour_error_of, path_index, plane_axes
 from oga.defaults import CE_WINDOW_SAMPLES
 from oga.errors import InputError, OptionError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
@@ -60,14 +60,13 @@ __all__ = [
 #: um^2 per m^2 (the JSON's unit of squared errors).
 _UM2 = 1e12
 #: Relative margin on sums of squared contour errors compared in different summation
-#: orders: the rounding of a sum of n >= 0 terms is below n * 1.1e-16 relative, so 1e-6
-#: keeps every comparison sound up to 10^9 samples (and costs nothing in pruning).
+#: orders, from terms that may differ by 2 ulp (:func:`_equal_gain_search`): the rounding
+#: of a sum of n >= 0 terms is below n * 1.1e-16 relative, the terms' 2 ulp add 4.4e-16,
+#: so 1e-6 keeps every comparison sound up to 10^9 samples (and costs nothing in pruning).
 _SUM_SLACK = 1e-6
-#: Samples simulated between two eq. 2 and pruning checks in :func:`_equal_gain_search`.
-_CHUNK = 128
-#: Share of the best squared contour error summed while simulating in
-#: :func:`_equal_gain_search` (speed only: the result does not depend on it).
-_HEAVY_SHARE = 0.9
+#: Samples simulated between two eq. 2 checks in :func:`_equal_gain_search` (speed only:
+#: a pruned configuration wastes the rest of its last chunk, a short chunk costs calls).
+_CHUNK = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -473,13 +472,12 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     visit = np.array(
         [(i, j) for i in range(n_kp - 1, -1, -1) for j in range(n_kf - 1, -1, -1)], np.int64
     ).reshape(-1, 2)
-    e1, e2, signed = plane_axes(setpoints.plane)
     sse = _equal_gain_search(
         np.stack([axis_params(machine, a) for a in axes]),
         np.ascontiguousarray(pos[:, cols].T),
         np.ascontiguousarray(np.asarray(setpoints.vel, dtype=np.float64)[:, cols].T),
         cols, pos, feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits, visit,
-        CE_WINDOW_SAMPLES, e1, e2, signed, _SUM_SLACK, _HEAVY_SHARE,
+        CE_WINDOW_SAMPLES, _SUM_SLACK,
     )
     if not np.isfinite(sse).any():
         return None
@@ -508,7 +506,7 @@ def _mse_ce(setpoints, machine, axes, kp: float, kf: float, feed) -> float:
 
 
 @njit(cache=True)
-def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act, u) -> bool:
+def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act, u, check) -> bool:
     """Simulate one axis over samples ``k0 .. k1 - 1`` and check eq. 2 there.
 
     :func:`oga.simulate.run` advances ``state`` exactly as one run over all the
@@ -523,7 +521,7 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
     params : ndarray
         :func:`oga.simulate.axis_params` of the axis.
     pd, vd, kp_si, kf : ndarray, shape (N,)
-        Setpoints (m, m/s) and gains (1/s, factor) per sample.
+        Setpoints (m, m/s) and gains (1/s, factor) per sample (read over ``k0 .. k1 - 1``).
     feed : ndarray of bool, shape (N,)
         Samples where eq. 2 applies.
     te : float
@@ -534,6 +532,8 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
         Sample range.
     p_act, u : ndarray, shape (N,)
         Receive the measured positions (m) and commands (m/s) of the range.
+    check : ndarray of bool, shape (>= k1 - k0 + 2,)
+        Scratch.
 
     Returns
     -------
@@ -542,52 +542,31 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
     """
     run(state, params, pd[k0:k1], vd[k0:k1], kp_si[k0:k1], kf[k0:k1], p_act[k0:k1], u[k0:k1])
     h = max(k0 - 2, 0)
-    check = feed[h:k1].copy()
-    check[: k0 - h] = False
-    v_pk, a_pk, j_pk = command_peaks(u[h:k1], check, te)
+    mask = check[: k1 - h]
+    mask[:] = feed[h:k1]
+    mask[: k0 - h] = False
+    v_pk, a_pk, j_pk = command_peaks(u[h:k1], mask, te)
     return v_pk <= lim[0] and a_pk <= lim[1] and j_pk <= lim[2]
 
 
 @njit(cache=True)
-def _heavy_samples(ce2, feed, share):
-    """The feed samples of largest ``ce2`` that together hold ``share`` of its sum over feed.
-
-    Returns a bool mask of shape (N,).
-    """
-    idx = np.nonzero(feed)[0]
-    idx = idx[np.argsort(-ce2[idx])]
-    target = share * ce2[idx].sum()
-    heavy = np.zeros(ce2.size, dtype=np.bool_)
-    acc = 0.0
-    for k in idx:
-        if acc >= target:
-            break
-        heavy[k] = True
-        acc += ce2[k]
-    return heavy
-
-
-@njit(cache=True)
-def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, visit,
-                       window, e1, e2, signed, slack, share):
+def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, visit, window,
+                       slack):
     """Sum of squared contour errors of the equal-gain configurations, pruned exactly.
 
     The configurations are visited in the order ``visit``. The moving axes are
     simulated together, ``_CHUNK`` samples at a time (:func:`_run_checked`); a
     configuration is dropped at its first eq. 2 violation. After each chunk the
-    squared contour error (as :func:`oga.contour.ce_series`) of its "heavy" feed
-    samples is added to a running sum; once the simulation is complete and feasible,
-    that of the other feed samples. The heavy samples are those holding ``share`` of
-    the squared error of the best configuration so far (every feed sample before
-    one is known): they make the sum grow early, which stops both the contour error
-    and the simulation of a losing configuration soon. Speed only: every feed sample
-    is summed unless the configuration is pruned.
+    squared contour error of its feed samples is added to a running sum, in time
+    order (:func:`oga.contour.ce2_at`, each sample's search hinted with the previous
+    sample's nearest segment).
 
     Pruning: a sum of non-negative terms only grows, so once the running sum exceeds
-    the best complete sum (times ``1 + slack``, covering the rounding of both sums)
-    the configuration's MSE is provably larger than that of a feasible configuration;
-    it cannot be the least, feasible or not, and is abandoned there (checked after
-    every term).
+    the best complete sum (times ``1 + slack``, covering the rounding of both sums and
+    the 2 ulp by which each term may differ from the square of
+    :func:`oga.contour.ce_series`) the configuration's MSE is provably larger than that
+    of a feasible configuration; it cannot be the least, feasible or not, and is
+    abandoned there (checked after every term), its simulation too.
 
     Parameters
     ----------
@@ -611,12 +590,10 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
         Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) of each moving axis.
     visit : ndarray of int, shape (M, 2)
         Grid indices ``(i, j)`` in visiting order (speed only).
-    window, e1, e2, signed
-        Contour-error window and plane (:func:`oga.contour.ce_series`).
+    window : int
+        Contour-error window (:func:`oga.contour.ce_series`).
     slack : float
         Relative margin of the pruning test.
-    share : float
-        Share of the best squared error the heavy samples hold, in (0, 1].
 
     Returns
     -------
@@ -632,54 +609,41 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
     u = np.empty((n_ax, n))  # per axis: each chunk's check reads the previous two commands
     kp_k = np.empty(n)
     kf_k = np.empty(n)
-    ce2 = np.zeros(n)
+    check = np.empty(_CHUNK + 2, dtype=np.bool_)
     states = np.empty((n_ax, rest_state(params[0], 0.0).size))
-    centre, radius, lo, hi = path_index(pos, window)
-    heavy = feed.copy()
+    tree, lo, hi = path_index(pos, window)
     best = np.inf
     for m in range(visit.shape[0]):
         i, j = visit[m, 0], visit[m, 1]
-        kp_k[:] = kp_si[i]
-        kf_k[:] = kf[j]
         for a in range(n_ax):
             states[a] = rest_state(params[a], pd[a, 0])
         bound = best * (1.0 + slack)
         s = 0.0
+        near = -1  # nearest segment of the previous sample: the hint of the next
         alive = True
         for k0 in range(0, n, _CHUNK):
             k1 = min(k0 + _CHUNK, n)
+            kp_k[k0:k1] = kp_si[i]
+            kf_k[k0:k1] = kf[j]
             for a in range(n_ax):
                 if not _run_checked(states[a], params[a], pd[a], vd[a], kp_k, kf_k, feed, te,
-                                    limits[a], k0, k1, p_act[a], u[a]):
+                                    limits[a], k0, k1, p_act[a], u[a], check):
                     alive = False
                     break
                 pa[k0:k1, cols[a]] = p_act[a, k0:k1]
             if not alive:
                 break
             for k in range(k0, k1):
-                if heavy[k]:
-                    ce2[k] = ce_at(pos, centre, radius, lo[k], hi[k], k, pa[k, 0], pa[k, 1],
-                                   pa[k, 2], e1, e2, signed) ** 2
-                    s += ce2[k]
+                if feed[k]:
+                    ce2, near = ce2_at(pos, tree, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2],
+                                       near)
+                    s += ce2
                     if s > bound:
                         alive = False
                         break
             if not alive:
                 break
-        if not alive:
-            continue
-        for k in range(n):
-            if feed[k] and not heavy[k]:
-                ce2[k] = ce_at(pos, centre, radius, lo[k], hi[k], k, pa[k, 0], pa[k, 1],
-                               pa[k, 2], e1, e2, signed) ** 2
-                s += ce2[k]
-                if s > bound:
-                    alive = False
-                    break
-        if not alive:
-            continue
-        sse[i, j] = s
-        if s < best:
-            best = s
-            heavy = _heavy_samples(ce2, feed, share)
+        if alive:
+            sse[i, j] = s
+            best = min(best, s)
     return sse

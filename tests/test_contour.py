@@ -4,9 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from feedplan.path import PLANES, Arc
-from oga.contour import ce_point, contour_error, contour_error_of, nearest_segment
+from oga.contour import (
+    ce2_at,
+    ce_at,
+    ce_point,
+    ce_series,
+    contour_error,
+    contour_error_of,
+    moving_count,
+    nearest_segment,
+    path_index,
+    window_bounds,
+)
 from oga.errors import InputError, OptionError
 from oga.metrics import contour_metrics
 
@@ -325,6 +338,90 @@ def test_nearest_segment_and_ce_point_from_compiled_code():
     assert (i, t) == (2, pytest.approx(0.6)) and ce == pytest.approx(0.1e-3)  # left of +Y
     i, t, d2, ce = both(pd, 1, 2, 1.0e-3, 0.5e-3)  # only the zero-length segment in the window
     assert i == -1 and d2 == np.inf and ce == pytest.approx(0.5e-3)
+
+
+# ------------------------------------------------- hinted search against the plain one
+
+
+def _wandering_path(rng, n):
+    """A path with runs of standstill, steps from 0.1 to 100 um, turns, hairpins and small
+    loops (it comes back near itself within a window, so the search's shortcuts often
+    fail)."""
+    turn = rng.normal(0.0, 0.3, n) + np.pi * (rng.random(n) < 0.03)
+    step = 10.0 ** rng.uniform(-7, -4, n) * (rng.random(n) > 0.1)
+    for start in rng.integers(0, n, 1 + n // 30):  # nearly closed loops of 3 to 10 segments
+        m = int(rng.integers(3, 11))
+        turn[start:start + m] = 2.0 * np.pi / m + rng.normal(0.0, 0.02)
+        step[start:start + m] = step[start]
+    heading = np.cumsum(turn)
+    step[rng.integers(0, n):][: rng.integers(0, 80)] = 0.0  # a long dwell somewhere
+    d = np.column_stack([step * np.cos(heading), step * np.sin(heading),
+                         step * rng.normal(0.0, 0.3, n)])
+    return np.cumsum(d, axis=0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 700), st.integers(1, 120))
+def test_hinted_search_is_the_plain_search(seed, n, window):
+    # ce_at / ce2_at (index with block and leaf spheres and clearances, hinted) against
+    # the plain scan of nearest_segment / ce_point over the window, whatever the hint:
+    # the same segment, the same bits
+    rng = np.random.default_rng(seed)
+    pd = _wandering_path(rng, n)
+    tree, lo, hi = path_index(pd, window)
+    count = moving_count(pd)
+    for k in range(n):
+        assert (lo[k], hi[k]) == window_bounds(count, k, window)
+    e1, e2, signed = 0, 1, bool(rng.random() < 0.7)
+    for _ in range(30):
+        # a point near a segment, from a sample whose window holds it, and hints all around
+        seg = int(rng.integers(0, n - 1))
+        k = int(np.clip(seg + rng.integers(-window, window + 1), 0, n - 1))
+        x, y, z = pd[seg] + rng.random() * (pd[seg + 1] - pd[seg]) + rng.normal(
+            0.0, 10.0 ** rng.uniform(-9, -3), 3)
+        i, _t, d2 = nearest_segment(pd, lo[k], hi[k], x, y, z)
+        ref = ce_point(pd, lo[k], hi[k], x, y, z, e1, e2, signed)
+        for hint in [-1, int(rng.integers(0, n)), n + 3, *range(seg - 10, seg + 11)]:
+            ce, j = ce_at(pd, tree, lo[k], hi[k], k, x, y, z, e1, e2, signed, hint)
+            ce2, j2 = ce2_at(pd, tree, lo[k], hi[k], k, x, y, z, hint)
+            assert j == j2 == i
+            assert ce == ref
+            assert ce2 == pytest.approx(ce * ce, rel=5e-16, abs=0.0)
+            if i >= 0:
+                assert ce2 == d2
+    pa = pd[np.maximum(np.arange(n) - int(rng.integers(0, 30)), 0)] + rng.normal(
+        0.0, 10.0 ** rng.uniform(-8, -4), (n, 3))
+    plain = [ce_point(pd, *window_bounds(count, k, window), *pa[k], e1, e2, signed)
+             for k in range(n)]
+    np.testing.assert_array_equal(ce_series(pd, pa, window, e1, e2, signed), plain)
+
+
+@pytest.mark.parametrize("sides", range(3, 11))
+def test_hinted_search_where_a_loop_closes_on_the_path(sides):
+    # a straight run, a closed polygon loop whose last side nearly overlaps the side
+    # before the loop (the two lie `sides` segments apart), then straight on: the
+    # nearest of the two depends on the side of the point, whatever the hint
+    step = 10 * UM
+    for lead in range(4):  # the loop at every phase of the index's leaves
+        turn = np.zeros(lead + 8 + sides + 10)
+        s0 = lead + 8
+        turn[s0:s0 + sides] = 2.0 * np.pi / sides
+        turn[s0 + sides - 1] += 0.01
+        heading = np.cumsum(turn)
+        d = step * np.column_stack([np.cos(heading), np.sin(heading), np.zeros_like(heading)])
+        pd = np.vstack([np.zeros(3), np.cumsum(d, axis=0)])
+        tree, lo, hi = path_index(pd, 50)
+        for seg in (s0 - 1, s0 + sides - 1):
+            for f in np.linspace(0.05, 0.95, 7):
+                for off in (-0.02, 0.005, 0.02):
+                    x, y, z = pd[seg] + f * (pd[seg + 1] - pd[seg]) + [0.0, off * step, 0.0]
+                    i, _t, d2 = nearest_segment(pd, lo[seg], hi[seg], x, y, z)
+                    ref = ce_point(pd, lo[seg], hi[seg], x, y, z, 0, 1, True)
+                    for hint in range(seg - 10, seg + 11):
+                        ce, j = ce_at(pd, tree, lo[seg], hi[seg], seg, x, y, z, 0, 1, True,
+                                      hint)
+                        assert (j, ce) == (i, ref)
+                        assert ce2_at(pd, tree, lo[seg], hi[seg], seg, x, y, z, hint) == (d2, i)
 
 
 # ----------------------------------------------------------------- inputs
