@@ -50,6 +50,7 @@ __all__ = [
     "ce_series",
     "ce_at",
     "ce2_at",
+    "nearest_at",
     "path_index",
     "contour_error",
     "contour_error_of",
@@ -379,7 +380,7 @@ def ce_at(pd, tree, lo, hi, k, x, y, z, e1, e2, signed, hint):
         The nearest segment (the first of least distance, as :func:`nearest_segment`),
         -1 if the window stands still: the hint for the next sample.
     """
-    bi, bt, best = _nearest_pruned(pd, tree, lo, hi, k, x, y, z, hint)
+    bi, bt, best = nearest_at(pd, tree, lo, hi, k, x, y, z, hint)
     return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best), bi
 
 
@@ -398,7 +399,7 @@ def ce2_at(pd, tree, lo, hi, k, x, y, z, hint):
     i : int
         The nearest segment as :func:`ce_at` returns it (the hint for the next sample).
     """
-    bi, _bt, best = _nearest_pruned(pd, tree, lo, hi, k, x, y, z, hint)
+    bi, _bt, best = nearest_at(pd, tree, lo, hi, k, x, y, z, hint)
     if bi < 0:  # standing still over the whole window
         return _point_d2(pd, lo, x, y, z), bi
     return best, bi
@@ -531,8 +532,12 @@ def _scan_blocks(pd, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
 
 
 @njit(cache=True, inline="always")
-def _nearest_pruned(pd, tree, lo, hi, k, x, y, z, hint):
+def nearest_at(pd, tree, lo, hi, k, x, y, z, hint):
     """:func:`nearest_segment` over ``lo..hi``, scanning only the segments that may be nearest.
+
+    The nearest segment the contour error of sample ``k`` is measured against: returns
+    ``(i, t, d2)`` exactly as ``nearest_segment(pd, lo, hi, x, y, z)`` (``tree``, ``lo``,
+    ``hi`` from :func:`path_index`; ``hint`` as in :func:`ce_at`).
 
     With a ``hint`` segment of the window at distance ``r``: at the lowest level
     (segment, leaf, block) where the clearance of the hint's node exceeds ``2 r`` (and

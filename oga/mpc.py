@@ -18,7 +18,16 @@ contours), coming to rest one interval before the window's end, and recedes:
    :func:`oga.tangent.run_tangent`; one pass instead of a re-simulation per point)
    (an axis whose setpoint stands still over the whole window is not adjusted);
 2. the predicted contour error is linearised around the nominal prediction
-   (distance to the line of the nearest path segment, as in :mod:`oga.search`),
+   (distance to the line of the nearest path segment, as in :mod:`oga.search`;
+   that segment, here and in the line search's exact cost, is the one the replay
+   measures against: the exact nearest over the sample's contour-error window,
+   :func:`oga.contour.nearest_at`. A local walk from the previous sample's segment,
+   as this search once did, is not enough: where the planner stops at a sharp
+   corner, the standstill's zero-length segments fill the neighbourhood and a point
+   leaving along the next segment was measured against the line of the last one,
+   an error growing with the travel while the point is on the path; the search then
+   held one axis's gains at their bounds and could not raise them again at speed
+   within the jerk limit),
    giving a quadratic cost in the control-point changes ``d``:
    ``|E(d)|^2 + lam |steps between points|^2 + anchor mean |c - K_baseline|^2`` (um^2);
 3. constraints: every control point inside its gain bounds (the spline is a convex
@@ -52,7 +61,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import nearest_segment, window_bounds
+from oga.contour import nearest_at
 from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.search import apply_gains
@@ -245,26 +254,6 @@ def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
 
 
 @njit(cache=True)
-def _nearest(pd, count, ce_window, c, j_prev, x, y, z):
-    """Nearest segment of the path to (x, y, z) for window sample ``c``: ``(j, t, d2)``.
-
-    Searches a few segments around ``j_prev`` (the previous window sample's
-    answer) and falls back to the full window of :func:`oga.contour.window_bounds`
-    when there is no previous answer or the nearest point lies on the edge of
-    the local search.
-    """
-    n = pd.shape[0]
-    if j_prev >= 0:
-        lo = max(j_prev - 3, 0)
-        hi = min(j_prev + 8, n - 1)
-        j, t, d2 = nearest_segment(pd, lo, hi, x, y, z)
-        if j > lo and j < hi - 1:
-            return j, t, d2
-    lo, hi = window_bounds(count, c, ce_window)
-    return nearest_segment(pd, lo, hi, x, y, z)
-
-
-@njit(cache=True)
 def _plan_at(points, a, g, tau, kspace):
     """Gain ``g`` (0 Kp, 1 Kf) of axis ``a`` at ``tau`` samples after the last applied one.
 
@@ -338,12 +327,13 @@ def _basis(jk, tau, kspace, last):
 
 
 @njit(cache=True)
-def _window_cost(pd, count, ce_window, k, w, n_total, trial):
+def _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial):
     cost = 0.0
     j = -1
     for i in range(w):
         c = min(k + i, n_total - 1)
-        j, _t, d2 = _nearest(pd, count, ce_window, c, j, trial[0, i], trial[1, i], trial[2, i])
+        j, _t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, trial[0, i], trial[1, i],
+                               trial[2, i], j)
         if j < 0:
             d2 = ((trial[0, i] - pd[c, 0]) ** 2 + (trial[1, i] - pd[c, 1]) ** 2
                   + (trial[2, i] - pd[c, 2]) ** 2)
@@ -355,7 +345,7 @@ def _window_cost(pd, count, ce_window, k, w, n_total, trial):
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
-    lam, anchor, ce_window, count, moving, feed, points, kp_out, kf_out, u_out, stats, stop,
+    lam, anchor, tree, win_lo, win_hi, moving, feed, points, kp_out, kf_out, u_out, stats, stop,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
@@ -365,7 +355,8 @@ def mpc_chunk(
     ``kspace`` the samples between points, ``commit`` the samples applied per window
     (a multiple of ``kspace``), ``iters`` the iterations per window at most,
     ``trust_kp``/``trust_kf`` the trust region of one iteration's control-point change
-    ((m/min)/mm, 1), ``count`` from :func:`oga.contour.moving_count`.
+    ((m/min)/mm, 1), ``tree, win_lo, win_hi`` the path's index and every sample's
+    contour-error window (:func:`oga.contour.path_index`).
     ``points`` (3, 2, w // kspace) carries the plan between calls: the control points
     ``c_{-1}, c_0, ...`` of :func:`_plan_at` (the first two fixed: with them the
     applied gains and their slope, the rest free); it is shifted by ``commit``
@@ -483,7 +474,8 @@ def mpc_chunk(
             nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
             for i in range(w):
                 c = min(k + i, n_total - 1)
-                j, t, d2 = _nearest(pd, count, ce_window, c, j, p0[0, i], p0[1, i], p0[2, i])
+                j, t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, p0[0, i], p0[1, i],
+                                      p0[2, i], j)
                 if j < 0:
                     for a in range(3):
                         dq[i, a] = p0[a, i] - pd[c, a]
@@ -634,7 +626,7 @@ def mpc_chunk(
                 if scale == 0.0:
                     cost = nominal_d2 * _M2_TO_UM2
                 else:
-                    cost = _window_cost(pd, count, ce_window, k, w, n_total, trial)
+                    cost = _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial)
                 for a in range(3):
                     if moving[a]:
                         for jk in range(2, nk + 2):

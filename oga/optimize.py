@@ -311,7 +311,7 @@ def optimize(
                          kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
                          is_moving, *run[4:])
     else:
-        from oga.contour import moving_count
+        from oga.contour import path_index
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
 
         wlen = options.np_value
@@ -322,7 +322,8 @@ def optimize(
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
         feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
-        count = moving_count(pd)
+        # the contour error's index and windows, as the replay measures it
+        tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
         # the plan's spline control points per axis and gain, carried across chunks (as many
         # as leave the plan at rest over the window's last interval, checked against eq. 2)
         points = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
@@ -332,7 +333,7 @@ def optimize(
             mpc_chunk(k0, k1, pd, pdT_pad, vdT_pad, params, *run[:3], *gain_bounds, kp_base,
                       kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
-                      options.anchor_value, defaults.CE_WINDOW_SAMPLES, count, is_moving,
+                      options.anchor_value, tree, win_lo, win_hi, is_moving,
                       feed_pad, points, *run[4:], defaults.MPC_STOP)
 
     # the search state: axis states, gains, command history, outputs, counters

@@ -142,6 +142,18 @@ def test_full_mode_meets_the_target_on_a_circle_at_another_feed(machine):
     assert r.optimized.metrics.max_abs_m < r.baseline.metrics.max_abs_m
 
 
+def test_full_mode_not_trapped_at_sharp_corners_where_the_planner_stops(machine):
+    # 150-160 degree corners and a dwell: the planner stops at each, and the standstill's
+    # zero-length segments once misled the search's nearest-segment lookup (a point
+    # leaving along the next segment was measured against the last one's line): it then
+    # held one axis's gains at their bounds, MSE 39000 times the baseline's (the table
+    # fell back to the fixed gains). The search must measure what the replay measures.
+    sp = plan(load_toolpath(DATA / "sharp_corners_xy.ngc"), machine.planning_limits())
+    r = optimize(sp, machine)
+    assert r.status == "ok" and not r.kept_baseline
+    assert r.search_ratio_mse <= 0.35
+
+
 def test_full_mode_window_options(short, machine):
     assert options_from_dict({}).np_value == 100 and options_from_dict({"mode": "paper"}).np_value == 50
     with pytest.raises(OptionError, match="np: full mode needs a window of at least 40"):
