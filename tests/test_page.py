@@ -65,12 +65,15 @@ class Console:
 
     def __init__(self, context) -> None:
         self.errors: list[str] = []
+        self.http_errors: list[str] = []  # which request a "Failed to load resource" was
         context.on("page", self.watch)
 
     def watch(self, page) -> None:
         page.on("console", lambda m: self.errors.append(f"{page.url}: {m.text}")
                 if m.type == "error" else None)
         page.on("pageerror", lambda e: self.errors.append(f"{page.url}: uncaught {e}"))
+        page.on("response", lambda r: self.http_errors.append(
+            f"{r.request.method} {r.url}: {r.status}") if r.status >= 400 else None)
 
 
 def _screenshot(page, path: Path) -> None:
@@ -164,6 +167,7 @@ def test_page_takes_the_reference_program_to_a_report(browser, tmp_path, shots):
         bad = [e for e in console.errors if "status of 422" not in e]
         assert bad == [], bad  # the browser logs the 422 answer itself; nothing else
         console.errors.clear()
+        console.http_errors.clear()
 
         # the reference program, uploaded as a file
         page.set_input_files("#file", str(DATA / "reference_xz.ngc"))
@@ -185,7 +189,7 @@ def test_page_takes_the_reference_program_to_a_report(browser, tmp_path, shots):
         assert len(figures) == 5 and all(n > 0 for n in figures), figures
         assert "reference_xz.ngc" in report.text_content("body")
         _screenshot(report, shots / "report.png")
-        assert console.errors == []
+        assert console.errors == [], console.http_errors
     finally:
         context.close()
         server.stop()
@@ -203,9 +207,13 @@ def test_page_works_with_the_api_key(browser, tmp_path, shots, monkeypatch):
         page.goto(server.url + "/")  # the page itself needs no key
         page.wait_for_selector("#message.error")
         assert "needs an API key" in page.text_content("#message")
+        # every keyless request answered (on a loaded machine some 401s come after the first
+        # error shows, and must not be counted after the clear below)
+        page.wait_for_load_state("networkidle")
         bad = [e for e in console.errors if "status of 401" not in e]
         assert bad == [], bad  # the browser logs the 401 answers itself; nothing else
         console.errors.clear()
+        console.http_errors.clear()
 
         page.fill("#api-key", KEY)
         page.press("#api-key", "Tab")
@@ -223,7 +231,7 @@ def test_page_works_with_the_api_key(browser, tmp_path, shots, monkeypatch):
         page.reload()  # the key outlives a reload of the tab
         page.wait_for_selector("#jobs td:text-is('short_xz.ngc')")
         assert page.input_value("#api-key") == KEY
-        assert console.errors == []
+        assert console.errors == [], console.http_errors
     finally:
         context.close()
         server.stop()
