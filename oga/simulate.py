@@ -365,13 +365,22 @@ def friction_nonlinear(params: np.ndarray, v: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def _pi_substep(ud, v, i, kv, inv_tn, h, flim):
-    """One sub-step of the velocity PI with anti-windup: ``(F_cmd, I after, linear, integrating)``.
+def _pi_coefs(params):
+    """The velocity PI of a cascade axis: ``(Kv (N s/m), 1/Tn (1/s), sub-step (s), force
+    limit (N))``."""
+    return params[_KV], params[_INV_TN], params[_H], params[_FLIM]
+
+
+@njit(cache=True, inline="always")
+def _pi_substep(ud, v, i, pi):
+    """One sub-step of the velocity PI with anti-windup (``pi`` from :func:`_pi_coefs`):
+    ``(F_cmd, I after, linear, integrating)``.
 
     ``linear``: the force command is not limited; ``integrating``: the integral
     moved (it is frozen while the command is limited, unless the error drives it
     back out of the limit).
     """
+    kv, inv_tn, h, flim = pi
     e = ud - v
     raw = kv * (e + i * inv_tn)
     if raw > flim:
@@ -390,12 +399,9 @@ def _pi_substep(ud, v, i, kv, inv_tn, h, flim):
 def _substeps(params, p, v, f, i, ud, load):
     """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held."""
     c = _substep_coefs(params)
-    kv = params[_KV]
-    inv_tn = params[_INV_TN]
-    h = params[_H]
-    flim = params[_FLIM]
+    pi = _pi_coefs(params)
     for _ in range(int(params[_NSUB])):
-        fc, i, _linear, _integrating = _pi_substep(ud, v, i, kv, inv_tn, h, flim)
+        fc, i, _linear, _integrating = _pi_substep(ud, v, i, pi)
         fn = friction_nonlinear(params, v) + load
         p, v, f = _mechanics(c, p, v, f, fc, fn)
     return p, v, f, i

@@ -47,14 +47,10 @@ from oga.simulate import (
     _DFS,
     _F,
     _FC,
-    _FLIM,
-    _H,
     _I,
     _INV_EPS,
-    _INV_TN,
     _INV_VS,
     _KIND,
-    _KV,
     _LIFTED,
     _LINE,
     _NSUB,
@@ -66,6 +62,7 @@ from oga.simulate import (
     _lifted,
     _lifted_guard,
     _mechanics,
+    _pi_coefs,
     _pi_substep,
     _smooth_sign,
     _substep_coefs,
@@ -121,12 +118,10 @@ def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd):
     """:func:`oga.simulate._substeps` (no load) with the tangents of ``(p, v, F, I)`` of the
     first ``nd`` directions advanced in place; returns the nominal ``(p, v, F, I)``."""
     c = _substep_coefs(params)
-    kv = params[_KV]
-    inv_tn = params[_INV_TN]
-    h = params[_H]
-    flim = params[_FLIM]
+    pi = _pi_coefs(params)
+    kv, inv_tn, h, _flim = pi
     for _ in range(int(params[_NSUB])):
-        fc, i_next, linear, integrating = _pi_substep(ud, v, i, kv, inv_tn, h, flim)
+        fc, i_next, linear, integrating = _pi_substep(ud, v, i, pi)
         fn, slope = _cascade_friction(params, v)
         kv_lin = kv if linear else 0.0  # a limited force command does not move
         h_int = h if integrating else 0.0  # nor does a frozen integral
