@@ -81,6 +81,7 @@ __all__ = [
     "step",
     "drive",
     "friction_command_m_s",
+    "friction_and_slope",
     "axis_arrays",
     "window",
     "run",
@@ -356,12 +357,33 @@ def friction_command_m_s(params: np.ndarray, v: float) -> float:
 def friction_nonlinear(params: np.ndarray, v: float) -> float:
     """Coulomb + Stribeck friction force (N) at velocity ``v`` (m/s) of a cascade axis,
     viscous part excluded."""
-    s = _smooth_sign(v * params[_INV_EPS])
+    return friction_and_slope(params, v)[0]
+
+
+@njit(cache=True, inline="always")
+def _smooth_sign_and_slope(x: float) -> tuple[float, float]:
+    """:func:`_smooth_sign` at ``x`` and its derivative (zero where it is exactly +-1)."""
+    s = _smooth_sign(x)
+    if x > _TANH_CUT or x < -_TANH_CUT:
+        return s, 0.0
+    return s, 1.0 - s * s
+
+
+@njit(cache=True, inline="always")
+def friction_and_slope(params: np.ndarray, v: float) -> tuple[float, float]:
+    """:func:`friction_nonlinear` (N) and its slope ``dF_n/dv`` (N s/m) at ``v`` (m/s), from
+    one set of exponentials (where only the force is used, the slope's few operations are
+    compiled away)."""
+    inv_eps = params[_INV_EPS]
+    s, ds = _smooth_sign_and_slope(v * inv_eps)
+    ds *= inv_eps
     r = v * params[_INV_VS]
     r2 = r * r
     if r2 > params[_R2_CUT]:
-        return params[_FC] * s
-    return (params[_FC] + params[_DFS] * math.exp(-r2)) * s
+        return params[_FC] * s, params[_FC] * ds
+    ex = math.exp(-r2)
+    g = params[_FC] + params[_DFS] * ex
+    return g * s, g * ds - 2.0 * r * params[_INV_VS] * params[_DFS] * ex * s
 
 
 @njit(cache=True, inline="always")
@@ -670,7 +692,14 @@ def run(
         m = k - dead  # the command applied now is u_m
         ud = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
         p, v, f, i = _advance(params, p, v, f, i, ud, 0.0)
-    # the dead-time line at sample n: u_{n-1}, .., u_{n-d}
+    _store_cascade(state, dead, out_u, n, p, v, f, i)
+
+
+@njit(cache=True, inline="always")
+def _store_cascade(state, dead, out_u, n, p, v, f, i):
+    """Write a cascade axis's state after a run of ``n`` samples (commands ``out_u[:n]``) into
+    ``state`` (which holds the state at its start): ``(p, v, F, I)`` and the dead-time line
+    ``u_{n-1}, .., u_{n-d}`` (older entries from the line itself when ``n < d``)."""
     for j in range(dead - 1, -1, -1):  # downwards: an old entry is read before it is overwritten
         state[_LINE + j] = out_u[n - 1 - j] if n - 1 - j >= 0 else state[_LINE + j - n]
     state[_P], state[_V], state[_F], state[_I] = p, v, f, i

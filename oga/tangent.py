@@ -28,7 +28,6 @@ the setpoints are data.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from numba import njit
@@ -44,19 +43,13 @@ from oga.simulate import (
     _A_VISC,
     _ARX,
     _DEAD,
-    _DFS,
     _F,
-    _FC,
     _I,
-    _INV_EPS,
-    _INV_VS,
     _KIND,
     _LIFTED,
     _LINE,
     _NSUB,
     _P,
-    _R2_CUT,
-    _TANH_CUT,
     _V,
     _arx_drive,
     _lifted,
@@ -64,38 +57,14 @@ from oga.simulate import (
     _mechanics,
     _pi_coefs,
     _pi_substep,
-    _smooth_sign,
+    _smooth_sign_and_slope,
+    _store_cascade,
     _substep_coefs,
+    friction_and_slope,
     friction_nonlinear,
 )
 
 __all__ = ["run_tangent", "friction_slope"]
-
-
-@njit(cache=True, inline="always")
-def _smooth_sign_and_slope(x: float) -> tuple[float, float]:
-    """:func:`oga.simulate._smooth_sign` at ``x`` and its derivative (zero where it is
-    exactly +-1)."""
-    s = _smooth_sign(x)
-    if x > _TANH_CUT or x < -_TANH_CUT:
-        return s, 0.0
-    return s, 1.0 - s * s
-
-
-@njit(cache=True, inline="always")
-def _cascade_friction(params, v):
-    """``(F_n, dF_n/dv)`` of a cascade axis at ``v`` (N, N s/m), sharing the exponentials;
-    ``F_n`` the same bits as :func:`oga.simulate.friction_nonlinear`."""
-    inv_eps = params[_INV_EPS]
-    s, ds = _smooth_sign_and_slope(v * inv_eps)
-    ds *= inv_eps
-    r = v * params[_INV_VS]
-    r2 = r * r
-    if r2 > params[_R2_CUT]:
-        return params[_FC] * s, params[_FC] * ds
-    ex = math.exp(-r2)
-    g = params[_FC] + params[_DFS] * ex
-    return g * s, g * ds - 2.0 * r * params[_INV_VS] * params[_DFS] * ex * s
 
 
 @njit(cache=True)
@@ -110,7 +79,7 @@ def friction_slope(params: np.ndarray, v: float) -> float:
         inv_eps = params[_A_INV_EPS]
         _s, ds = _smooth_sign_and_slope(v * inv_eps)
         return params[_A_FC] * ds * inv_eps + params[_A_VISC]
-    return _cascade_friction(params, v)[1]
+    return friction_and_slope(params, v)[1]
 
 
 @njit(cache=True)
@@ -122,7 +91,7 @@ def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd):
     kv, inv_tn, h, _flim = pi
     for _ in range(int(params[_NSUB])):
         fc, i_next, linear, integrating = _pi_substep(ud, v, i, pi)
-        fn, slope = _cascade_friction(params, v)
+        fn, slope = friction_and_slope(params, v)
         kv_lin = kv if linear else 0.0  # a limited force command does not move
         h_int = h if integrating else 0.0  # nor does a frozen integral
         for d in range(nd):
@@ -199,21 +168,11 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
     nd = 0  # active directions: start[d] <= k
     if params[_KIND] == _ARX:
         dst = np.zeros((state.shape[0], nd_all))
-        du = np.empty(nd_all)
         for k in range(n):
-            while nd < nd_all and start[nd] <= k:
-                nd += 1
-            e = pd[k] - state[_P]
             out_p[k] = state[_P]
-            out_u[k] = kp_si[k] * e + kf[k] * vd[k]
-            for d in range(nd):
-                sp[k, d] = dst[0, d]
-                du[d] = dkp_si[k, d] * e - kp_si[k] * dst[0, d] + dkf[k, d] * vd[k]
-                su[k, d] = du[d]
-            for d in range(nd, nd_all):
-                sp[k, d] = 0.0
-                su[k, d] = 0.0
-            _arx_tangent(state, params, dst, du, nd)
+            out_u[k], nd = _record(k, nd, start, state[_P], dst[0], pd, vd, kp_si, kf, dkp_si,
+                                   dkf, sp, su)
+            _arx_tangent(state, params, dst, su[k], nd)
             _arx_drive(state, params, out_u[k], 0.0)
         return
     dead = int(params[_DEAD])
@@ -225,18 +184,8 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
     dud = np.zeros(nd_all)
     p, v, f, i = state[_P], state[_V], state[_F], state[_I]
     for k in range(n):
-        while nd < nd_all and start[nd] <= k:
-            nd += 1
         out_p[k] = p
-        e = pd[k] - p
-        u = kp_si[k] * e + kf[k] * vd[k]
-        out_u[k] = u
-        for d in range(nd):
-            sp[k, d] = dp[d]
-            su[k, d] = dkp_si[k, d] * e - kp_si[k] * dp[d] + dkf[k, d] * vd[k]
-        for d in range(nd, nd_all):
-            sp[k, d] = 0.0
-            su[k, d] = 0.0
+        out_u[k], nd = _record(k, nd, start, p, dp, pd, vd, kp_si, kf, dkp_si, dkf, sp, su)
         m = k - dead  # the command applied now is u_m; the line's initial commands are data
         if m >= 0:
             ud = out_u[m]
@@ -252,6 +201,22 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
             p, v, f, i = _lifted(params, p, v, f, i, ud, fn)
         else:  # the sub-steps (also at rest, where they change nothing: the same bits as run)
             p, v, f, i = _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd)
-    for j in range(dead - 1, -1, -1):  # the dead-time line at sample n, as run
-        state[_LINE + j] = out_u[n - 1 - j] if n - 1 - j >= 0 else state[_LINE + j - n]
-    state[_P], state[_V], state[_F], state[_I] = p, v, f, i
+    _store_cascade(state, dead, out_u, n, p, v, f, i)
+
+
+@njit(cache=True, inline="always")
+def _record(k, nd, start, p, dpos, pd, vd, kp_si, kf, dkp_si, dkf, sp, su):
+    """Sample ``k`` of :func:`run_tangent`: the directions active from it on, the measured
+    position's derivatives ``dpos`` into ``sp[k]`` and the command's into ``su[k]`` (zero for
+    the directions not yet started). Returns ``(u_k, active directions)``."""
+    nd_all = start.shape[0]
+    while nd < nd_all and start[nd] <= k:
+        nd += 1
+    e = pd[k] - p
+    for d in range(nd):
+        sp[k, d] = dpos[d]
+        su[k, d] = dkp_si[k, d] * e - kp_si[k] * dpos[d] + dkf[k, d] * vd[k]
+    for d in range(nd, nd_all):
+        sp[k, d] = 0.0
+        su[k, d] = 0.0
+    return kp_si[k] * e + kf[k] * vd[k], nd
