@@ -261,13 +261,19 @@ def _plan_at(points, a, g, tau, kspace):
     ``c_{-1}, c_0, c_1, ...`` are ``points[a, g, 0], points[a, g, 1], ...``, ``kspace``
     samples apart, the last one repeated beyond the array (the plan comes to rest).
     """
+    last = points.shape[2] - 1
+    j0, j1, j2, w0, w1, w2 = _spline_weights(tau, kspace, last)
+    return w0 * points[a, g, j0] + w1 * points[a, g, j1] + w2 * points[a, g, j2]
+
+
+@njit(cache=True, inline="always")
+def _spline_weights(tau, kspace, last):
+    """The three control points (indices, the last one repeated beyond ``last``) and their
+    weights in the uniform quadratic B-spline of :func:`_plan_at` at ``tau``."""
     m = tau // kspace
     f = (tau - m * kspace) / kspace
-    last = points.shape[2] - 1
-    c0 = points[a, g, min(m, last)]
-    c1 = points[a, g, min(m + 1, last)]
-    c2 = points[a, g, min(m + 2, last)]
-    return 0.5 * (1.0 - f) ** 2 * c0 + (0.5 + f - f * f) * c1 + 0.5 * f * f * c2
+    return (min(m, last), min(m + 1, last), min(m + 2, last),
+            0.5 * (1.0 - f) ** 2, 0.5 + f - f * f, 0.5 * f * f)
 
 
 @njit(cache=True)
@@ -314,16 +320,8 @@ def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p
 def _basis(jk, tau, kspace, last):
     """Weight of control point ``jk`` in :func:`_plan_at` at ``tau`` (the derivative of the
     gain with respect to that point)."""
-    m = tau // kspace
-    f = (tau - m * kspace) / kspace
-    out = 0.0
-    if min(m, last) == jk:
-        out += 0.5 * (1.0 - f) ** 2
-    if min(m + 1, last) == jk:
-        out += 0.5 + f - f * f
-    if min(m + 2, last) == jk:
-        out += 0.5 * f * f
-    return out
+    j0, j1, j2, w0, w1, w2 = _spline_weights(tau, kspace, last)
+    return w0 * (j0 == jk) + w1 * (j1 == jk) + w2 * (j2 == jk)
 
 
 @njit(cache=True)
@@ -408,7 +406,7 @@ def mpc_chunk(
             else:
                 dir_kf[i, v] = b
     mq = np.empty((3, w))
-    spp = np.empty((w, nv))  # sp with each column weighted by P's entry for one row axis
+    spp_buf = np.empty(w * nv)  # sp's columns weighted by P's entries for one row axis
     proj = np.empty((3, 3, w))  # P = I - t t' per window sample
     p0 = np.empty((3, w))
     u0 = np.empty((3, w))
@@ -499,15 +497,16 @@ def mpc_chunk(
                         proj[a, b, i] = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
                 for i in range(w):
                     mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
-            for a in range(3):  # the rows of axis a: S_a' (P_a. o S) and S_a' mq_a
+            for a in range(3):  # axis a's rows, from its own columns on: S_a' (P_a. o S_b)
                 lo_v, hi_v = var_lo[a], var_hi[a]
                 if lo_v == hi_v:
                     continue
+                spp = spp_buf[:w * (nv - lo_v)].reshape((w, nv - lo_v))
                 for i in range(w):
-                    for u_ in range(nv):
-                        spp[i, u_] = sp[i, u_] * proj[a, var_axis[u_], i]
+                    for u_ in range(lo_v, nv):
+                        spp[i, u_ - lo_v] = sp[i, u_] * proj[a, var_axis[u_], i]
                 s_a = np.ascontiguousarray(sp[:, lo_v:hi_v].T)
-                pmat[lo_v:hi_v, :] = np.dot(s_a, spp)
+                pmat[lo_v:hi_v, lo_v:] = np.dot(s_a, spp)
                 qvec[lo_v:hi_v] = np.dot(s_a, mq[a])
             for v in range(nv):
                 qvec[v] *= 2.0 * _M2_TO_UM2
@@ -598,9 +597,8 @@ def mpc_chunk(
             held_cost = np.inf
             n_commit = min(commit, w)
             n_next = min(2 * commit, w)
-            for o in range(4):
-                t_ = (o + 3) % 4  # the plan itself first (no simulation), then 1, 1/2, 1/4
-                scale = 0.0 if t_ == 3 else 0.5**t_
+            for t_ in range(4):  # the plan itself first (no simulation), then 1, 1/2, 1/4
+                scale = 0.0 if t_ == 0 else 0.5 ** (t_ - 1)
                 trial_points[:] = points
                 _step_points(trial_points, scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_hi,
                             kf_lo, kf_hi)
@@ -642,12 +640,12 @@ def mpc_chunk(
                     cls, key = 2, worst
                 else:
                     cls, key = 3, worst_c
-                if t_ == 3:
+                if scale == 0.0:
                     held_cost = cost if cls == 0 else np.inf
                 if cls < best_cls or (cls == best_cls and key < best_key):
                     best_cls, best_key, best_scale = cls, key, scale
                     best_cost = cost if cls == 0 else np.inf
-                if t_ == 0 and cls == 0 and cost < held_cost:
+                if scale == 1.0 and cls == 0 and cost < held_cost:
                     break  # the full step keeps eq. 2 and lowers the exact cost: taken
             if best_cls == 3:
                 stats[STAT_FALLBACK] += 1
