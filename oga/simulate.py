@@ -31,6 +31,9 @@ sub-steps (the force command stays inside the limit and ``F_n`` stays exactly
 advanced with the lifted linear map of :func:`oga.linear.substep_sequence` (the
 same model; the two paths differ by floating-point rounding only, about 1e-15
 relative). On a contour this covers all but the samples near axis reversals.
+Where an axis stands still its state soon stops changing to the last bit (a
+floating-point fixed point of the period); :func:`run` and :func:`window` then skip
+the periods whose command is also unchanged, which gives the same bits.
 
 **ARX** (:class:`oga.machine.Arx`): an identified velocity loop, already discrete
 over Te. At sample k, with the command ``u_k`` issued:
@@ -418,13 +421,15 @@ def _pi_substep(ud, v, i, pi):
 
 
 @njit(cache=True)
-def _substeps(params, p, v, f, i, ud, load):
-    """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held."""
+def _substeps(params, p, v, f, i, ud, load, fn):
+    """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held;
+    ``fn`` is ``F_n + load`` at ``v`` (the first sub-step's, already known to the caller)."""
     c = _substep_coefs(params)
     pi = _pi_coefs(params)
-    for _ in range(int(params[_NSUB])):
+    for j in range(int(params[_NSUB])):
+        if j > 0:
+            fn = friction_nonlinear(params, v) + load
         fc, i, _linear, _integrating = _pi_substep(ud, v, i, pi)
-        fn = friction_nonlinear(params, v) + load
         p, v, f = _mechanics(c, p, v, f, fc, fn)
     return p, v, f, i
 
@@ -479,11 +484,10 @@ def _advance(params, p, v, f, i, ud, load):
     """
     if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0 and load == 0.0:
         return p, v, f, i  # at rest and not driven: the sub-steps change nothing
-    if params[_LIFTED] != 0.0:
-        fn = friction_nonlinear(params, v) + load
-        if _lifted_guard(params, v, f, i, ud, fn):
-            return _lifted(params, p, v, f, i, ud, fn)
-    return _substeps(params, p, v, f, i, ud, load)
+    fn = friction_nonlinear(params, v) + load
+    if params[_LIFTED] != 0.0 and _lifted_guard(params, v, f, i, ud, fn):
+        return _lifted(params, p, v, f, i, ud, fn)
+    return _substeps(params, p, v, f, i, ud, load, fn)
 
 
 @njit(cache=True, inline="always")
@@ -591,6 +595,19 @@ def _arx_drive(state, params, u, load_n):
 
 
 @njit(cache=True, inline="always")
+def _same(a: float, b: float) -> bool:
+    """``a`` and ``b`` are the same float64 (signed zeros told apart, NaN never the same)."""
+    return a == b and (a != 0.0 or math.copysign(1.0, a) == math.copysign(1.0, b))
+
+
+@njit(cache=True, inline="always")
+def _unchanged(p, v, f, i, p1, v1, f1, i1) -> bool:
+    """A period left ``(p, v, F, I)`` exactly as it was (a floating-point fixed point of
+    :func:`_advance`): the next period, under the same command, does too."""
+    return _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+
+
+@njit(cache=True, inline="always")
 def _command(pd, vd, k, p, kp_si, kf):
     """``Kp (pd_k - p) + Kf vd_k``; past the last sample its position is held, velocity 0."""
     last = pd.shape[0] - 1
@@ -642,13 +659,17 @@ def window(
     dead = int(params[_DEAD])
     p0 = state[_P]
     p, v, f, i = p0, state[_V], state[_F], state[_I]
+    still, ud_still = False, 0.0  # :func:`_unchanged` of the last period, and its command
     for j in range(n):
         m = j - dead  # the command applied now is u_{k0+m}
         if m < 0:
             ud = state[_LINE + dead - 1 - j]
         else:
             ud = _command(pd, vd, k0 + m, p0 if m == 0 else out_p[m - 1], kp_si, kf)
-        p, v, f, i = _advance(params, p, v, f, i, ud, 0.0)
+        if not (still and _same(ud, ud_still)):
+            p1, v1, f1, i1 = _advance(params, p, v, f, i, ud, 0.0)
+            still, ud_still = _unchanged(p, v, f, i, p1, v1, f1, i1), ud
+            p, v, f, i = p1, v1, f1, i1
         out_p[j] = p
 
 
@@ -685,13 +706,17 @@ def run(
         return
     dead = int(params[_DEAD])
     p, v, f, i = state[_P], state[_V], state[_F], state[_I]
+    still, ud_still = False, 0.0  # :func:`_unchanged` of the last period, and its command
     for k in range(n):
         out_p[k] = p
         u = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
         out_u[k] = u
         m = k - dead  # the command applied now is u_m
         ud = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
-        p, v, f, i = _advance(params, p, v, f, i, ud, 0.0)
+        if not (still and _same(ud, ud_still)):
+            p1, v1, f1, i1 = _advance(params, p, v, f, i, ud, 0.0)
+            still, ud_still = _unchanged(p, v, f, i, p1, v1, f1, i1), ud
+            p, v, f, i = p1, v1, f1, i1
     _store_cascade(state, dead, out_u, n, p, v, f, i)
 
 

@@ -298,6 +298,39 @@ def test_run_in_pieces_equals_one_run(machine, axis):
     assert np.array_equal(state, whole_state)
 
 
+
+@pytest.mark.parametrize("axis", ["x", "z"])
+def test_standstill_shortcut_gives_the_bits_of_step_by_step(axis):
+    # a move, a long dwell (the friction-held axis creeps onto the target and after some
+    # 13 s reaches a floating-point fixed point, which run and window skip while the
+    # command is unchanged), then a move back
+    params = axis_params(UCP, axis)
+    n_move, n_dwell = 300, 20000
+    pd1, vd1 = _smooth_move(n_move, 0.002)
+    pd2, vd2 = _smooth_move(n_move, -0.002, p0=pd1[-1])
+    pd = np.concatenate([pd1, np.full(n_dwell, pd1[-1]), pd2])
+    vd = np.concatenate([vd1, np.zeros(n_dwell), vd2])
+    n = pd.size
+    kp, kf = 2.5 * KP_SI_PER_M_MIN_PER_MM, 0.7
+    ref_p, ref_u = np.empty(n), np.empty(n)
+    state = rest_state(params, 0.0)
+    states = [state.copy()]
+    for k in range(n):
+        ref_p[k] = state[0]
+        ref_u[k] = step(state, params, pd[k], vd[k], kp, kf)
+        states.append(state.copy())
+    unchanged = sum(np.array_equal(a, b) for a, b in zip(states[:-1], states[1:]))
+    assert unchanged > 3000  # the shortcut is exercised
+    p, u = np.empty(n), np.empty(n)
+    end = rest_state(params, 0.0)
+    run(end, params, pd, vd, np.full(n, kp), np.full(n, kf), p, u)
+    assert np.array_equal(p, ref_p) and np.array_equal(u, ref_u)
+    assert np.array_equal(end, states[-1])
+    out = np.empty(n - 1)
+    window(rest_state(params, 0.0), params, pd, vd, 0, n - 1, kp, kf, out)
+    assert np.array_equal(out, ref_p[1:])
+
+
 @BOTH_KINDS
 def test_window_past_the_end_holds_the_last_setpoint(machine, axis):
     params = axis_params(machine, axis)
