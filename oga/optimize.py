@@ -315,9 +315,11 @@ def optimize(
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
 
         wlen = options.np_value
-        kspace = defaults.MPC_KNOT_SAMPLES
+        kspace = max(defaults.MPC_KNOT_SAMPLES, wlen // defaults.MPC_WINDOW_INTERVALS)
         # whole spline intervals, so that the shifted plan is the same gain trajectory
-        commit = max(min(defaults.MPC_COMMIT_SAMPLES, wlen // 2) // kspace, 1) * kspace
+        commit = min(max(defaults.MPC_COMMIT_SAMPLES, wlen // defaults.MPC_COMMIT_DIVISOR),
+                     wlen // 2)
+        commit = max(commit // kspace, 1) * kspace
         pad = wlen + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))

@@ -155,7 +155,7 @@ def test_full_mode_not_trapped_at_sharp_corners_where_the_planner_stops(machine)
 
 
 def test_full_mode_window_options(short, machine):
-    assert options_from_dict({}).np_value == 100 and options_from_dict({"mode": "paper"}).np_value == 50
+    assert options_from_dict({}).np_value == 200 and options_from_dict({"mode": "paper"}).np_value == 50
     with pytest.raises(OptionError, match="np: full mode needs a window of at least 40"):
         optimize(short, machine, {"np": 39})
 

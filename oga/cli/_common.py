@@ -8,6 +8,7 @@ import os
 import tempfile
 from pathlib import Path as FilePath
 
+from oga.defaults import NP
 from oga.errors import InputError
 
 __all__ = [
@@ -44,8 +45,9 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gains", default=None, metavar="kp|kp,kf", help="gains to adjust (default kp,kf)")
     p.add_argument("--kp-range", default=None, metavar="LO,HI",
                    help="Kp bounds in (m/min)/mm for adjusted axes (default the stable range)")
-    p.add_argument("--np", type=int, default=None, metavar="N", help="prediction horizon, samples (default 50 in paper mode, "
-                        "the 100-sample window in full mode)")
+    p.add_argument("--np", type=int, default=None, metavar="N",
+                   help=f"prediction horizon, samples (default {NP['paper']} in paper mode, "
+                        f"the {NP['full']}-sample window in full mode)")
     p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
     p.add_argument("--anchor", type=float, default=None, metavar="MU",
                    help="weight pulling the gains back to the baseline (0: the paper's cost)")
