@@ -17,6 +17,7 @@ __all__ = [
     "MPC_TRUST",
     "REPORT_MAX_POINTS",
     "MPC_MIN_NP",
+    "MPC_SETTLED_M",
     "A1",
     "A2",
     "CE_WINDOW_SAMPLES",
@@ -75,6 +76,10 @@ MPC_STOP = 0.05
 #: Full mode: trust region of one iteration's control-point change, (m/min)/mm for Kp and 1
 #: for Kf.
 MPC_TRUST = (0.3, 0.05)
+#: Full mode: an axis whose setpoint stands still over the window keeps its gains once its
+#: position is this close to the setpoint, m (before that, its gains still act on its
+#: settling).
+MPC_SETTLED_M = 20e-9
 #: Full mode: shortest window accepted, samples (dead time plus the loop's settling).
 MPC_MIN_NP = 40
 #: Candidate fractions of the admissible increment interval (paper: a1 = 0.01, a2 = 0.05).

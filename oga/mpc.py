@@ -16,8 +16,10 @@ contours), coming to rest one interval before the window's end, and recedes:
    same pass, the derivatives of its predicted positions and velocity commands with
    respect to every free control point of its gains (forward mode,
    :func:`oga.tangent.run_tangent`; one pass instead of a re-simulation per point)
-   (an axis whose setpoint stands still over the whole window is not adjusted);
-2. the predicted contour error is linearised around the nominal prediction
+   (an axis whose setpoint stands still over the whole window and which has settled
+   on it, :data:`oga.defaults.MPC_SETTLED_M`, is not adjusted);
+2. the predicted contour error of the window's feed samples (those the metric counts:
+   not rapids, nothing past the program's end) is linearised around the nominal prediction
    (distance to the line of the nearest path segment, as in :mod:`oga.search`;
    that segment, here and in the line search's exact cost, is the one the replay
    measures against: the exact nearest over the sample's contour-error window,
@@ -62,6 +64,7 @@ import numpy as np
 from numba import njit
 
 from oga.contour import nearest_at
+from oga.defaults import MPC_SETTLED_M
 from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.search import apply_gains
@@ -325,10 +328,12 @@ def _basis(jk, tau, kspace, last):
 
 
 @njit(cache=True)
-def _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial):
+def _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial, feed):
     cost = 0.0
     j = -1
     for i in range(w):
+        if not feed[k + i]:  # the metric's samples only (no rapid, nothing past the end)
+            continue
         c = min(k + i, n_total - 1)
         j, _t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, trial[0, i], trial[1, i],
                                trial[2, i], j)
@@ -439,7 +444,8 @@ def mpc_chunk(
     k = k0
     while k < k1:
         for a in range(3):
-            idle[a] = True
+            # idle: its setpoint stands over the window and the axis has settled on it
+            idle[a] = abs(states[a, 0] - pdT[a, k]) <= MPC_SETTLED_M
             if moving[a]:
                 for i in range(w):
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
@@ -471,6 +477,11 @@ def mpc_chunk(
             j = -1
             nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
             for i in range(w):
+                if not feed[k + i]:  # weight 0, as in the metric
+                    for a in range(3):
+                        dq[i, a] = 0.0
+                        tang[i, a] = 0.0
+                    continue
                 c = min(k + i, n_total - 1)
                 j, t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, p0[0, i], p0[1, i],
                                       p0[2, i], j)
@@ -494,7 +505,8 @@ def mpc_chunk(
             for a in range(3):
                 for b in range(3):
                     for i in range(w):
-                        proj[a, b, i] = (1.0 if a == b else 0.0) - tang[i, a] * tang[i, b]
+                        eye = 1.0 if a == b and feed[k + i] else 0.0
+                        proj[a, b, i] = eye - tang[i, a] * tang[i, b]
                 for i in range(w):
                     mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
             for a in range(3):  # axis a's rows, from its own columns on: S_a' (P_a. o S_b)
@@ -624,7 +636,7 @@ def mpc_chunk(
                 if scale == 0.0:
                     cost = nominal_d2 * _M2_TO_UM2
                 else:
-                    cost = _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial)
+                    cost = _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial, feed)
                 for a in range(3):
                     if moving[a]:
                         for jk in range(2, nk + 2):

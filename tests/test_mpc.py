@@ -96,3 +96,27 @@ def test_plan_is_the_quadratic_b_spline_of_its_control_points():
     # value and slope at tau = 0 depend on the two fixed points only (continuity with the past)
     assert _plan_at(points, 1, 0, 0, kspace) == pytest.approx(
         0.5 * (points[1, 0, 0] + points[1, 0, 1]))
+
+
+def test_window_cost_counts_only_the_metrics_samples():
+    # the search's exact window cost is the replay's squared contour error (um^2) summed
+    # over the feed samples of the window: rapids and the padding past the end count 0
+    from oga.contour import contour_error, path_index
+    from oga.mpc import _window_cost
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 1.0, 400)
+    pd = np.stack([0.05 * np.cos(3 * t), 0.05 * np.sin(3 * t), 0.01 * t], axis=1)
+    pa = pd + rng.normal(scale=5e-6, size=pd.shape)
+    window = 150
+    tree, lo, hi = path_index(pd, window)
+    ce = contour_error(pd, pa, None, window=window)
+    k, w = 300, 150  # the window runs 50 samples past the end
+    feed = np.ones(k + w, dtype=bool)
+    feed[320:340] = False  # a rapid
+    feed[400:] = False  # padding
+    trial = np.ascontiguousarray(
+        np.vstack([pa[k:], np.repeat(pa[-1:], w - (400 - k), axis=0)]).T)
+    got = _window_cost(pd, tree, lo, hi, k, w, 400, trial, feed)
+    keep = feed[k:400]
+    assert got == pytest.approx(np.sum(ce[k:][keep] ** 2) * 1e12, rel=1e-12)
