@@ -24,7 +24,8 @@ from oga.verify import Verification, verify
 
 __all__ = ["GainSchedule", "OptimizeResult", "optimize", "setpoints_digest"]
 
-#: Samples per compiled call between two progress reports.
+#: Samples per compiled call between two progress reports (full mode: rounded down to
+#: whole commits of the window).
 _CHUNK = 2000
 
 
@@ -302,6 +303,7 @@ def optimize(
         arr.flags.writeable = False
     baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
     gain_bounds = (adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
+    chunk = _CHUNK
     if options.mode == "paper":
         from oga.search import STAT_FALLBACK, STAT_WINDOWS, search_chunk
 
@@ -320,6 +322,9 @@ def optimize(
         commit = min(max(defaults.MPC_COMMIT_SAMPLES, wlen // defaults.MPC_COMMIT_DIVISOR),
                      wlen // 2)
         commit = max(commit // kspace, 1) * kspace
+        # every call ends after a whole number of commits: the plan carried to the next
+        # call is shifted by whole spline intervals only
+        chunk = max(_CHUNK // commit, 1) * commit
         pad = wlen + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
@@ -341,10 +346,10 @@ def optimize(
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
-    for k0 in range(0, n, _CHUNK):
-        advance(k0, min(k0 + _CHUNK, n), run)
+    for k0 in range(0, n, chunk):
+        advance(k0, min(k0 + chunk, n), run)
         if progress is not None:
-            progress(min(k0 + _CHUNK, n) / n)
+            progress(min(k0 + chunk, n) / n)
     kp_out, kf_out, stats = run[4], run[5], run[7]
     for arr in (kp_out, kf_out):
         arr.flags.writeable = False

@@ -154,6 +154,19 @@ def test_full_mode_not_trapped_at_sharp_corners_where_the_planner_stops(machine)
     assert r.search_ratio_mse <= 0.35
 
 
+
+def test_full_mode_window_whose_commit_does_not_divide_the_progress_chunk(machine):
+    # np 300: control points 30 samples apart, 60 samples applied per window; the search
+    # runs in calls of 2000 samples for the progress bar, and a call that ended inside a
+    # spline interval once shifted the carried plan wrongly (a Kp step of 0.65 per sample,
+    # eq. 2 broken). reference_xz has 3004 samples: two calls.
+    sp = plan(load_toolpath(DATA / "reference_xz.ngc"), machine.planning_limits())
+    r = optimize(sp, machine, {"np": 300})
+    assert r.searched.ok and not r.kept_baseline
+    assert np.max(r.searched.max_dkp_per_sample) < 0.1
+    assert r.search_ratio_mse <= 0.35
+
+
 def test_full_mode_window_options(short, machine):
     assert options_from_dict({}).np_value == 200 and options_from_dict({"mode": "paper"}).np_value == 50
     with pytest.raises(OptionError, match="np: full mode needs a window of at least 40"):
