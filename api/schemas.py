@@ -52,7 +52,7 @@ class JobRequest(_Strict):
         "(the fields of GET /v1/machines/{name})")
     options: OptimizeOptions = Field(
         default_factory=OptimizeOptions,
-        description="the options of `oga optimize` (np, lam, anchor, adjust, gains, baseline, "
+        description="the options of `oga optimize` (np, knot, lam, anchor, adjust, gains, baseline, "
         "kp_range, feed in mm/min, tolerance in mm), same defaults")
 
 

@@ -257,6 +257,11 @@ def optimize(
             f"np: full mode needs a window of at least {defaults.MPC_MIN_NP} samples "
             f"(got {options.np_value}); a shorter one cannot see the jerk limit coming"
         )
+    if options.mode == "full" and options.np_value // options.knot_value < 3:
+        raise OptionError(
+            f"knot: the {options.np_value}-sample window needs at least 3 spline intervals "
+            f"(knot <= {options.np_value // 3}, got {options.knot_value})"
+        )
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")
@@ -317,7 +322,7 @@ def optimize(
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
 
         wlen = options.np_value
-        kspace = max(defaults.MPC_KNOT_SAMPLES, wlen // defaults.MPC_WINDOW_INTERVALS)
+        kspace = options.knot_value
         # whole spline intervals, so that the shifted plan is the same gain trajectory
         commit = min(max(defaults.MPC_COMMIT_SAMPLES, wlen // defaults.MPC_COMMIT_DIVISOR),
                      wlen // 2)

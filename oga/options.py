@@ -45,6 +45,11 @@ class OptimizeOptions(BaseModel):
     np : int or None
         Prediction horizon in samples (full mode: the window planned at once);
         None: the mode's default (:data:`oga.defaults.NP`).
+    knot : int or None
+        Full mode: samples between the control points of the planned gain trajectory;
+        None: ``max(MPC_KNOT_SAMPLES, np // MPC_WINDOW_INTERVALS)`` of
+        :mod:`oga.defaults` (20 at the default window). Finer knots on a long window
+        follow faster gain changes, at a cost growing with the square of their number.
     lam : float or None
         Weight of the gain increments in the cost ``J = E'E + lam dK'dK`` with the
         contour error E in mm in paper mode (the paper's unit) and in um in full
@@ -73,6 +78,7 @@ class OptimizeOptions(BaseModel):
     np: Annotated[int, Field(ge=1, le=1000)] | None = Field(
         None, json_schema_extra={"default_per_mode": defaults.NP}
     )
+    knot: Annotated[int, Field(ge=2, le=1000)] | None = None
     lam: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     anchor: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     feed_mm_per_min: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(
@@ -113,6 +119,8 @@ class OptimizeOptions(BaseModel):
                 raise ValueError("baseline: Kp must be positive")
             if not 0 <= kf <= 1:
                 raise ValueError("baseline: Kf must lie in [0, 1]")
+        if self.knot is not None and self.mode != "full":
+            raise ValueError("knot: only full mode plans a spline of gains")
         if self.kp_range is not None:
             lo, hi = self.kp_range
             if not 0 < lo <= hi:
@@ -123,6 +131,13 @@ class OptimizeOptions(BaseModel):
     def np_value(self) -> int:
         """``np``, or the mode's default."""
         return defaults.NP[self.mode] if self.np is None else self.np
+
+    @property
+    def knot_value(self) -> int:
+        """``knot``, or the default spacing for the window ``np_value``."""
+        if self.knot is not None:
+            return self.knot
+        return max(defaults.MPC_KNOT_SAMPLES, self.np_value // defaults.MPC_WINDOW_INTERVALS)
 
     @property
     def lam_value(self) -> float:

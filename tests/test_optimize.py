@@ -169,6 +169,12 @@ def test_full_mode_window_whose_commit_does_not_divide_the_progress_chunk(machin
 
 def test_full_mode_window_options(short, machine):
     assert options_from_dict({}).np_value == 200 and options_from_dict({"mode": "paper"}).np_value == 50
+    assert options_from_dict({}).knot_value == 20 and options_from_dict({"np": 40}).knot_value == 10
+    assert options_from_dict({"np": 400, "knot": 10}).knot_value == 10
+    with pytest.raises(OptionError, match="knot: only full mode"):
+        options_from_dict({"mode": "paper", "knot": 10})
+    with pytest.raises(OptionError, match="knot: the 100-sample window needs at least 3"):
+        optimize(short, machine, {"np": 100, "knot": 34})
     with pytest.raises(OptionError, match="np: full mode needs a window of at least 40"):
         optimize(short, machine, {"np": 39})
 

@@ -48,6 +48,9 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--np", type=int, default=None, metavar="N",
                    help=f"prediction horizon, samples (default {NP['paper']} in paper mode, "
                         f"the {NP['full']}-sample window in full mode)")
+    p.add_argument("--knot", type=int, default=None, metavar="N",
+                   help="full mode: samples between the gain spline's control points "
+                        "(default np/10, at least 10)")
     p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
     p.add_argument("--anchor", type=float, default=None, metavar="MU",
                    help="weight pulling the gains back to the baseline (0: the paper's cost)")
@@ -59,7 +62,7 @@ def options_from_args(args: argparse.Namespace):
 
     return options_from_dict(
         None, mode=args.mode, baseline=args.baseline, adjust=args.adjust, gains=args.gains,
-        kp_range=args.kp_range, np=args.np, lam=args.lam, anchor=args.anchor,
+        kp_range=args.kp_range, np=args.np, knot=args.knot, lam=args.lam, anchor=args.anchor,
         feed=args.feed, tolerance=args.tolerance,
     )
 
