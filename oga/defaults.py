@@ -10,8 +10,7 @@ __all__ = [
     "ANCHOR",
     "MPC_KNOT_SAMPLES",
     "MPC_WINDOW_INTERVALS",
-    "MPC_COMMIT_SAMPLES",
-    "MPC_COMMIT_DIVISOR",
+    "MPC_COMMIT_INTERVALS",
     "MPC_ITERATIONS",
     "MPC_STOP",
     "MPC_TRUST",
@@ -50,8 +49,9 @@ DT_S = 1e-3
 #: Interpolation tolerance (largest deviation of a setpoint from the programmed path), metres.
 TOL_M = 20e-6
 #: Prediction horizon per mode, samples: the paper's 50; full mode plans a window of 200
-#: (its first fifth is applied, the rest looks past it: an axis stopping in the friction
-#: band settles over 300-500 ms, and the gains that matter act before the stop).
+#: (its first two spline intervals are applied, the rest looks past them: an axis stopping
+#: in the friction band settles over 300-500 ms, and the gains that matter act before the
+#: stop).
 NP = {"paper": 50, "full": 200}
 #: Weight of the gain increments in the cost per mode, per unit^2 of increment (paper: 0.01),
 #: against E'E in the mode's unit: mm^2 in paper mode (the paper's), um^2 in full mode
@@ -63,11 +63,9 @@ ANCHOR = {"paper": 0.0, "full": 30.0}
 #: ``max(MPC_KNOT_SAMPLES, np // MPC_WINDOW_INTERVALS)`` samples apart.
 MPC_KNOT_SAMPLES = 10
 MPC_WINDOW_INTERVALS = 10
-#: Full mode: samples of each plan applied before the window recedes and is planned again:
-#: ``np // MPC_COMMIT_DIVISOR``, at least MPC_COMMIT_SAMPLES and at most half the window,
-#: rounded down to whole spline intervals (at least one).
-MPC_COMMIT_SAMPLES = 20
-MPC_COMMIT_DIVISOR = 5
+#: Full mode: spline intervals of each plan applied before the window recedes and is
+#: planned again (at most half the window's intervals, at least one).
+MPC_COMMIT_INTERVALS = 2
 #: Full mode: sequential-QP iterations per window at most (each re-linearised on the plan).
 MPC_ITERATIONS = 3
 #: Full mode: an iteration that lowers the window's exact cost by less than this share ends

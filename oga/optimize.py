@@ -324,9 +324,7 @@ def optimize(
         wlen = options.np_value
         kspace = options.knot_value
         # whole spline intervals, so that the shifted plan is the same gain trajectory
-        commit = min(max(defaults.MPC_COMMIT_SAMPLES, wlen // defaults.MPC_COMMIT_DIVISOR),
-                     wlen // 2)
-        commit = max(commit // kspace, 1) * kspace
+        commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
         # every call ends after a whole number of commits: the plan carried to the next
         # call is shifted by whole spline intervals only
         chunk = max(_CHUNK // commit, 1) * commit
