@@ -16,6 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import Settings, create_app
+from oga.defaults import NP
 from test_api_server import Server, wait_for
 
 DATA = Path(__file__).parent / "data"
@@ -151,9 +152,9 @@ def test_page_takes_the_reference_program_to_a_report(browser, tmp_path, shots):
         page.wait_for_selector("#machine option[value=ucp710]", state="attached")
         assert page.input_value("#machine") == "ucp710"
         # the horizon's default per mode, from /openapi.json
-        assert page.get_attribute("#np", "placeholder") == "default 100"
+        assert page.get_attribute("#np", "placeholder") == f"default {NP['full']}"
         page.select_option("#mode", "paper")
-        assert page.get_attribute("#np", "placeholder") == "default 50"
+        assert page.get_attribute("#np", "placeholder") == f"default {NP['paper']}"
         page.select_option("#mode", "full")
 
         # a malformed program: the API's 422 in words, with line and column
