@@ -89,17 +89,25 @@ def _chol(a):
     """Lower Cholesky factor of a symmetric positive definite matrix (a copy)."""
     n = a.shape[0]
     low = np.zeros((n, n))
-    for j in range(n):
-        s = a[j, j]
-        for k in range(j):
-            s -= low[j, k] * low[j, k]
-        low[j, j] = np.sqrt(max(s, 1e-300))
-        for i in range(j + 1, n):
-            s = a[i, j]
-            for k in range(j):
-                s -= low[i, k] * low[j, k]
-            low[i, j] = s / low[j, j]
+    for i in range(n):
+        _chol_row(a, low, i)
     return low
+
+
+@njit(cache=True, inline="always")
+def _chol_row(a, low, i):
+    """Row ``i`` of the lower Cholesky factor of ``a`` (lower triangle read) into ``low``,
+    from its rows ``0 .. i - 1``: a factor grows by a row as its matrix by a row and a
+    column, and a row depends on nothing below it."""
+    for j in range(i):
+        s = a[i, j]
+        for k in range(j):
+            s -= low[i, k] * low[j, k]
+        low[i, j] = s / low[j, j]
+    s = a[i, i]
+    for k in range(i):
+        s -= low[i, k] * low[i, k]
+    low[i, i] = np.sqrt(max(s, 1e-300))
 
 
 @njit(cache=True)
@@ -149,6 +157,8 @@ def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
     g = np.empty((nv, nv))  # g[c] = P^-1 n_c, n_c = sgn_c a_act[c]
     u = np.zeros(nv)  # multipliers of the active rows (>= 0)
     gram = np.empty((nv, nv))  # N' P^-1 N of the active rows
+    low_g = np.zeros((nv, nv))  # its Cholesky factor, valid in its first n_low rows
+    n_low = 0
     gp = np.empty(nv)
     z = np.empty(nv)
     rowv = np.empty(nv)
@@ -189,11 +199,13 @@ def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
                     for i in range(nv):
                         t += g[c, i] * rowv[i]  # n_c' P^-1 n_p = g_c . n_p (P symmetric)
                     rhs[c] = t
-                low_g = _chol(gram[:na, :na])
+                while n_low < na:  # the rows added since the last step
+                    _chol_row(gram, low_g, n_low)
+                    n_low += 1
                 for c in range(na):
                     if low_g[c, c] <= 1e-150:  # dependent active rows
                         return False
-                _chol_solve(low_g, rhs, r)
+                _chol_solve(low_g[:na, :na], rhs, r)
             for i in range(nv):
                 t = gp[i]
                 for c in range(na):
@@ -240,6 +252,7 @@ def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
                 break
             # partial step: drop row k (the last active row takes its place)
             na -= 1
+            n_low = min(n_low, k)  # the factor's rows from k on change
             act[k] = act[na]
             sgn[k] = sgn[na]
             u[k] = u[na]
