@@ -64,7 +64,6 @@ import numpy as np
 from numba import njit
 
 from oga.contour import nearest_at
-from oga.defaults import MPC_SETTLED_M
 from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.search import apply_gains
@@ -362,6 +361,7 @@ def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
     lam, anchor, tree, win_lo, win_hi, moving, feed, points, kp_out, kf_out, u_out, stats, stop,
+    settled,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
@@ -376,9 +376,10 @@ def mpc_chunk(
     ``points`` (3, 2, w // kspace) carries the plan between calls: the control points
     ``c_{-1}, c_0, ...`` of :func:`_plan_at` (the first two fixed: with them the
     applied gains and their slope, the rest free); it is shifted by ``commit``
-    samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where eq. 2 applies
-    (feed moves; rapids and the padding are not checked, as in :mod:`oga.verify`);
-    ``stop`` is :data:`oga.defaults.MPC_STOP`.
+    samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where
+    eq. 2 applies and the contour error counts (feed moves; rapids and the padding are
+    not checked, as in :mod:`oga.verify`); ``stop`` is :data:`oga.defaults.MPC_STOP`,
+    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`.
     """
     n_total = pd.shape[0]
     nk = points.shape[2] - 2  # free control points per gain: indices 2 .. nk + 1
@@ -458,7 +459,7 @@ def mpc_chunk(
     while k < k1:
         for a in range(3):
             # idle: its setpoint stands over the window and the axis has settled on it
-            idle[a] = abs(states[a, 0] - pdT[a, k]) <= MPC_SETTLED_M
+            idle[a] = abs(states[a, 0] - pdT[a, k]) <= settled
             if moving[a]:
                 for i in range(w):
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:

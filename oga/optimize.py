@@ -344,7 +344,8 @@ def optimize(
                       kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, tree, win_lo, win_hi, is_moving,
-                      feed_pad, points, *run[4:], defaults.MPC_STOP)
+                      feed_pad, points, *run[4:], defaults.MPC_STOP,
+                      defaults.MPC_SETTLED_M)
 
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
