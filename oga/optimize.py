@@ -121,7 +121,8 @@ class OptimizeResult:
 
         def metrics(v: Verification) -> dict:
             m = v.metrics.to_dict()
-            return {k: m[k] for k in ("mse_ce_um2", "rms_ce_um", "max_ce_um", "p95_ce_um")}
+            return {k: m[k] for k in ("mse_ce_um2", "rms_ce_um", "max_ce_um", "p95_ce_um",
+                                      "track_max_um")}
 
         moving = [AXES[i] for i in self.setpoints.moving_axes]
         return {

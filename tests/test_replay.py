@@ -402,6 +402,13 @@ def test_replayed_ratio_and_figures_match_the_summary(outputs, replays):
         "base p95": rel(np.percentile(base, 95) * 1e6, summ["baseline"]["p95_ce_um"]),
         "opt p95": rel(np.percentile(opt, 95) * 1e6, summ["optimized"]["p95_ce_um"]),
     }
+    for which, key in (("base", "baseline"), ("opt", "optimized")):  # following error
+        lag = np.abs(replays["pd"] - replays[which]["pos"]).max(axis=0) * 1e6
+        for c, a in enumerate(AXES):
+            if lag[c] > 0.0:
+                diffs[f"{which} track {a}"] = rel(lag[c], summ[key]["track_max_um"][a])
+            else:  # an axis that stands still
+                assert summ[key]["track_max_um"][a] == 0.0
     print({k: f"{v:.1e}" for k, v in diffs.items()})
     assert max(diffs.values()) <= RTOL, diffs
     assert ratio < 0.2  # the schedule really cuts the error (0.095 today)

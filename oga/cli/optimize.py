@@ -64,6 +64,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"optimized ({','.join(res.adjusted)}; {','.join(res.options.gains)}): "
           f"CE rms {o['rms_ce_um']:.3f} um, max {o['max_ce_um']:.3f} um, "
           f"MSE ratio {res.ratio_mse:.3f}, {res.optimize_time_s:.1f} s")
+    lag_b, lag_o = b["track_max_um"], o["track_max_um"]
+    print("following error max (um): " + ", ".join(
+        f"{a} {lag_b[a]:.1f} -> {lag_o[a]:.1f}" for a in res.adjusted))
     if res.kept_baseline:
         why = ("failed verification: " + "; ".join(res.searched.violations)
                if not res.searched.ok else f"MSE ratio {res.search_ratio_mse:.3f} >= 1")
