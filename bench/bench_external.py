@@ -1,0 +1,68 @@
+"""Full mode on a folder of real programs: MSE(CE) ratios, contour and following errors, speed.
+
+Usage: python bench/bench_external.py [FOLDER] [--machine NAME] [--options JSON]
+
+FOLDER defaults to ../shared/toolpaths/external relative to the repository root (real
+programs from public projects, most GPL: they are read, never copied into the project).
+Every figure comes from the verified replay. RT = motion time / CPU time of the whole
+``optimize`` (the best-fixed grid included), one thread, after one warm-up run; RT grid
+is the same for the best-fixed grid alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path as FilePath
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from feedplan.plan import plan  # noqa: E402
+from feedplan.read import SUFFIXES, load_toolpath  # noqa: E402
+from oga import optimize  # noqa: E402
+from oga.machine import load_machine  # noqa: E402
+from oga.ranges import best_fixed_gains  # noqa: E402
+
+ROOT = FilePath(__file__).resolve().parents[1]
+DEFAULT = ROOT.parent / "shared" / "toolpaths" / "external"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", nargs="?", default=str(DEFAULT))
+    ap.add_argument("--machine", default="ucp710")
+    ap.add_argument("--options", default="{}", help="optimize options as JSON")
+    args = ap.parse_args(argv)
+    machine = load_machine(args.machine)
+    options = json.loads(args.options)
+    files = sorted(f for f in FilePath(args.folder).iterdir() if f.suffix.lower() in SUFFIXES)
+    if not files:
+        print(f"no toolpath files in {args.folder}")
+        return 1
+    warm = plan(load_toolpath(ROOT / "examples" / "data" / "reference_xz.ngc"),
+                machine.planning_limits())
+    optimize(warm, machine, options)  # compile / load caches, stability ranges
+    print(f"{'program':32s} {'motion s':>9s} {'ratio':>7s} {'rms0 um':>8s} {'rms um':>7s} "
+          f"{'max0 um':>8s} {'max um':>7s} {'lag0 mm':>8s} {'lag mm':>7s} {'RT':>7s} "
+          f"{'RT grid':>8s}  status")
+    for f in files:
+        sp = plan(load_toolpath(f), machine.planning_limits())
+        t0 = time.process_time()
+        r = optimize(sp, machine, options)
+        t1 = time.process_time()
+        best_fixed_gains(sp, machine)
+        t2 = time.process_time()
+        b, o = r.baseline.metrics, r.searched.metrics
+        print(f"{f.name:32s} {sp.duration:9.1f} {r.search_ratio_mse:7.3f} {b.rms_m * 1e6:8.2f} "
+              f"{o.rms_m * 1e6:7.2f} {b.max_abs_m * 1e6:8.1f} {o.max_abs_m * 1e6:7.1f} "
+              f"{max(b.track_max_m) * 1e3:8.2f} {max(o.track_max_m) * 1e3:7.2f} "
+              f"{sp.duration / (t1 - t0):6.1f}x {sp.duration / (t2 - t1):7.1f}x  "
+              f"{r.searched.status}{' (kept baseline)' if r.kept_baseline else ''}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
