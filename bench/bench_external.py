@@ -20,11 +20,11 @@ from pathlib import Path as FilePath
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from feedplan.plan import plan  # noqa: E402
-from feedplan.read import SUFFIXES, load_toolpath  # noqa: E402
-from oga import optimize  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
-from oga.ranges import best_fixed_gains  # noqa: E402
+from feedplan.plan import plan
+from feedplan.read import SUFFIXES, load_toolpath
+from oga import optimize
+from oga.machine import load_machine
+from oga.ranges import best_fixed_gains
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DEFAULT = ROOT.parent / "shared" / "toolpaths" / "external"
