@@ -601,10 +601,19 @@ def _same(a: float, b: float) -> bool:
 
 
 @njit(cache=True, inline="always")
-def _unchanged(p, v, f, i, p1, v1, f1, i1) -> bool:
-    """A period left ``(p, v, F, I)`` exactly as it was (a floating-point fixed point of
-    :func:`_advance`): the next period, under the same command, does too."""
-    return _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+def _period(params, p, v, f, i, ud, still, ud_still):
+    """:func:`_advance` (no load) of one period, skipped where it provably changes nothing.
+
+    ``still`` says the last period left ``(p, v, F, I)`` exactly as it was (a
+    floating-point fixed point of :func:`_advance`) under the command ``ud_still``: under
+    the same command this period does too. Returns ``(p, v, F, I, still, ud_still)`` for
+    the next period (start a run with ``still`` False).
+    """
+    if still and _same(ud, ud_still):
+        return p, v, f, i, True, ud
+    p1, v1, f1, i1 = _advance(params, p, v, f, i, ud, 0.0)
+    still = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+    return p1, v1, f1, i1, still, ud
 
 
 @njit(cache=True, inline="always")
@@ -659,17 +668,14 @@ def window(
     dead = int(params[_DEAD])
     p0 = state[_P]
     p, v, f, i = p0, state[_V], state[_F], state[_I]
-    still, ud_still = False, 0.0  # :func:`_unchanged` of the last period, and its command
+    still, ud_still = False, 0.0  # see :func:`_period`
     for j in range(n):
         m = j - dead  # the command applied now is u_{k0+m}
         if m < 0:
             ud = state[_LINE + dead - 1 - j]
         else:
             ud = _command(pd, vd, k0 + m, p0 if m == 0 else out_p[m - 1], kp_si, kf)
-        if not (still and _same(ud, ud_still)):
-            p1, v1, f1, i1 = _advance(params, p, v, f, i, ud, 0.0)
-            still, ud_still = _unchanged(p, v, f, i, p1, v1, f1, i1), ud
-            p, v, f, i = p1, v1, f1, i1
+        p, v, f, i, still, ud_still = _period(params, p, v, f, i, ud, still, ud_still)
         out_p[j] = p
 
 
@@ -706,17 +712,14 @@ def run(
         return
     dead = int(params[_DEAD])
     p, v, f, i = state[_P], state[_V], state[_F], state[_I]
-    still, ud_still = False, 0.0  # :func:`_unchanged` of the last period, and its command
+    still, ud_still = False, 0.0  # see :func:`_period`
     for k in range(n):
         out_p[k] = p
         u = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
         out_u[k] = u
         m = k - dead  # the command applied now is u_m
         ud = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
-        if not (still and _same(ud, ud_still)):
-            p1, v1, f1, i1 = _advance(params, p, v, f, i, ud, 0.0)
-            still, ud_still = _unchanged(p, v, f, i, p1, v1, f1, i1), ud
-            p, v, f, i = p1, v1, f1, i1
+        p, v, f, i, still, ud_still = _period(params, p, v, f, i, ud, still, ud_still)
     _store_cascade(state, dead, out_u, n, p, v, f, i)
 
 
