@@ -28,7 +28,6 @@ the setpoints are data.
 
 from __future__ import annotations
 
-
 import numpy as np
 from numba import njit
 
@@ -61,7 +60,6 @@ from oga.simulate import (
     _store_cascade,
     _substep_coefs,
     friction_and_slope,
-    friction_nonlinear,
 )
 
 __all__ = ["run_tangent", "friction_slope"]
@@ -83,15 +81,18 @@ def friction_slope(params: np.ndarray, v: float) -> float:
 
 
 @njit(cache=True)
-def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd):
+def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd, fn, slope):
     """:func:`oga.simulate._substeps` (no load) with the tangents of ``(p, v, F, I)`` of the
-    first ``nd`` directions advanced in place; returns the nominal ``(p, v, F, I)``."""
+    first ``nd`` directions advanced in place; returns the nominal ``(p, v, F, I)``.
+    ``fn, slope``: :func:`oga.simulate.friction_and_slope` at ``v`` (the first sub-step's,
+    already known to the caller)."""
     c = _substep_coefs(params)
     pi = _pi_coefs(params)
     kv, inv_tn, h, _flim = pi
-    for _ in range(int(params[_NSUB])):
+    for j in range(int(params[_NSUB])):
+        if j > 0:
+            fn, slope = friction_and_slope(params, v)
         fc, i_next, linear, integrating = _pi_substep(ud, v, i, pi)
-        fn, slope = friction_and_slope(params, v)
         kv_lin = kv if linear else 0.0  # a limited force command does not move
         h_int = h if integrating else 0.0  # nor does a frozen integral
         for d in range(nd):
@@ -195,12 +196,13 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
             ud = state[_LINE + dead - 1 - k]
             for d in range(nd):
                 dud[d] = 0.0
-        fn = friction_nonlinear(params, v)
+        fn, slope = friction_and_slope(params, v)
         if lifted and _lifted_guard(params, v, f, i, ud, fn):
             _lifted_tangent(params, dp, dv, df, di, dud, nd)
             p, v, f, i = _lifted(params, p, v, f, i, ud, fn)
         else:  # the sub-steps (also at rest, where they change nothing: the same bits as run)
-            p, v, f, i = _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd)
+            p, v, f, i = _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd, fn,
+                                           slope)
     _store_cascade(state, dead, out_u, n, p, v, f, i)
 
 
