@@ -63,7 +63,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import nearest_at
+from oga.contour import ce2_at, nearest_at
 from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.search import apply_gains
@@ -340,19 +340,17 @@ def _basis(jk, tau, kspace, last):
 
 
 @njit(cache=True)
-def _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial, feed):
+def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
+    """Squared contour error (um^2) of the predicted positions ``trial`` (3, w), summed
+    over the window's feed samples (the metric's: no rapid, nothing past the end)."""
     cost = 0.0
     j = -1
     for i in range(w):
-        if not feed[k + i]:  # the metric's samples only (no rapid, nothing past the end)
-            continue
-        c = min(k + i, n_total - 1)
-        j, _t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, trial[0, i], trial[1, i],
-                               trial[2, i], j)
-        if j < 0:
-            d2 = ((trial[0, i] - pd[c, 0]) ** 2 + (trial[1, i] - pd[c, 1]) ** 2
-                  + (trial[2, i] - pd[c, 2]) ** 2)
-        cost += d2
+        c = k + i
+        if feed[c]:
+            d2, j = ce2_at(pd, tree, win_lo[c], win_hi[c], c, trial[0, i], trial[1, i],
+                           trial[2, i], j)
+            cost += d2
     return cost * _M2_TO_UM2
 
 
@@ -364,6 +362,10 @@ def mpc_chunk(
     settled,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
+
+    ``k1 - k0`` must be a multiple of ``commit`` unless ``k1`` is the program's end
+    (ValueError otherwise): the plan carried to the next call is shifted by whole
+    commits only.
 
     The arguments shared with :func:`oga.search.search_chunk` mean the same there
     (``pdT``/``vdT`` padded by ``w + 1`` samples past the end); ``kp_base``,
@@ -381,7 +383,9 @@ def mpc_chunk(
     not checked, as in :mod:`oga.verify`); ``stop`` is :data:`oga.defaults.MPC_STOP`,
     ``settled`` :data:`oga.defaults.MPC_SETTLED_M`.
     """
-    n_total = pd.shape[0]
+    if (k1 - k0) % commit != 0 and k1 < pd.shape[0]:
+        # a call ending inside a commit would carry the plan shifted by part of an interval
+        raise ValueError("mpc_chunk: k1 - k0 must be a multiple of commit, except at the end")
     nk = points.shape[2] - 2  # free control points per gain: indices 2 .. nk + 1
     var_axis = np.empty(6 * nk, dtype=np.int64)
     var_gain = np.empty(6 * nk, dtype=np.int64)
@@ -496,7 +500,7 @@ def mpc_chunk(
                         dq[i, a] = 0.0
                         tang[i, a] = 0.0
                     continue
-                c = min(k + i, n_total - 1)
+                c = k + i  # a feed sample: inside the program
                 j, t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, p0[0, i], p0[1, i],
                                       p0[2, i], j)
                 if j < 0:
@@ -650,7 +654,7 @@ def mpc_chunk(
                 if scale == 0.0:
                     cost = nominal_d2 * _M2_TO_UM2
                 else:
-                    cost = _window_cost(pd, tree, win_lo, win_hi, k, w, n_total, trial, feed)
+                    cost = _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed)
                 for a in range(3):
                     if moving[a]:
                         for jk in range(2, nk + 2):

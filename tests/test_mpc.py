@@ -117,6 +117,6 @@ def test_window_cost_counts_only_the_metrics_samples():
     feed[400:] = False  # padding
     trial = np.ascontiguousarray(
         np.vstack([pa[k:], np.repeat(pa[-1:], w - (400 - k), axis=0)]).T)
-    got = _window_cost(pd, tree, lo, hi, k, w, 400, trial, feed)
+    got = _window_cost(pd, tree, lo, hi, k, w, trial, feed)
     keep = feed[k:400]
     assert got == pytest.approx(np.sum(ce[k:][keep] ** 2) * 1e12, rel=1e-12)
