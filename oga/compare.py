@@ -58,7 +58,8 @@ class ComparisonRow:
     velocity_ratio : float
         Same for the velocity command itself.
     limits_ok : bool
-        Every ratio <= 1.
+        Every ratio <= 1, and the following error within the machine's limit
+        (``ferror_max_m``) where it sets one.
     time_s : float
         Wall time of the controller's run (tuning included), s.
     parameters : dict
@@ -210,7 +211,9 @@ def _row(setpoints: Setpoints, machine: Machine, name: str, tune: bool,
         track_max_um={a: v * _UM for a, v in zip(AXES, m.track_max_m)},
         velocity_ratio=float(ratios[:, 0].max()), accel_ratio=float(ratios[:, 1].max()),
         jerk_ratio=float(ratios[:, 2].max()),
-        limits_ok=bool(np.isfinite(m.mse_m2) and np.all(ratios <= 1.0 + _SLACK)),
+        limits_ok=bool(np.isfinite(m.mse_m2) and np.all(ratios <= 1.0 + _SLACK)
+                       and np.all(np.array(m.track_max_m)
+                                  <= machine.ferror_limits() * (1.0 + _SLACK))),
         time_s=time.perf_counter() - t0, parameters=dict(run.parameters), notes=run.notes,
         ce_m=ce,
     )

@@ -66,11 +66,20 @@ class _Frozen(BaseModel):
 
 
 class Limits(_Frozen):
-    """Kinematic limits of one axis (SI)."""
+    """Limits of one axis (SI).
+
+    ``vmax_m_s``, ``amax_m_s2``, ``jmax_m_s3`` bound the velocity command (paper eq. 2).
+    ``ferror_max_m``, optional, is the largest following error ``|pd - p|`` the
+    controller's following-error monitor tolerates on the axis (LinuxCNC's ``FERROR``,
+    which grows with speed from ``MIN_FERROR``: give the least of them). When it is
+    set, the best fixed gains, the search and the verification keep every feed sample
+    within it; when unset, nothing bounds the following error (it is reported).
+    """
 
     vmax_m_s: Pos
     amax_m_s2: Pos
     jmax_m_s3: Pos
+    ferror_max_m: Pos | None = None
 
 
 class Cascade(_Frozen):
@@ -250,6 +259,19 @@ class Machine(_Frozen):
         ]
         v, acc, j = zip(*rows)
         return AxisLimits(vmax_m_s=v, amax_m_s2=acc, jmax_m_s3=j)
+
+    def ferror_limits(self) -> np.ndarray:
+        """Per-axis (x, y, z) following-error limit, m; ``inf`` where none is set.
+
+        Returns
+        -------
+        ndarray, shape (3,)
+        """
+        return np.array([
+            a.limits.ferror_max_m if a is not None and a.limits.ferror_max_m is not None
+            else np.inf
+            for a in (self.axes.get(n) for n in ("x", "y", "z"))
+        ])
 
     def planning_limits(self) -> "AxisLimits":
         """The limits the interpolator plans with: :meth:`axis_limits` times the planner fractions."""

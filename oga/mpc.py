@@ -35,8 +35,10 @@ contours), coming to rest one interval before the window's end, and recedes:
 3. constraints: every control point inside its gain bounds (the spline is a convex
    combination of them, so the gains stay inside) and inside a trust region
    where the linearisation holds, and eq. 2 on the linearised velocity command
-   over the whole window (with a small margin); the QP is solved exactly by the
-   dual active-set method of Goldfarb and Idnani;
+   over the whole window (with a small margin), and likewise the machine's
+   following-error limit on the linearised positions where it sets one (below,
+   "eq. 2" includes it); the QP is solved exactly by the dual active-set method of
+   Goldfarb and Idnani;
 4. exact line search: the full step is simulated exactly from the true state and
    taken if its velocity command meets eq. 2 over the whole window and it lowers the
    window's exact cost below the current plan's (the usual case); otherwise the steps
@@ -339,6 +341,20 @@ def _basis(jk, tau, kspace, last):
     return w0 * (j0 == jk) + w1 * (j1 == jk) + w2 * (j2 == jk)
 
 
+@njit(cache=True, inline="always")
+def _keep_row(m, lo_r, hi_r, reach, c0, c1, alo, ahi, col0, col1):
+    """Keep constraint row ``m`` (its coefficients already in place) with bounds ``lo_r <=
+    row . d <= hi_r`` over columns ``c0 .. c1 - 1`` if the trust region can reach a bound
+    (``reach``: the row's largest change over it); returns the next free row."""
+    if reach > min(-lo_r, hi_r) * (1.0 - 1e-12):
+        alo[m] = lo_r
+        ahi[m] = hi_r
+        col0[m] = c0
+        col1[m] = c1
+        return m + 1
+    return m
+
+
 @njit(cache=True)
 def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
     """Squared contour error (um^2) of the predicted positions ``trial`` (3, w), summed
@@ -359,7 +375,7 @@ def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
     lam, anchor, tree, win_lo, win_hi, moving, feed, points, kp_out, kf_out, u_out, stats, stop,
-    settled,
+    settled, ferror_max,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
@@ -381,7 +397,9 @@ def mpc_chunk(
     samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where
     eq. 2 applies and the contour error counts (feed moves; rapids and the padding are
     not checked, as in :mod:`oga.verify`); ``stop`` is :data:`oga.defaults.MPC_STOP`,
-    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`.
+    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (3,) the machine's
+    following-error limit per axis (m, ``inf``: none), kept at the window's feed samples
+    like eq. 2 (linearised rows, then the exact check of the line search).
     """
     if (k1 - k0) % commit != 0 and k1 < pd.shape[0]:
         # a call ending inside a commit would carry the plan shifted by part of an interval
@@ -443,7 +461,7 @@ def mpc_chunk(
     tang = np.empty((w, 3))
     pmat = np.empty((nv, nv))
     qvec = np.empty(nv)
-    max_rows = nv + 3 * 3 * w
+    max_rows = nv + 4 * 3 * w  # bounds, eq. 2 (v, a, j) and following error per sample
     amat = np.zeros((max_rows, nv))
     alo = np.empty(max_rows)
     ahi = np.empty(max_rows)
@@ -602,14 +620,22 @@ def mpc_chunk(
                                 cv += su[i - 2, v]
                             amat[m, v] = cv * scale
                             reach += abs(cv * scale) * trust[v]
-                        lo_r = -1.0 - nominal * scale
-                        hi_r = 1.0 - nominal * scale
-                        if reach > min(-lo_r, hi_r) * (1.0 - 1e-12):
-                            alo[m] = lo_r
-                            ahi[m] = hi_r
-                            col0[m] = var_lo[a]
-                            col1[m] = var_hi[a]
-                            m += 1
+                        m = _keep_row(m, -1.0 - nominal * scale, 1.0 - nominal * scale, reach,
+                                      var_lo[a], var_hi[a], alo, ahi, col0, col1)
+            for a in range(3):  # following error |pd - p0 - S d| <= margin * limit
+                if not moving[a] or var_lo[a] == var_hi[a] or not np.isfinite(ferror_max[a]):
+                    continue
+                scale = 1.0 / ferror_max[a]
+                for i in range(w):
+                    if not feed[k + i]:
+                        continue
+                    nominal = (pdT[a, k + i] - p0[a, i]) * scale
+                    reach = 0.0
+                    for v in range(var_lo[a], var_hi[a]):
+                        amat[m, v] = sp[i, v] * scale
+                        reach += abs(sp[i, v] * scale) * trust[v]
+                    m = _keep_row(m, nominal - _LIN_MARGIN, nominal + _LIN_MARGIN, reach,
+                                  var_lo[a], var_hi[a], alo, ahi, col0, col1)
             for v in range(nv):
                 x[v] = 0.0
             if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, col0, col1, x):
@@ -651,6 +677,16 @@ def mpc_chunk(
                                                        amax[a], jmax[a], te, n_next, fk))
                     worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
                                                        amax[a], jmax[a], te, n_commit, fk))
+                    if np.isfinite(ferror_max[a]):  # the following-error limit, as an excess
+                        pos = p0[a] if scale == 0.0 else trial[a]
+                        for i in range(w):
+                            ex = abs(pdT[a, k + i] - pos[i]) / ferror_max[a] - 1.0
+                            if fk[i] and ex > 0.0:
+                                worst = max(worst, ex)
+                                if i < n_next:
+                                    worst_n = max(worst_n, ex)
+                                if i < n_commit:
+                                    worst_c = max(worst_c, ex)
                 if scale == 0.0:
                     cost = nominal_d2 * _M2_TO_UM2
                 else:

@@ -152,6 +152,10 @@ class OptimizeResult:
                 a: dict(zip(("v", "a", "j"), self.optimized.command_ratio[i].tolist()))
                 for i, a in enumerate(AXES) if a in moving
             },
+            "ferror_ratio_to_limit": {
+                a: (float(r) if np.isfinite(r) else None)
+                for a, r in zip(AXES, self.optimized.ferror_ratio) if a in moving
+            },
             "max_dkp_per_sample": {a: float(self.optimized.max_dkp_per_sample[i])
                                    for i, a in enumerate(AXES) if a in moving},
             "max_dkf_per_sample": {a: float(self.optimized.max_dkf_per_sample[i])
@@ -197,7 +201,8 @@ def _baseline(setpoints, machine, options, moving):
         best = best_fixed_gains(setpoints, machine)
         if best is None:
             raise OptionError(
-                "baseline: no equal fixed gains meet the kinematic limits on this toolpath; "
+                "baseline: no equal fixed gains meet the kinematic limits (and the "
+                "following-error limits, where the machine sets them) on this toolpath; "
                 "give --baseline KP,KF"
             )
         kp = {a: float(best.kp[a]) for a in moving}
@@ -308,6 +313,8 @@ def optimize(
     for arr in (fixed_kp, fixed_kf):
         arr.flags.writeable = False
     baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
+    feed = np.ascontiguousarray(~setpoints.rapid)
+    ferror_max = machine.ferror_limits()
     gain_bounds = (adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
     chunk = _CHUNK
     if options.mode == "paper":
@@ -317,7 +324,7 @@ def optimize(
             search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
                          run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
                          kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
-                         is_moving, *run[4:])
+                         is_moving, *run[4:], feed, ferror_max)
     else:
         from oga.contour import path_index
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
@@ -332,7 +339,7 @@ def optimize(
         pad = wlen + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-        feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+        feed_pad = np.concatenate([feed, np.zeros(pad, dtype=bool)])
         # the contour error's index and windows, as the replay measures it
         tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
         # the plan's spline control points per axis and gain, carried across chunks (as many
@@ -346,7 +353,7 @@ def optimize(
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, tree, win_lo, win_hi, is_moving,
                       feed_pad, points, *run[4:], defaults.MPC_STOP,
-                      defaults.MPC_SETTLED_M)
+                      defaults.MPC_SETTLED_M, ferror_max)
 
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),

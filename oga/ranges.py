@@ -10,6 +10,8 @@ axis when its velocity command ``u`` meets paper eq. 2 at every feed sample::
 with the axis at rest before the first sample (``u_{-1} = u_{-2} = 0``). Samples
 of rapid (G0) moves are not checked: the gains concern contouring, and a rapid
 planned at the axis limits leaves no room for any position-loop correction.
+Where the machine sets a following-error limit (``ferror_max_m``), a feasible
+configuration also keeps ``|pd - p|`` within it at every feed sample.
 
 The best fixed gains (paper case C1, the honest baseline) are the
 configuration with EQUAL Kp and EQUAL Kf on every contouring axis (industrial
@@ -25,8 +27,9 @@ the axes' runs of the same configuration.
 
 :func:`best_fixed_gains` finds the same best fixed gains without the tables, in one
 compiled pass over the equal-gain grid: a configuration's simulation stops at its first
-eq. 2 violation, and its contour error is summed only until the partial sum of squares
-proves that it cannot beat the best so far (exact pruning, see :func:`_equal_gain_search`).
+violation of eq. 2 or of the machine's following-error limit, and its contour error is
+summed only until the partial sum of squares proves that it cannot beat the best so far
+(exact pruning, see :func:`_equal_gain_search`).
 """
 
 from __future__ import annotations
@@ -82,11 +85,14 @@ class KinematicRange:
     kf_grid : ndarray, shape (F,)
         Kf values (factor).
     feasible : ndarray of bool, shape (P, F)
-        True where eq. 2 holds at every feed sample.
+        True where eq. 2 holds at every feed sample, and the machine's following-error
+        limit where it sets one.
     vel_peak_m_s, acc_peak_m_s2, jerk_peak_m_s3 : ndarray, shape (P, F)
         Largest ``|u|``, ``|du|/Te``, ``|d2u|/Te^2`` over the feed samples.
     mse_track_m2 : ndarray, shape (P, F)
         Mean squared tracking error ``(pd - p)^2`` of the axis over the feed samples, m^2.
+    track_max_m : ndarray, shape (P, F)
+        Largest following error ``|pd - p|`` of the axis over the feed samples, m.
     """
 
     axis: str
@@ -97,6 +103,7 @@ class KinematicRange:
     acc_peak_m_s2: np.ndarray
     jerk_peak_m_s3: np.ndarray
     mse_track_m2: np.ndarray
+    track_max_m: np.ndarray
 
     @property
     def count(self) -> int:
@@ -190,7 +197,8 @@ class Ranges:
         best = self.best_fixed
         if best is None:
             best_d = {"found": False, "message": "no equal-gain configuration is kinematically "
-                      f"feasible on every contouring axis ({', '.join(self.axes)})"}
+                      f"feasible on every contouring axis ({', '.join(self.axes)}): eq. 2, and "
+                      "the following-error limits where the machine sets them"}
         else:
             best_d = {"found": True, "kp": best.kp, "kf": best.kf,
                       "mse_ce_um2": best.mse_ce_m2 * _UM2, "metrics": best.metrics.to_dict()}
@@ -245,14 +253,15 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
 
     ``axis_grids`` maps each axis to its Kp grid; ``common`` is the Kp grid shared by
     all of them (empty: no contour error computed). Returns ``(per_axis, mse_ce)`` with
-    ``per_axis[a]`` a (4, P_a, F) array (vel, acc, jerk peaks, tracking MSE) and
+    ``per_axis[a]`` a (5, P_a, F) array (vel, acc, jerk peaks, tracking MSE and largest
+    tracking error) and
     ``mse_ce`` of shape (len(common), F).
     """
     feed = _feed_mask(setpoints, machine)
     te = machine.te
     cols = {a: AXES.index(a) for a in axis_grids}
     params = {a: axis_params(machine, a) for a in axis_grids}
-    per_axis = {a: np.empty((4, len(g), len(kf_grid))) for a, g in axis_grids.items()}
+    per_axis = {a: np.empty((5, len(g), len(kf_grid))) for a, g in axis_grids.items()}
     mse_ce = np.empty((len(common), len(kf_grid)))
     e1, e2, signed = plane_axes(setpoints.plane)
     pa = np.array(setpoints.pos, dtype=np.float64)  # axes not simulated hold their setpoints
@@ -274,6 +283,7 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
                 err = (pos[a] - p_act)[feed]
                 per_axis[a][:3, i, j] = command_peaks(u, feed, te)
                 per_axis[a][3, i, j] = np.mean(err * err)
+                per_axis[a][4, i, j] = np.abs(err).max()
                 pa[:, c] = p_act
             if kp in common_row:
                 ce = ce_series(setpoints.pos, pa, CE_WINDOW_SAMPLES, e1, e2, signed)[feed]
@@ -283,9 +293,11 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
 
 def _kinematic(axis, machine, kp_grid, kf_grid, table) -> KinematicRange:
     lim = machine.axis(axis).limits
-    vel, acc, jerk, mse = table
+    vel, acc, jerk, mse, track = table
     feasible = (vel <= lim.vmax_m_s) & (acc <= lim.amax_m_s2) & (jerk <= lim.jmax_m_s3)
-    return KinematicRange(axis, kp_grid, kf_grid, feasible, vel, acc, jerk, mse)
+    if lim.ferror_max_m is not None:
+        feasible &= track <= lim.ferror_max_m
+    return KinematicRange(axis, kp_grid, kf_grid, feasible, vel, acc, jerk, mse, track)
 
 
 def _stable_grid(rng) -> np.ndarray:
@@ -430,8 +442,9 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     Returns exactly ``gain_ranges(setpoints, machine).best_fixed`` (same gains, same
     MSE to the last bit, same choice among equal MSEs: the first in Kp-major grid
     order), several times faster: one compiled pass (:func:`_equal_gain_search`)
-    simulates each equal-gain configuration until its first eq. 2 violation and sums
-    its squared contour error only while it can still beat the best so far. The few
+    simulates each equal-gain configuration until its first violation of eq. 2 or of
+    the following-error limit and sums its squared contour error only while it can
+    still beat the best so far. The few
     configurations left within rounding of the least sum are then evaluated exactly as
     :func:`gain_ranges` does.
 
@@ -461,9 +474,10 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     feed = _feed_mask(setpoints, machine)
     cols = np.array([AXES.index(a) for a in axes])
     pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
+    ferror = machine.ferror_limits()
     limits = np.array([
-        [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3]
-        for lim in (machine.axis(a).limits for a in axes)
+        [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3, ferror[AXES.index(a)]]
+        for a, lim in ((a, machine.axis(a).limits) for a in axes)
     ])
     # heuristic visiting order (speed only, the result does not depend on it): stiff loops
     # and strong feed-forward first, as the least contour error usually lies at the top of
@@ -507,7 +521,8 @@ def _mse_ce(setpoints, machine, axes, kp: float, kf: float, feed) -> float:
 
 @njit(cache=True)
 def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act, u, check) -> bool:
-    """Simulate one axis over samples ``k0 .. k1 - 1`` and check eq. 2 there.
+    """Simulate one axis over samples ``k0 .. k1 - 1`` and check eq. 2 and the
+    following-error limit there.
 
     :func:`oga.simulate.run` advances ``state`` exactly as one run over all the
     samples would; :func:`oga.kinematics.command_peaks` checks the new samples with
@@ -526,8 +541,8 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
         Samples where eq. 2 applies.
     te : float
         Sample period, s.
-    lim : ndarray, shape (3,)
-        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3).
+    lim : ndarray, shape (4,)
+        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3), following-error limit (m, inf: none).
     k0, k1 : int
         Sample range.
     p_act, u : ndarray, shape (N,)
@@ -538,7 +553,8 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
     Returns
     -------
     bool
-        Whether eq. 2 holds at every feed sample of the range.
+        Whether eq. 2 and the following-error limit hold at every feed sample of the
+        range (the latter as :func:`_kinematic` checks it: ``|pd - p| <= limit``).
     """
     run(state, params, pd[k0:k1], vd[k0:k1], kp_si[k0:k1], kf[k0:k1], p_act[k0:k1], u[k0:k1])
     h = max(k0 - 2, 0)
@@ -546,7 +562,12 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
     mask[:] = feed[h:k1]
     mask[: k0 - h] = False
     v_pk, a_pk, j_pk = command_peaks(u[h:k1], mask, te)
-    return v_pk <= lim[0] and a_pk <= lim[1] and j_pk <= lim[2]
+    if not (v_pk <= lim[0] and a_pk <= lim[1] and j_pk <= lim[2]):
+        return False
+    for k in range(k0, k1):  # the following-error limit (inf: none)
+        if feed[k] and not abs(pd[k] - p_act[k]) <= lim[3]:
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -556,10 +577,10 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
 
     The configurations are visited in the order ``visit``. The moving axes are
     simulated together, ``_CHUNK`` samples at a time (:func:`_run_checked`); a
-    configuration is dropped at its first eq. 2 violation. After each chunk the
-    squared contour error of its feed samples is added to a running sum, in time
-    order (:func:`oga.contour.ce2_at`, each sample's search hinted with the previous
-    sample's nearest segment).
+    configuration is dropped at its first violation of eq. 2 or of the following-error
+    limit. After each chunk the squared contour error of its feed samples is added to a
+    running sum, in time order (:func:`oga.contour.ce2_at`, each sample's search hinted
+    with the previous sample's nearest segment).
 
     Pruning: a sum of non-negative terms only grows, so once the running sum exceeds
     the best complete sum (times ``1 + slack``, covering the rounding of both sums and
@@ -586,8 +607,9 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
         Kp grid, 1/s.
     kf : ndarray, shape (F,)
         Kf grid.
-    limits : ndarray, shape (A, 3)
-        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) of each moving axis.
+    limits : ndarray, shape (A, 4)
+        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) and the following-error limit (m, inf:
+        none) of each moving axis.
     visit : ndarray of int, shape (M, 2)
         Grid indices ``(i, j)`` in visiting order (speed only).
     window : int

@@ -600,6 +600,9 @@ def render_report(job_or_result, *, title: str | None = None,
     metric_rows = []
     for key in ("mse_ce_um2", "rms_ce_um", "max_ce_um", "p95_ce_um"):
         metric_rows.append((key, sm["baseline"][key], sm["optimized"][key]))
+    for a in sm["contouring_axes"]:  # the largest following error (the limit: in the summary)
+        metric_rows.append((f"track_max_um.{a}", sm["baseline"]["track_max_um"][a],
+                            sm["optimized"]["track_max_um"][a]))
     metrics = ('<table class="metrics"><tr><th>metric</th><th>baseline</th><th>optimised</th>'
                "</tr>" + "".join(f'<tr data-key="{k}"><th>{k}</th><td>{_cell(b)}</td>'
                                  f"<td>{_cell(o)}</td></tr>" for k, b, o in metric_rows)

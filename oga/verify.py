@@ -7,6 +7,8 @@ from the search's predictions. The checks:
   ``|u| <= Vmax``, ``|u_k - u_{k-1}| / Te <= Amax``,
   ``|u_k - 2 u_{k-1} + u_{k-2}| / Te^2 <= Jmax`` (commands before the start are 0:
   the axis starts at rest);
+- where the machine sets a following-error limit (``ferror_max_m``), the following
+  error ``|pd - p|`` of the axis stays within it at every feed sample;
 - every Kp lies inside its axis's allowed range (within the stable range);
 - Kf lies in the machine's Kf range.
 """
@@ -73,7 +75,8 @@ class Verification:
     ok : bool
         Every check passed (``limits_ok and stability_ok``).
     limits_ok : bool
-        Eq. 2 holds for every axis at every sample.
+        Eq. 2 holds for every axis at every feed sample, and so does the machine's
+        following-error limit where it sets one.
     stability_ok : bool
         Every Kp inside its allowed range and Kf inside the machine's Kf range.
     pos : ndarray, shape (N, 3)
@@ -86,6 +89,9 @@ class Verification:
         Statistics over the feed samples.
     command_ratio : ndarray, shape (3, 3)
         Largest |v|, |a|, |j| of the command per axis as a ratio to the limit.
+    ferror_ratio : ndarray, shape (3,)
+        Largest following error per axis as a ratio to the machine's limit; NaN where
+        the machine sets none.
     max_dkp_per_sample, max_dkf_per_sample : ndarray, shape (3,)
         Largest gain change between consecutive samples per axis ((m/min)/mm, 1).
     violations : tuple of str
@@ -100,6 +106,7 @@ class Verification:
     ce: np.ndarray
     metrics: ContourMetrics
     command_ratio: np.ndarray
+    ferror_ratio: np.ndarray
     max_dkp_per_sample: np.ndarray
     max_dkf_per_sample: np.ndarray
     violations: tuple[str, ...]
@@ -146,6 +153,15 @@ def verify(
         for j, what in enumerate(("velocity", "acceleration", "jerk"))
         if ratio[k, j] > 1.0 + _SLACK
     ]
+    ferror_max = machine.ferror_limits()
+    track_max = np.array(metrics.track_max_m)
+    ferror_ratio = np.where(np.isfinite(ferror_max), track_max / ferror_max, np.nan)
+    limit_v += [
+        f"axis {a}: following error reaches {track_max[k] * 1e3:.4f} mm, "
+        f"{ferror_ratio[k]:.3f}x its limit ferror_max_m = {ferror_max[k] * 1e3:.4f} mm"
+        for k, a in enumerate(AXES)
+        if ferror_ratio[k] > 1.0 + _SLACK
+    ]
     gain_v = []
     for a, (lo, hi) in kp_bounds.items():
         col = kp[:, AXES.index(a)]
@@ -168,6 +184,7 @@ def verify(
         ce=ce,
         metrics=metrics,
         command_ratio=ratio,
+        ferror_ratio=ferror_ratio,
         max_dkp_per_sample=dkp,
         max_dkf_per_sample=dkf,
         violations=tuple(limit_v + gain_v),

@@ -52,6 +52,26 @@ def test_optimize_writes_table_and_summary(tmp_path):
     assert np.all(table[:, 4] == 1.6)  # x_kp fixed
 
 
+def test_optimize_with_a_following_error_limit_in_the_machine_file(tmp_path, capsys):
+    preset = Path(__file__).parents[1] / "oga" / "presets" / "ucp710.toml"
+    text = preset.read_text().replace("[axes.x.limits]", "[axes.x.limits]\nferror_max_m = 1.5e-4")
+    machine = tmp_path / "mill.toml"
+    machine.write_text(text)
+    out, summ = tmp_path / "t.csv", tmp_path / "s.json"
+    assert main(["optimize", str(DATA / "short_xz.ngc"), "--machine", str(machine),
+                 "--out", str(out), "--summary", str(summ)]) == 0
+    printed = capsys.readouterr().out
+    assert "(limit 150.0)" in printed and "limits ok" in printed
+    s = json.loads(summ.read_text())
+    assert s["optimized"]["track_max_um"]["x"] <= 150.0
+    assert 0.0 < s["ferror_ratio_to_limit"]["x"] <= 1.0 and s["ferror_ratio_to_limit"]["z"] is None
+    # a limit no equal fixed gains keep: exit 2, naming the option to give
+    machine.write_text(text.replace("ferror_max_m = 1.5e-4", "ferror_max_m = 1e-6"))
+    assert main(["optimize", str(DATA / "short_xz.ngc"), "--machine", str(machine),
+                 "--out", str(out)]) == 2
+    assert "following-error" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "text, needle",
     [("G21 G90\nG1 X1 F100\nG91\n", "3:1"), ("G21\nG1 X#1 F100\n", "2:"), ("G21\nG1 A3 F100\n", "2:")],

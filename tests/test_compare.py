@@ -20,7 +20,7 @@ from oga.controllers import CONTROLLERS, load_controller
 from oga.controllers.afsmc import run as afsmc_run
 from oga.defaults import TOL_M
 from oga.errors import OptionError
-from oga.machine import load_machine
+from oga.machine import load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
 from oga.ranges import gain_ranges
 from oga.simulate import simulate
@@ -84,6 +84,18 @@ def test_rows_equal_an_independent_recomputation(setpoints):
     # the fixed row is the ranges' own best fixed configuration
     assert fixed.mse_ce_um2 == pytest.approx(best.mse_ce_m2 * 1e12, rel=1e-9)
     assert fixed.needs_firmware is False and af.needs_firmware is True
+
+
+def test_limits_ok_includes_the_following_error_limit(setpoints):
+    gains = {"fixed": {"kp_m_min_per_mm": 3.0, "kf": 0.8}}
+    (free,) = compare(setpoints, MACHINE, ["fixed"], parameters=gains).rows
+    lag_um = free.track_max_um["x"]
+    assert free.limits_ok and lag_um > 0
+    data = MACHINE.model_dump(mode="json")
+    for factor, ok in ((1.001, True), (0.999, False)):
+        data["axes"]["x"]["limits"]["ferror_max_m"] = factor * lag_um * 1e-6
+        (row,) = compare(setpoints, machine_from_dict(data), ["fixed"], parameters=gains).rows
+        assert row.track_max_um["x"] == lag_um and row.limits_ok is ok
 
 
 def test_a_failing_controller_gives_a_failed_row(setpoints):

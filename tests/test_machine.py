@@ -58,6 +58,8 @@ def test_json_and_toml_files_load_the_same(tmp_path):
         (("timing", "substeps"), 0, "timing.substeps"),
         (("gains", "kp_bounds_m_min_per_mm"), [3.0, 1.0], "kp_bounds_m_min_per_mm"),
         (("axes", "x", "limits", "jmax_m_s3"), float("nan"), "axes.x.limits.jmax_m_s3"),
+        (("axes", "z", "limits", "ferror_max_m"), -1e-3, "axes.z.limits.ferror_max_m"),
+        (("axes", "z", "limits", "ferror_max_m"), float("inf"), "axes.z.limits.ferror_max_m"),
     ],
 )
 def test_invalid_values_refused_naming_the_field(path, value, field):
@@ -106,6 +108,17 @@ def test_ucp710_digest_unchanged():
         "b63865ab0901bcc2b2fa2322cd4be1b9ba1df3d85d80510c5e67e4d968535ea3"
     )
     assert all(a.kind == "cascade" and a.arx is None for a in load_machine("ucp710").axes.values())
+
+
+def test_following_error_limit_is_optional_per_axis():
+    m = load_machine("ucp710")
+    assert all(a.limits.ferror_max_m is None for a in m.axes.values())
+    assert list(m.ferror_limits()) == [math.inf] * 3  # none set: not bounded
+    data = tomllib.loads(PRESET.read_text())
+    data["axes"]["z"]["limits"]["ferror_max_m"] = 2.5e-4
+    limited = machine_from_dict(data)
+    assert list(limited.ferror_limits()) == [math.inf, math.inf, 2.5e-4]
+    assert limited.digest() != m.digest()  # a table is bound to the limit it was made for
 
 
 def test_mcv_op_preset_loads_and_round_trips(tmp_path):

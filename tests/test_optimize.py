@@ -18,6 +18,7 @@ from feedplan.read import load_toolpath
 from oga.contour import contour_error_of
 from oga.errors import OptimizeError, OptionError
 from oga.export import table_csv
+from oga.machine import machine_from_dict
 from oga.optimize import optimize
 from oga.options import options_from_dict
 from oga.simulate import simulate
@@ -82,6 +83,70 @@ def test_verify_flags_a_gain_step_that_breaks_the_jerk_limit(short, machine):
     assert not v.limits_ok and any("axis x" in s and "jerk" in s for s in v.violations)
     kp[:, 0] = 3.5  # outside the stable range
     assert not verify(short, machine, kp, kf, bounds).stability_ok
+
+
+def _with_ferror(machine, **limits_m):
+    data = machine.model_dump(mode="json")
+    for a, v in limits_m.items():
+        data["axes"][a]["limits"]["ferror_max_m"] = v
+    return machine_from_dict(data)
+
+
+def _lag(setpoints, machine, kp, kf):
+    """Largest |pd - p| per axis over the feed samples, from a fresh simulation."""
+    sim = simulate(setpoints, machine, kp, kf)
+    return np.abs(setpoints.pos - sim.pos)[~setpoints.rapid].max(axis=0)
+
+
+def test_verify_checks_the_following_error_limit(short, machine):
+    n = len(short)
+    kp, kf = np.full((n, 3), 3.0), np.full((n, 3), 0.8)
+    bounds = {"x": (1.0, 3.0), "z": (1.0, 3.0)}
+    lag = _lag(short, machine, 3.0, 0.8)
+    v = verify(short, _with_ferror(machine, x=lag[0] * 1.001, z=lag[2] * 1.001), kp, kf, bounds)
+    assert v.ok and np.allclose(v.ferror_ratio[[0, 2]], 1 / 1.001, rtol=1e-12)
+    assert np.isnan(v.ferror_ratio[1])  # no limit set (and no such axis)
+    v = verify(short, _with_ferror(machine, z=lag[2] * 0.999), kp, kf, bounds)
+    assert not v.ok and not v.limits_ok and v.stability_ok
+    assert len(v.violations) == 1 and "axis z: following error" in v.violations[0]
+    assert "ferror_max_m" in v.violations[0]
+
+
+def test_full_mode_keeps_the_following_error_limit(short, machine):
+    free = optimize(short, machine, {})
+    limit = 0.15e-3  # below the free schedule's lag on both axes, and the best fixed gains'
+    assert np.all(_lag(short, machine, free.schedule.kp_m_min_per_mm,
+                       free.schedule.kf)[[0, 2]] > limit)
+    base = free.baseline_kp["x"], free.baseline_kf["x"]
+    assert _lag(short, machine, *base)[0] > limit
+    m = _with_ferror(machine, x=limit, z=limit)
+    r = optimize(short, m, {})
+    assert r.status == "ok" and not r.kept_baseline
+    assert r.ratio_mse <= 0.35
+    # the best fixed gains are those that keep it, the schedule keeps it: fresh replays
+    assert (r.baseline_kp["x"], r.baseline_kf["x"]) != base
+    assert np.all(_lag(short, m, r.baseline_kp["x"], r.baseline_kf["x"])[[0, 2]] <= limit)
+    lag = _lag(short, m, r.schedule.kp_m_min_per_mm, r.schedule.kf)
+    assert np.all(lag[[0, 2]] <= limit)
+    ratio = r.summary()["ferror_ratio_to_limit"]
+    assert ratio["x"] == pytest.approx(lag[0] / limit, rel=1e-12)
+    assert ratio["z"] == pytest.approx(lag[2] / limit, rel=1e-12)
+    assert free.summary()["ferror_ratio_to_limit"] == {"x": None, "z": None}
+
+
+def test_paper_mode_keeps_the_following_error_limit(short, machine):
+    free = optimize(short, machine, PAPER)
+    lag_free = _lag(short, machine, free.schedule.kp_m_min_per_mm, free.schedule.kf)
+    lag_base = _lag(short, machine, 1.6, 0.9)
+    limit = 0.5 * (lag_base[2] + lag_free[2])  # above the fixed gains' Z lag, below the free one
+    assert lag_base[2] < limit < lag_free[2]
+    r = optimize(short, _with_ferror(machine, z=limit), PAPER)
+    assert r.status == "ok" and not r.kept_baseline and r.ratio_mse < 1.0
+    assert _lag(short, machine, r.schedule.kp_m_min_per_mm, r.schedule.kf)[2] <= limit
+    # a limit the fixed X axis breaks: nothing exported as valid, the reason named
+    r = optimize(short, _with_ferror(machine, x=0.5 * lag_base[0]), PAPER)
+    assert r.status == "failed" and any("axis x: following error" in s
+                                        for s in r.optimized.violations)
 
 
 # --- paper mode -----------------------------------------------------------------------

@@ -286,6 +286,46 @@ def test_best_fixed_gains_is_the_brute_force_minimum(machine, name):
     assert seen_best and n_feasible > 1 and n_infeasible > 0
 
 
+def _with_ferror(machine, limit_m):
+    data = machine.model_dump(mode="json")
+    for axis in data["axes"].values():
+        axis["limits"]["ferror_max_m"] = limit_m
+    return machine_from_dict(data)
+
+
+def test_best_fixed_gains_keep_the_following_error_limit():
+    sp = _planned("short_xz.ngc", UCP)
+    axes = [AXES[c] for c in sp.moving_axes]
+    cols = [AXES.index(a) for a in axes]
+    feed = ~sp.rapid
+
+    def lag(machine, kp, kf):  # largest |pd - p| per moving axis over the feed samples
+        sim = simulate(sp, machine, kp, kf)
+        return np.abs(sp.pos - sim.pos)[feed][:, cols].max(axis=0)
+
+    free = best_fixed_gains(sp, UCP)
+    a0 = axes[0]
+    limit = 0.75 * lag(UCP, free.kp[a0], free.kf[a0]).max()  # the free best breaks it
+    m = _with_ferror(UCP, limit)
+    full = gain_ranges(sp, m)
+    fast = best_fixed_gains(sp, m)
+    ref = full.best_fixed
+    assert (fast.kp, fast.kf, fast.mse_ce_m2) == (ref.kp, ref.kf, ref.mse_ce_m2)
+    assert (fast.kp[a0], fast.kf[a0]) != (free.kp[a0], free.kf[a0])
+    assert fast.mse_ce_m2 > free.mse_ce_m2
+    assert lag(m, fast.kp[a0], fast.kf[a0]).max() <= limit
+    # the limit removes exactly the cells whose following error exceeds it, and some
+    free_full = gain_ranges(sp, UCP)
+    for a, c in zip(axes, cols):
+        k, k0 = full.kinematic[a], free_full.kinematic[a]
+        np.testing.assert_array_equal(k.feasible, k0.feasible & (k.track_max_m <= limit))
+        assert (k0.feasible & ~k.feasible).any() and k.feasible.any()
+        for i, j in [(0, 0), (-1, -1), (len(k.kp_grid) // 2, 5)]:  # brute force
+            sim = simulate(sp, m, float(k.kp_grid[i]), float(k.kf_grid[j]))
+            assert k.track_max_m[i, j] == pytest.approx(
+                np.abs(sp.pos - sim.pos)[feed][:, c].max(), rel=1e-12)
+
+
 def test_best_fixed_gains_none_when_nothing_is_feasible():
     data = _small_grid_machine().model_dump(mode="json")
     data["axes"]["x"]["limits"]["jmax_m_s3"] = 0.1

@@ -108,6 +108,10 @@ def _check_page(text: str, summary: dict) -> Page:
         base, opt = page.rows[key]
         assert float(base) == pytest.approx(summary["baseline"][key], rel=1e-6)
         assert float(opt) == pytest.approx(summary["optimized"][key], rel=1e-6)
+    for a in summary["contouring_axes"]:
+        base, opt = page.rows[f"track_max_um.{a}"]
+        assert float(base) == pytest.approx(summary["baseline"]["track_max_um"][a], rel=1e-6)
+        assert float(opt) == pytest.approx(summary["optimized"]["track_max_um"][a], rel=1e-6)
     numeric = 0
     for key, value in _leaves(summary):
         if isinstance(value, float) and math.isfinite(value):

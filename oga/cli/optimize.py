@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path as FilePath
 
@@ -65,8 +66,11 @@ def run(args: argparse.Namespace) -> int:
           f"CE rms {o['rms_ce_um']:.3f} um, max {o['max_ce_um']:.3f} um, "
           f"MSE ratio {res.ratio_mse:.3f}, {res.optimize_time_s:.1f} s")
     lag_b, lag_o = b["track_max_um"], o["track_max_um"]
+    limit_um = dict(zip("xyz", (v * 1e6 for v in machine.ferror_limits())))
     print("following error max (um): " + ", ".join(
-        f"{a} {lag_b[a]:.1f} -> {lag_o[a]:.1f}" for a in res.adjusted))
+        f"{a} {lag_b[a]:.1f} -> {lag_o[a]:.1f}"
+        + (f" (limit {limit_um[a]:.1f})" if math.isfinite(limit_um[a]) else "")
+        for a in res.adjusted))
     if res.kept_baseline:
         why = ("failed verification: " + "; ".join(res.searched.violations)
                if not res.searched.ok else f"MSE ratio {res.search_ratio_mse:.3f} >= 1")
