@@ -139,7 +139,7 @@ class OptimizeResult:
             "gains": list(self.options.gains),
             "kp_bounds_m_min_per_mm": {a: list(b) for a, b in self.kp_bounds.items()},
             "baseline": {"kp": self.baseline_kp, "kf": self.baseline_kf,
-                         **metrics(self.baseline)},
+                         **metrics(self.baseline), "violations": list(self.baseline.violations)},
             "optimized": metrics(self.optimized),
             "ratio_mse": self.ratio_mse,
             "kept_baseline": self.kept_baseline,

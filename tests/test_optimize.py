@@ -132,6 +132,13 @@ def test_full_mode_keeps_the_following_error_limit(short, machine):
     assert ratio["x"] == pytest.approx(lag[0] / limit, rel=1e-12)
     assert ratio["z"] == pytest.approx(lag[2] / limit, rel=1e-12)
     assert free.summary()["ferror_ratio_to_limit"] == {"x": None, "z": None}
+    assert r.summary()["baseline"]["violations"] == []
+    # fixed gains given by the user that break the limit: the schedule keeps it, the
+    # summary says the baseline does not
+    r = optimize(short, m, {"baseline": "3.0,0.8"})
+    assert r.status == "ok" and np.all(
+        _lag(short, m, r.schedule.kp_m_min_per_mm, r.schedule.kf)[[0, 2]] <= limit)
+    assert any("axis x: following error" in v for v in r.summary()["baseline"]["violations"])
 
 
 def test_paper_mode_keeps_the_following_error_limit(short, machine):

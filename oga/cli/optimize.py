@@ -71,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
         f"{a} {lag_b[a]:.1f} -> {lag_o[a]:.1f}"
         + (f" (limit {limit_um[a]:.1f})" if math.isfinite(limit_um[a]) else "")
         for a in res.adjusted))
+    if b["violations"]:  # fixed gains given by the user (the best fixed gains keep the limits)
+        print("warning: the baseline's fixed gains break: " + "; ".join(b["violations"]))
     if res.kept_baseline:
         why = ("failed verification: " + "; ".join(res.searched.violations)
                if not res.searched.ok else f"MSE ratio {res.search_ratio_mse:.3f} >= 1")
