@@ -104,6 +104,9 @@ def _run_job(page, server: Server, running_shot: Path | None = None) -> dict:
     for key in ("rms_ce_um", "max_ce_um"):
         assert (f"{job['summary']['baseline'][key]:.2f} \u2192 "
                 f"{job['summary']['optimized'][key]:.2f} \u00b5m") in outcome, outcome
+    for a in job["summary"]["contouring_axes"]:
+        assert (f"{a} {job['summary']['baseline']['track_max_um'][a] / 1000:.3f} \u2192 "
+                f"{job['summary']['optimized']['track_max_um'][a] / 1000:.3f} mm") in outcome, outcome
     assert "limits ok, stability ok" in outcome, outcome
     return job
 

@@ -274,9 +274,20 @@ async function showSummary(id) {
   const um = (key) => `${s.baseline[key].toFixed(2)} \u2192 ${s.optimized[key].toFixed(2)} \u00b5m`;
   $("outcome").textContent =
     `Contour error rms ${um("rms_ce_um")}, max ${um("max_ce_um")} ` +
-    `(MSE ratio ${s.ratio_mse.toFixed(3)}); ${s.samples} samples, ${s.duration_s} s of motion; ` +
+    `(MSE ratio ${s.ratio_mse.toFixed(3)}); largest following error ${followingError(s)}; ` +
+    `${s.samples} samples, ${s.duration_s} s of motion; ` +
     `limits ${s.limits_ok ? "ok" : "VIOLATED"}, stability ${s.stability_ok ? "ok" : "NOT OK"}` +
     (s.kept_baseline ? "; the baseline gains were kept (no better schedule found)." : ".");
+}
+
+// Per contouring axis, the largest following error before and after, in mm, and the share
+// of the machine's limit where it sets one (summaries stored before the limit existed have none).
+function followingError(s) {
+  const mm = (um) => (um / 1000).toFixed(3);
+  const ratio = s.ferror_ratio_to_limit || {};
+  return s.contouring_axes.map((a) =>
+    `${a} ${mm(s.baseline.track_max_um[a])} \u2192 ${mm(s.optimized.track_max_um[a])} mm` +
+    (ratio[a] == null ? "" : ` (${(100 * ratio[a]).toFixed(0)} % of its limit)`)).join(", ");
 }
 
 function stem() {
