@@ -253,9 +253,8 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
 
     ``axis_grids`` maps each axis to its Kp grid; ``common`` is the Kp grid shared by
     all of them (empty: no contour error computed). Returns ``(per_axis, mse_ce)`` with
-    ``per_axis[a]`` a (5, P_a, F) array (vel, acc, jerk peaks, tracking MSE and largest
-    tracking error) and
-    ``mse_ce`` of shape (len(common), F).
+    ``per_axis[a]`` a (5, P_a, F) array (vel, acc, jerk peaks, tracking MSE, largest
+    tracking error) and ``mse_ce`` of shape (len(common), F).
     """
     feed = _feed_mask(setpoints, machine)
     te = machine.te
@@ -444,9 +443,8 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     order), several times faster: one compiled pass (:func:`_equal_gain_search`)
     simulates each equal-gain configuration until its first violation of eq. 2 or of
     the following-error limit and sums its squared contour error only while it can
-    still beat the best so far. The few
-    configurations left within rounding of the least sum are then evaluated exactly as
-    :func:`gain_ranges` does.
+    still beat the best so far. The few configurations left within rounding of the
+    least sum are then evaluated exactly as :func:`gain_ranges` does.
 
     Parameters
     ----------
@@ -474,10 +472,10 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     feed = _feed_mask(setpoints, machine)
     cols = np.array([AXES.index(a) for a in axes])
     pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
-    ferror = machine.ferror_limits()
+    ferror = machine.ferror_limits()  # inf where none is set
     limits = np.array([
         [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3, ferror[AXES.index(a)]]
-        for a, lim in ((a, machine.axis(a).limits) for a in axes)
+        for a, lim in zip(axes, (machine.axis(a).limits for a in axes))
     ])
     # heuristic visiting order (speed only, the result does not depend on it): stiff loops
     # and strong feed-forward first, as the least contour error usually lies at the top of
