@@ -74,6 +74,10 @@ MPC_STOP = 0.05
 #: Full mode: trust region of one iteration's control-point change, (m/min)/mm for Kp and 1
 #: for Kf.
 MPC_TRUST = (0.3, 0.05)
+#: Full mode: where no step of an iteration keeps eq. 2 over the whole window (a limit ahead
+#: that the plan cannot yet meet), up to this many more iterations, each with a trust region
+#: three times wider, restore feasibility before the window recedes.
+MPC_RESTORE = 2
 #: Full mode: an axis whose setpoint stands still over the window keeps its gains once its
 #: position is this close to the setpoint, m (before that, its gains still act on its
 #: settling).

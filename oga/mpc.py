@@ -49,7 +49,11 @@ contours), coming to rest one interval before the window's end, and recedes:
    fallback), at least now, with the least excess beyond;
 5. steps 1-4 are repeated ``iters`` times at most (sequential QP, each linearised
    around the last plan), until the line search keeps the plan or an iteration
-   lowers the window's exact cost by less than ``stop``;
+   lowers the window's exact cost by less than ``stop``; but while no step keeps
+   eq. 2 over the whole window (a limit ahead that the plan cannot meet within the
+   trust region: with the trust region alone, such a window could only postpone the
+   problem until eq. 2 broke inside a commit), up to ``restore`` more iterations are
+   taken, each with a trust region three times wider;
 6. the first ``commit`` samples of the plan are applied, the true state is
    advanced with the exact kernel, and the rest of the plan, shifted, starts the
    next window.
@@ -83,6 +87,8 @@ _C = KP_SI_PER_M_MIN_PER_MM
 _M2_TO_UM2 = 1e12
 #: Share of the eq. 2 limits the linearised constraints may use (the exact check uses 1).
 _LIN_MARGIN = 0.95
+#: Growth of the trust region per restoring iteration (:data:`oga.defaults.MPC_RESTORE`).
+_WIDEN = 3.0
 
 
 @njit(cache=True)
@@ -375,7 +381,7 @@ def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
     lam, anchor, tree, win_lo, win_hi, moving, feed, points, kp_out, kf_out, u_out, stats, stop,
-    settled, ferror_max,
+    settled, ferror_max, restore,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
@@ -399,7 +405,8 @@ def mpc_chunk(
     not checked, as in :mod:`oga.verify`); ``stop`` is :data:`oga.defaults.MPC_STOP`,
     ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (3,) the machine's
     following-error limit per axis (m, ``inf``: none), kept at the window's feed samples
-    like eq. 2 (linearised rows, then the exact check of the line search).
+    like eq. 2 (linearised rows, then the exact check of the line search); ``restore``
+    is :data:`oga.defaults.MPC_RESTORE`.
     """
     if (k1 - k0) % commit != 0 and k1 < pd.shape[0]:
         # a call ending inside a commit would carry the plan shifted by part of an interval
@@ -487,7 +494,9 @@ def mpc_chunk(
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
                         idle[a] = False
                         break
-        for _it in range(iters):
+        widen = 1.0  # trust-region factor, grown while no step keeps eq. 2 over the window
+        restored = 0
+        for _it in range(iters + restore):
             # 1: nominal prediction along the plan and, in the same pass, its derivatives
             #    with respect to every free control point of the axis (forward mode)
             for a in range(3):
@@ -585,9 +594,9 @@ def mpc_chunk(
                 kv = points[a, g, var_point[v]]
                 amat[m, v] = 1.0
                 if g == 0:
-                    lo_b, hi_b, tr = kp_lo[a] - kv, kp_hi[a] - kv, trust_kp
+                    lo_b, hi_b, tr = kp_lo[a] - kv, kp_hi[a] - kv, trust_kp * widen
                 else:
-                    lo_b, hi_b, tr = kf_lo[a] - kv, kf_hi[a] - kv, trust_kf
+                    lo_b, hi_b, tr = kf_lo[a] - kv, kf_hi[a] - kv, trust_kf * widen
                 if idle[a]:
                     tr = 0.0
                 alo[m] = max(lo_b, -tr)
@@ -719,6 +728,12 @@ def mpc_chunk(
                 stats[STAT_SCALED] += 1
             _step_points(points, best_scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_hi, kf_lo,
                         kf_hi)
+            if best_cls > 0 and restored < restore:  # feasibility first: a wider step
+                restored += 1
+                widen *= _WIDEN
+                continue
+            if _it >= iters - 1:
+                break
             if best_scale == 0.0 or (held_cost < np.inf and best_cost > (1.0 - stop) * held_cost):
                 break
         # 5: commit the first `commit` samples of the plan, advance the true state

@@ -353,7 +353,7 @@ def optimize(
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, tree, win_lo, win_hi, is_moving,
                       feed_pad, points, *run[4:], defaults.MPC_STOP,
-                      defaults.MPC_SETTLED_M, ferror_max)
+                      defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE)
 
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),

@@ -16,6 +16,7 @@ import pytest
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
 from oga.contour import contour_error_of
+from oga import defaults
 from oga.errors import OptimizeError, OptionError
 from oga.export import table_csv
 from oga.machine import machine_from_dict
@@ -139,6 +140,27 @@ def test_full_mode_keeps_the_following_error_limit(short, machine):
     assert r.status == "ok" and np.all(
         _lag(short, m, r.schedule.kp_m_min_per_mm, r.schedule.kf)[[0, 2]] <= limit)
     assert any("axis x: following error" in v for v in r.summary()["baseline"]["violations"])
+
+
+def test_full_mode_restores_feasibility_when_a_limit_lies_ahead(short, machine, monkeypatch):
+    # from slow fixed gains under a following-error limit, the gains must rise while the axes
+    # accelerate, faster than one iteration's trust region allows: without the restoring
+    # iterations (a wider trust region while no step keeps eq. 2 over the window) the plan
+    # falls behind until eq. 2 breaks inside a commit
+    limit = 0.3e-3
+    m = _with_ferror(machine, x=limit, z=limit)
+    r = optimize(short, m, {"baseline": "1.0,0.0"})
+    assert r.status == "ok" and not r.kept_baseline and r.fallbacks == 0
+    kp, kf = r.schedule.kp_m_min_per_mm, r.schedule.kf
+    assert np.all(_lag(short, m, kp, kf)[[0, 2]] <= limit)
+    sim = simulate(short, m, kp, kf)
+    lim = m.axis_limits()
+    for k in (0, 2):  # eq. 2 by plain numpy on a fresh replay
+        v, a, j = eq2_peaks(sim.u[:, k], short.dt, ~short.rapid)
+        assert v <= lim.vmax_m_s[k] and a <= lim.amax_m_s2[k] and j <= lim.jmax_m_s3[k] * (1 + 1e-9)
+    monkeypatch.setattr(defaults, "MPC_RESTORE", 0)
+    r0 = optimize(short, m, {"baseline": "1.0,0.0"})
+    assert r0.fallbacks > 0 and not r0.searched.ok and r0.status == "failed"
 
 
 def test_paper_mode_keeps_the_following_error_limit(short, machine):
