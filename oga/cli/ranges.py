@@ -17,7 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Stable Kp range of every axis (phase and gain margins of the linearised "
             "position loop). With a TOOLPATH: every fixed (Kp, Kf) of the grid simulated "
-            "on its setpoints, the kinematically feasible ones per contouring axis, the "
+            "on its setpoints, the kinematically feasible ones per contouring axis (eq. 2, "
+            "and the machine's following-error limit where it sets one), the "
             "MSE of the contour error with equal gains on all contouring axes, and the "
             "best equal fixed gains."
         ),
