@@ -120,6 +120,25 @@ def test_synchronous_gain_table_matches_the_job_table(client, reference):
     assert job["status"] == "succeeded"
 
 
+def test_a_machine_object_with_a_following_error_limit(client):
+    machine = load_machine("ucp710").model_dump(mode="json")
+    for a in ("x", "z"):
+        machine["axes"][a]["limits"]["ferror_max_m"] = 1.5e-4
+    r = client.post("/v1/gain-table", json=body(machine=machine))
+    assert r.status_code == 200, r.text
+    summary = client.get(f"/v1/jobs/{r.headers['x-oga-job-id']}/summary").json()
+    assert summary["limits_ok"] and summary["machine_sha256"] == machine_from_dict(machine).digest()
+    for a in ("x", "z"):
+        assert 0.0 < summary["ferror_ratio_to_limit"][a] <= 1.0
+        assert summary["optimized"]["track_max_um"][a] <= 150.0
+    # a limit no fixed gains keep: 422 naming it, the job and its error kept
+    machine["axes"]["x"]["limits"]["ferror_max_m"] = 1e-6
+    r = client.post("/v1/gain-table", json=body(machine=machine))
+    assert r.status_code == 422 and "following-error" in r.json()["message"], r.text
+    job = client.get(f"/v1/jobs/{r.headers['x-oga-job-id']}").json()
+    assert job["status"] == "failed" and "following-error" in job["error"]["message"]
+
+
 def test_synchronous_gain_table_refuses_long_toolpaths_with_a_hint(client):
     before = client.get("/v1/jobs").json()["total"]
     long = "G21 G90\nG1 X0 Y0 F3000\nG1 X1000\nM2\n"  # 20 s at 3 m/min
