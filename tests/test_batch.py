@@ -23,6 +23,10 @@ BAD = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X10 Q\nM2\n"
 OPTS: list[str] = []  # the defaults of oga optimize
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def batch(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "oga", "batch", *args], capture_output=True,
                           text=True, timeout=300)
@@ -97,9 +101,13 @@ def test_an_interrupted_batch_leaves_no_partial_output_and_resumes(tmp_path):
         (src / f"{name}.ngc").write_text(program)
     out.mkdir()
     (out / ".p3.csv.abc123.part").write_text("half a table")  # left by a killed earlier run
+    # SIGINT with its default disposition in the batch, as on a terminal: a run started in
+    # the background by a non-interactive shell (`cmd &`) inherits SIGINT ignored, and
+    # Python then raises no KeyboardInterrupt
     proc = subprocess.Popen([sys.executable, "-m", "oga", "batch", str(src), "--out", str(out),
                              "--jobs", "1", *OPTS], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_default_sigint)
     t_end = time.monotonic() + 240
     while not (out / "p1.summary.json").exists() and time.monotonic() < t_end:
         time.sleep(0.05)
