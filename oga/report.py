@@ -14,7 +14,9 @@ Figures (x axis: path length s in mm unless stated):
 4. per contouring axis, the velocity command's velocity, acceleration and jerk
    (paper eq. 2 differences of ``u``, the axis at rest before sample 0) against
    the axis limits;
-5. per contouring axis, the phase and gain margins against Kp with the stable
+5. per contouring axis, the following error ``pd - p`` against the machine's limit
+   where it sets one;
+6. per contouring axis, the phase and gain margins against Kp with the stable
    range, the criteria and the gains used.
 
 Long series are decimated (:func:`decimate`): per bucket the first, the smallest
@@ -483,6 +485,34 @@ def _fig_commands(d: ReportData, max_points: int) -> tuple[str, str]:
     return _svg(1100, y + 10, "".join(body), "velocity command"), caption
 
 
+def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
+    sp = d.setpoints
+    s = sp.s * _MM
+    limit = d.machine.ferror_limits() * _MM
+    body, y = [], 28
+    for k in sp.moving_axes:
+        a = AXES[k]
+        vals = [(sp.pos[:, k] - v.pos[:, k]) * _MM for v in (d.baseline, d.optimized)]
+        l_k = float(limit[k])
+        limited = math.isfinite(l_k)
+        panel = _Panel(80, y, 960, 110, (s[0], s[-1]),
+                       _limits(*vals, include=[-l_k, l_k] if limited else []))
+        for colour, val in zip((_BASE, _OPT), vals):
+            idx = decimate(val, max_points)
+            panel.line(s[idx], val[idx], colour, width=1.0)
+        if limited:
+            panel.hline(l_k, _LIMIT, label="limit")
+            panel.hline(-l_k, _LIMIT)
+        panel.legend([(f"axis {a}", "#222"), ("baseline", _BASE), ("optimised", _OPT)])
+        body.append(panel.render("s (mm)", "following error (mm)"))
+        y += 110 + 58
+    caption = ("Per contouring axis, the following error pd - p of each replay, against the "
+               "machine's limit (red) where its file sets one (ferror_max_m, checked at the feed "
+               "samples). On straight moves the schedule may let an axis lag along the path, "
+               "which costs no contour error.")
+    return _svg(1100, y + 10, "".join(body), "following error"), caption
+
+
 def _fig_stability(d: ReportData) -> tuple[str, str]:
     from oga.stability import stable_range
 
@@ -588,7 +618,7 @@ def render_report(job_or_result, *, title: str | None = None,
     sm = d.summary
     title = title or f"oga report: {sm['toolpath']}"
     figures = [_fig_path(d, max_points), _fig_gains(d, max_points), _fig_ce(d, max_points),
-               _fig_commands(d, max_points), _fig_stability(d)]
+               _fig_commands(d, max_points), _fig_following(d, max_points), _fig_stability(d)]
     status = sm["status"]
     head = (f"<p>Machine <b>{html.escape(sm['machine'])}</b>, {sm['samples']} samples "
             f"({sm['duration_s']:.3f} s), contouring axes {', '.join(sm['contouring_axes'])}, "

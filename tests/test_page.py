@@ -190,7 +190,7 @@ def test_page_takes_the_reference_program_to_a_report(browser, tmp_path, shots):
 
         report = _open_report(page)
         figures = _figures(report)
-        assert len(figures) == 5 and all(n > 0 for n in figures), figures
+        assert len(figures) == 6 and all(n > 0 for n in figures), figures
         assert "reference_xz.ngc" in report.text_content("body")
         _screenshot(report, shots / "report.png")
         assert console.errors == [], console.http_errors
@@ -229,7 +229,7 @@ def test_page_works_with_the_api_key(browser, tmp_path, shots, monkeypatch):
         _run_job(page, server)
         report = _open_report(page)
         figures = _figures(report)
-        assert len(figures) == 5 and all(n > 0 for n in figures), figures
+        assert len(figures) == 6 and all(n > 0 for n in figures), figures
         _screenshot(page, shots / "page_with_key.png")
 
         page.reload()  # the key outlives a reload of the tab

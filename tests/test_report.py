@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from oga.cli import main
 from oga.kinematics import command_peaks
-from oga.machine import load_machine
+from oga.machine import load_machine, machine_from_dict
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath, run_job
 from oga.report import _command_derivatives, curvature, decimate, render_report
@@ -23,8 +23,9 @@ from oga.report import _command_derivatives, curvature, decimate, render_report
 DATA = Path(__file__).parent / "data"
 PAPER = {"mode": "paper", "baseline": "1.6,0.9", "adjust": "z", "gains": "kp",
          "kp_range": "1.0,2.7"}
-#: The figures: path, gains/curvature, contour error, velocity command, stability.
-FIGURES = 5
+#: The figures: path, gains/curvature, contour error, velocity command, following error,
+#: stability.
+FIGURES = 6
 
 
 def _job(options: dict):
@@ -147,6 +148,23 @@ def test_full_mode_report_draws_every_adjusted_axis(full_job):
     _check_page(text, summary)
     for label in ("Kp x", "Kp z", "Kf x", "Kf z"):
         assert f">{label}</text>" in text
+
+
+def test_following_error_figure_draws_the_limit_where_set(full_job):
+    def figure(text, n):  # the SVG of figure n (1-based)
+        return text.split("<figure")[n].split("</figure>")[0]
+
+    free = figure(render_report(full_job), 5)
+    assert "following error" in free and ">limit</text>" not in free
+    data = load_machine("ucp710").model_dump(mode="json")
+    for a in ("x", "z"):
+        data["axes"][a]["limits"]["ferror_max_m"] = 1.5e-4
+    text = (DATA / "short_xz.ngc").read_text()
+    job = run_job(text, "gcode", machine_from_dict(data), options_from_dict({}),
+                  source="short_xz.ngc")
+    limited = figure(render_report(job), 5)
+    assert limited.count(">limit</text>") == 2  # one panel per contouring axis
+    assert limited.count("<path") == free.count("<path") + 4  # +-limit on each
 
 
 def test_decimation_keeps_every_bucket_extreme():
