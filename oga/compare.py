@@ -21,7 +21,7 @@ from oga.controllers import CONTROLLERS, load_controller
 from oga.errors import OgaError, OptimizeError, OptionError, TuneError
 from oga.machine import Machine
 from oga.metrics import contour_metrics
-from oga.verify import command_ratios
+from oga.verify import command_ratios, ferror_ratios
 
 __all__ = ["ComparisonRow", "Comparison", "compare", "parse_controllers"]
 
@@ -212,8 +212,7 @@ def _row(setpoints: Setpoints, machine: Machine, name: str, tune: bool,
         velocity_ratio=float(ratios[:, 0].max()), accel_ratio=float(ratios[:, 1].max()),
         jerk_ratio=float(ratios[:, 2].max()),
         limits_ok=bool(np.isfinite(m.mse_m2) and np.all(ratios <= 1.0 + _SLACK)
-                       and np.all(np.array(m.track_max_m)
-                                  <= machine.ferror_limits() * (1.0 + _SLACK))),
+                       and not np.any(ferror_ratios(m, machine) > 1.0 + _SLACK)),
         time_s=time.perf_counter() - t0, parameters=dict(run.parameters), notes=run.notes,
         ce_m=ce,
     )

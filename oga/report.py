@@ -453,6 +453,22 @@ def _fig_ce(d: ReportData, max_points: int) -> tuple[str, str]:
     return _svg(1100, 520, "".join(body), "contour error"), caption
 
 
+def _replays_panel(y, s, vals, limit: float, axis: str, ylabel: str, max_points: int) -> str:
+    """One panel of a per-axis figure at height ``y``: the baseline's and the schedule's
+    series ``vals`` against path length ``s`` (mm), and ``+-limit`` in red (``inf``: none)."""
+    limited = math.isfinite(limit)
+    panel = _Panel(80, y, 960, 110, (s[0], s[-1]),
+                   _limits(*vals, include=[-limit, limit] if limited else []))
+    for colour, val in zip((_BASE, _OPT), vals):
+        idx = decimate(val, max_points)
+        panel.line(s[idx], val[idx], colour, width=1.0)
+    if limited:
+        panel.hline(limit, _LIMIT, label="limit")
+        panel.hline(-limit, _LIMIT)
+    panel.legend([(f"axis {axis}", "#222"), ("baseline", _BASE), ("optimised", _OPT)])
+    return panel.render("s (mm)", ylabel)
+
+
 def _fig_commands(d: ReportData, max_points: int) -> tuple[str, str]:
     sp = d.setpoints
     s = sp.s * _MM
@@ -466,17 +482,8 @@ def _fig_commands(d: ReportData, max_points: int) -> tuple[str, str]:
     for a in moving:
         k = AXES.index(a)
         for q, (label, limit) in enumerate(units):
-            l_k = float(limit[k])
             vals = [derivs[name][q][:, k] for name in derivs]
-            panel = _Panel(80, y, 960, 110, (s[0], s[-1]),
-                           _limits(*vals, include=[-l_k, l_k]))
-            for name, colour, val in zip(derivs, (_BASE, _OPT), vals):
-                idx = decimate(val, max_points)
-                panel.line(s[idx], val[idx], colour, width=1.0)
-            panel.hline(l_k, _LIMIT, label="limit")
-            panel.hline(-l_k, _LIMIT)
-            panel.legend([(f"axis {a}", "#222"), ("baseline", _BASE), ("optimised", _OPT)])
-            body.append(panel.render("s (mm)", label))
+            body.append(_replays_panel(y, s, vals, float(limit[k]), a, label, max_points))
             y += 110 + 58
     caption = ("Per contouring axis, the velocity command u of each replay and its acceleration "
                "and jerk as paper eq. 2 computes them (first and second differences over Te, the "
@@ -493,18 +500,8 @@ def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
     for k in sp.moving_axes:
         a = AXES[k]
         vals = [(sp.pos[:, k] - v.pos[:, k]) * _MM for v in (d.baseline, d.optimized)]
-        l_k = float(limit[k])
-        limited = math.isfinite(l_k)
-        panel = _Panel(80, y, 960, 110, (s[0], s[-1]),
-                       _limits(*vals, include=[-l_k, l_k] if limited else []))
-        for colour, val in zip((_BASE, _OPT), vals):
-            idx = decimate(val, max_points)
-            panel.line(s[idx], val[idx], colour, width=1.0)
-        if limited:
-            panel.hline(l_k, _LIMIT, label="limit")
-            panel.hline(-l_k, _LIMIT)
-        panel.legend([(f"axis {a}", "#222"), ("baseline", _BASE), ("optimised", _OPT)])
-        body.append(panel.render("s (mm)", "following error (mm)"))
+        body.append(_replays_panel(y, s, vals, float(limit[k]), a, "following error (mm)",
+                                   max_points))
         y += 110 + 58
     caption = ("Per contouring axis, the following error pd - p of each replay, against the "
                "machine's limit (red) where its file sets one (ferror_max_m, checked at the feed "

@@ -26,7 +26,7 @@ from oga.metrics import ContourMetrics, contour_metrics
 from oga.kinematics import command_peaks
 from oga.simulate import simulate
 
-__all__ = ["Verification", "command_ratios", "verify"]
+__all__ = ["Verification", "command_ratios", "ferror_ratios", "verify"]
 
 #: Relative slack on the limit checks, for float64 rounding only.
 _SLACK = 1e-9
@@ -64,6 +64,19 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
             elif peaks[j] > 0:
                 out[k, j] = np.inf
     return out
+
+
+def ferror_ratios(metrics: ContourMetrics, machine: Machine) -> np.ndarray:
+    """Largest following error per axis (x, y, z) over the machine's limit (``ferror_max_m``).
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        ``track_max_m / ferror_max_m``; <= 1 means within the limit; NaN where the
+        machine sets none.
+    """
+    limit = machine.ferror_limits()
+    return np.where(np.isfinite(limit), np.array(metrics.track_max_m) / limit, np.nan)
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,7 +168,7 @@ def verify(
     ]
     ferror_max = machine.ferror_limits()
     track_max = np.array(metrics.track_max_m)
-    ferror_ratio = np.where(np.isfinite(ferror_max), track_max / ferror_max, np.nan)
+    ferror_ratio = ferror_ratios(metrics, machine)
     limit_v += [
         f"axis {a}: following error reaches {track_max[k] * 1e3:.4f} mm, "
         f"{ferror_ratio[k]:.3f}x its limit ferror_max_m = {ferror_max[k] * 1e3:.4f} mm"
