@@ -14,6 +14,8 @@ __all__ = [
     "MPC_ITERATIONS",
     "MPC_STOP",
     "MPC_TRUST",
+    "MPC_RESTORE",
+    "MPC_SETTLE_TAIL",
     "REPORT_MAX_POINTS",
     "MPC_MIN_NP",
     "MPC_SETTLED_M",
@@ -78,6 +80,11 @@ MPC_TRUST = (0.3, 0.05)
 #: that the plan cannot yet meet), up to this many more iterations, each with a trust region
 #: three times wider, restore feasibility before the window recedes.
 MPC_RESTORE = 2
+#: Full mode: where an adjusted axis's setpoint comes to rest inside the window, the window
+#: looks this many samples further, samples: the plan's last gains held there, so that the
+#: prediction sees the axis settle after the stop (inside the friction band it settles over
+#: 300-500 ms, the error there is what the gains before the stop decide).
+MPC_SETTLE_TAIL = 100
 #: Full mode: an axis whose setpoint stands still over the window keeps its gains once its
 #: position is this close to the setpoint, m (before that, its gains still act on its
 #: settling).

@@ -336,7 +336,7 @@ def optimize(
         # every call ends after a whole number of commits: the plan carried to the next
         # call is shifted by whole spline intervals only
         chunk = max(_CHUNK // commit, 1) * commit
-        pad = wlen + 1
+        pad = wlen + defaults.MPC_SETTLE_TAIL + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
         feed_pad = np.concatenate([feed, np.zeros(pad, dtype=bool)])
@@ -353,7 +353,8 @@ def optimize(
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, tree, win_lo, win_hi, is_moving,
                       feed_pad, points, *run[4:], defaults.MPC_STOP,
-                      defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE)
+                      defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE,
+                      defaults.MPC_SETTLE_TAIL)
 
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
