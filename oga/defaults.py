@@ -81,9 +81,9 @@ MPC_TRUST = (0.3, 0.05)
 #: three times wider, restore feasibility before the window recedes.
 MPC_RESTORE = 2
 #: Full mode: where an adjusted axis's setpoint comes to rest inside the window, the window
-#: looks this many samples further, samples: the plan's last gains held there, so that the
-#: prediction sees the axis settle after the stop (inside the friction band it settles over
-#: 300-500 ms, the error there is what the gains before the stop decide).
+#: looks this many samples further, the plan's last gains held there, so that the prediction
+#: sees the axis settle after the stop (inside the friction band it settles over 300-500 ms,
+#: and the gains before the stop decide that error).
 MPC_SETTLE_TAIL = 100
 #: Full mode: an axis whose setpoint stands still over the window keeps its gains once its
 #: position is this close to the setpoint, m (before that, its gains still act on its
