@@ -353,6 +353,17 @@ def _basis(jk, tau, kspace, last):
 
 
 @njit(cache=True, inline="always")
+def _same_plan(points, other, a):
+    """Whether axis ``a``'s control points are the same in both plans (bit for bit): its
+    prediction from the same state is then the same too, and need not be simulated again."""
+    for g in range(2):
+        for j in range(points.shape[2]):
+            if points[a, g, j] != other[a, g, j]:
+                return False
+    return True
+
+
+@njit(cache=True, inline="always")
 def _keep_row(m, lo_r, hi_r, reach, c0, c1, alo, ahi, col0, col1):
     """Keep constraint row ``m`` (its coefficients already in place) with bounds ``lo_r <=
     row . d <= hi_r`` over columns ``c0 .. c1 - 1`` if the trust region can reach a bound
@@ -488,6 +499,8 @@ def mpc_chunk(
     plan_kp = np.empty((3, wmax))
     plan_kf = np.empty((3, wmax))
     trial_points = points.copy()
+    nominal_points = points.copy()  # per axis, the plan of its nominal prediction p0, u0
+    nominal_ok = np.zeros(3, dtype=np.bool_)
     for a in range(3):
         if not moving[a]:
             trial[a, :] = states[a, 0]
@@ -511,6 +524,7 @@ def mpc_chunk(
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
                         idle[a] = False
                         break
+        nominal_ok[:] = False  # a new window: no nominal prediction yet
         widen = 1.0  # trust-region factor, grown while no step keeps eq. 2 over the window
         restored = 0
         for _it in range(iters + restore):
@@ -522,6 +536,10 @@ def mpc_chunk(
                         p0[a, i] = states[a, 0]
                         u0[a, i] = 0.0
                     continue
+                if nominal_ok[a] and _same_plan(points, nominal_points, a):
+                    continue  # p0, u0 and the axis's columns of sp, su still hold
+                nominal_points[a] = points[a]
+                nominal_ok[a] = True
                 stats[STAT_WINDOWS] += 1
                 lo_v, hi_v = var_lo[a], var_hi[a]
                 if idle[a] or lo_v == hi_v:
@@ -692,6 +710,9 @@ def mpc_chunk(
                         continue
                     if scale == 0.0:  # the plan itself: its nominal prediction
                         tmp_u[:] = u0[a]
+                    elif _same_plan(trial_points, points, a):  # the step leaves the axis as is
+                        trial[a, :wk] = p0[a, :wk]
+                        tmp_u[:wk] = u0[a, :wk]
                     else:
                         _sim_plan(states, params, pdT, vdT, k, wk, trial_points, a, kspace, kpa,
                                   kfa, trial[a], tmp_u, scratch)
