@@ -499,8 +499,7 @@ def mpc_chunk(
     plan_kp = np.empty((3, wmax))
     plan_kf = np.empty((3, wmax))
     trial_points = points.copy()
-    nominal_points = points.copy()  # per axis, the plan of its nominal prediction p0, u0
-    nominal_ok = np.zeros(3, dtype=np.bool_)
+    nominal_points = np.empty_like(points)  # per axis, the plan of its nominal p0, u0
     for a in range(3):
         if not moving[a]:
             trial[a, :] = states[a, 0]
@@ -524,7 +523,7 @@ def mpc_chunk(
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
                         idle[a] = False
                         break
-        nominal_ok[:] = False  # a new window: no nominal prediction yet
+        nominal_points[:] = np.nan  # a new window: no nominal yet (NaN equals no plan)
         widen = 1.0  # trust-region factor, grown while no step keeps eq. 2 over the window
         restored = 0
         for _it in range(iters + restore):
@@ -536,10 +535,9 @@ def mpc_chunk(
                         p0[a, i] = states[a, 0]
                         u0[a, i] = 0.0
                     continue
-                if nominal_ok[a] and _same_plan(points, nominal_points, a):
+                if _same_plan(points, nominal_points, a):
                     continue  # p0, u0 and the axis's columns of sp, su still hold
                 nominal_points[a] = points[a]
-                nominal_ok[a] = True
                 stats[STAT_WINDOWS] += 1
                 lo_v, hi_v = var_lo[a], var_hi[a]
                 if idle[a] or lo_v == hi_v:

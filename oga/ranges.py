@@ -472,11 +472,9 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     feed = _feed_mask(setpoints, machine)
     cols = np.array([AXES.index(a) for a in axes])
     pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
-    ferror = machine.ferror_limits()  # inf where none is set
-    limits = np.array([
-        [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3, ferror[AXES.index(a)]]
-        for a, lim in zip(axes, (machine.axis(a).limits for a in axes))
-    ])
+    lim = machine.axis_limits()
+    limits = np.column_stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3,
+                              machine.ferror_limits()])[cols]  # ferror inf: none set
     # heuristic visiting order (speed only, the result does not depend on it): stiff loops
     # and strong feed-forward first, as the least contour error usually lies at the top of
     # the stable range, at the largest feasible Kf
@@ -562,9 +560,10 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
     v_pk, a_pk, j_pk = command_peaks(u[h:k1], mask, te)
     if not (v_pk <= lim[0] and a_pk <= lim[1] and j_pk <= lim[2]):
         return False
-    for k in range(k0, k1):  # the following-error limit (inf: none)
-        if feed[k] and not abs(pd[k] - p_act[k]) <= lim[3]:
-            return False
+    if lim[3] < np.inf:  # the following-error limit, where one is set
+        for k in range(k0, k1):
+            if feed[k] and not abs(pd[k] - p_act[k]) <= lim[3]:
+                return False
     return True
 
 

@@ -469,45 +469,40 @@ def _replays_panel(y, s, vals, limit: float, axis: str, ylabel: str, max_points:
     return panel.render("s (mm)", ylabel)
 
 
+def _replays_figure(d: ReportData, rows, title: str, max_points: int) -> str:
+    """A figure of :func:`_replays_panel` panels stacked top to bottom, one per row
+    ``(axis, vals, limit, ylabel)``."""
+    s = d.setpoints.s * _MM
+    body = [_replays_panel(28 + r * (110 + 58), s, vals, limit, a, ylabel, max_points)
+            for r, (a, vals, limit, ylabel) in enumerate(rows)]
+    return _svg(1100, 28 + len(rows) * (110 + 58) + 10, "".join(body), title)
+
+
 def _fig_commands(d: ReportData, max_points: int) -> tuple[str, str]:
     sp = d.setpoints
-    s = sp.s * _MM
     lim = d.machine.axis_limits()
-    moving = [AXES[k] for k in sp.moving_axes]
-    body, y = [], 28
-    derivs = {name: (v.u, *_command_derivatives(v.u, sp.dt)) for name, v in
-              (("baseline", d.baseline), ("optimised", d.optimized))}
+    derivs = [(v.u, *_command_derivatives(v.u, sp.dt)) for v in (d.baseline, d.optimized)]
     units = (("velocity (m/s)", lim.vmax_m_s), ("acceleration (m/s^2)", lim.amax_m_s2),
              ("jerk (m/s^3)", lim.jmax_m_s3))
-    for a in moving:
-        k = AXES.index(a)
-        for q, (label, limit) in enumerate(units):
-            vals = [derivs[name][q][:, k] for name in derivs]
-            body.append(_replays_panel(y, s, vals, float(limit[k]), a, label, max_points))
-            y += 110 + 58
+    rows = [(AXES[k], [der[q][:, k] for der in derivs], float(limit[k]), label)
+            for k in sp.moving_axes for q, (label, limit) in enumerate(units)]
     caption = ("Per contouring axis, the velocity command u of each replay and its acceleration "
                "and jerk as paper eq. 2 computes them (first and second differences over Te, the "
                "axis at rest before the start), against the axis limits (red). Eq. 2 is checked "
                "on feed samples; rapids are planned at the limits.")
-    return _svg(1100, y + 10, "".join(body), "velocity command"), caption
+    return _replays_figure(d, rows, "velocity command", max_points), caption
 
 
 def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
     sp = d.setpoints
-    s = sp.s * _MM
     limit = d.machine.ferror_limits() * _MM
-    body, y = [], 28
-    for k in sp.moving_axes:
-        a = AXES[k]
-        vals = [(sp.pos[:, k] - v.pos[:, k]) * _MM for v in (d.baseline, d.optimized)]
-        body.append(_replays_panel(y, s, vals, float(limit[k]), a, "following error (mm)",
-                                   max_points))
-        y += 110 + 58
+    rows = [(AXES[k], [(sp.pos[:, k] - v.pos[:, k]) * _MM for v in (d.baseline, d.optimized)],
+             float(limit[k]), "following error (mm)") for k in sp.moving_axes]
     caption = ("Per contouring axis, the following error pd - p of each replay, against the "
                "machine's limit (red) where its file sets one (ferror_max_m, checked at the feed "
                "samples). On straight moves the schedule may let an axis lag along the path, "
                "which costs no contour error.")
-    return _svg(1100, y + 10, "".join(body), "following error"), caption
+    return _replays_figure(d, rows, "following error", max_points), caption
 
 
 def _fig_stability(d: ReportData) -> tuple[str, str]:

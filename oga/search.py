@@ -194,7 +194,7 @@ def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, 
         i = min(k + m, last)
         p = p_now if m == 0 else pred[m - 1]
         u[m] = kp_si * (pd[i] - p) + (kf * vd[i] if k + m <= last else 0.0)
-        if m > 0 and k + m <= last and feed[i]:
+        if m > 0 and k + m <= last and feed[i] and ferror_max < np.inf:
             worst = max(worst, abs(pd[i] - p) / ferror_max - 1.0)
     return max(worst, eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, every))
 

@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from oga.machine import load_machine
     from oga.pipeline import run_job
     from feedplan.read import read_file
+    from feedplan.setpoints import AXES
 
     machine = load_machine(args.machine)
     options = options_from_args(args)
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
           f"CE rms {o['rms_ce_um']:.3f} um, max {o['max_ce_um']:.3f} um, "
           f"MSE ratio {res.ratio_mse:.3f}, {res.optimize_time_s:.1f} s")
     lag_b, lag_o = b["track_max_um"], o["track_max_um"]
-    limit_um = dict(zip("xyz", (v * 1e6 for v in machine.ferror_limits())))
+    limit_um = dict(zip(AXES, (v * 1e6 for v in machine.ferror_limits())))
     print("following error max (um): " + ", ".join(
         f"{a} {lag_b[a]:.1f} -> {lag_o[a]:.1f}"
         + (f" (limit {limit_um[a]:.1f})" if math.isfinite(limit_um[a]) else "")
