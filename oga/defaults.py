@@ -194,3 +194,10 @@ AFSMC_GAMMA_PER_KP_1_S = 1.0
 #: afsmc: 15 runs: adaptation rates over Kp (1/s), and compensation gains over Kp.
 AFSMC_TUNE_GAMMA_PER_KP_1_S = (0.01, 0.1, 1.0)
 AFSMC_TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)
+#: LinuxCNC export (``oga export --format linuxcnc``): machine units, the
+#: ``pid.N.error-previous-target`` setting (TRUE: LinuxCNC 2.9's default, the motion
+#: controller's convention), the HAL thread the files join, and the longest table streamed
+#: (rows; the streamer's FIFO holds the whole table, 8 bytes per value, in shared memory).
+LINUXCNC = {"units": "mm", "error_previous_target": True, "thread": "servo-thread",
+            "max_rows": 4_000_000}
+__all__ += ["LINUXCNC"]

@@ -1,0 +1,20 @@
+"""LinuxCNC: a verified gain table as a ``streamer`` file and HAL files for the ``pid`` loops.
+
+See :mod:`oga.linuxcnc.export`; the README section "Running a table on LinuxCNC" says how a
+machine or a bench runs them.
+"""
+
+from __future__ import annotations
+
+from oga.linuxcnc.export import (
+    BENCH_HAL,
+    STREAM,
+    TABLE_HAL,
+    UNIT_M,
+    LinuxcncExport,
+    linuxcnc_export,
+    replay_feedback,
+)
+
+__all__ = ["BENCH_HAL", "STREAM", "TABLE_HAL", "UNIT_M", "LinuxcncExport", "linuxcnc_export",
+           "replay_feedback"]

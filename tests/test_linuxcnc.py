@@ -1,0 +1,224 @@
+"""LinuxCNC export, proven in LinuxCNC's own HAL (``halrun``, POSIX non-realtime).
+
+The exported files run in ``halrun`` with the simulated actual positions streamed as
+``pid.N.feedback`` and a ``sampler`` on ``pid.N.output``; the output must be oga's velocity
+command sample for sample. These tests need ``linuxcnc-uspace`` (``.ci/run`` installs it):
+without ``halrun`` they fail, never skip.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pwd
+import shutil
+import subprocess
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from feedplan.read import read_file
+from feedplan.setpoints import AXES
+from oga.cli import main
+from oga.errors import InputError, MachineError, OptionError
+from oga.export import gain_table, render_table, table_csv
+from oga.linuxcnc import BENCH_HAL, STREAM, TABLE_HAL, UNIT_M, linuxcnc_export, replay_feedback
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.options import options_from_dict
+from oga.pipeline import run_job
+
+DATA = Path(__file__).parent / "data"
+#: pid.N.output is sampled times 2**40 (exact): halsampler prints "%f", 6 decimals.
+SCALE = 2.0**40
+#: Periods sampled after the table's end or an abort.
+POST = 50
+
+
+def _job(name):
+    text, fmt = read_file(DATA / name)
+    job = run_job(text, fmt, load_machine("ucp710"), options_from_dict(None), source=name)
+    assert job.result.status == "ok"
+    return job
+
+
+@pytest.fixture(scope="module")
+def ref():
+    """reference_xz (the paper's contour), optimised on ucp710."""
+    return _job("reference_xz.ngc")
+
+
+@pytest.fixture(scope="module")
+def cncjs():
+    """A real program (cncjs's, MIT): rapids, cuts and arcs in three planes."""
+    return _job("cncjs_toolpath.nc")
+
+
+def _export(job, **kw):
+    res = job.result
+    table = gain_table(res)
+    return linuxcnc_export(table, res.baseline_kp, res.baseline_kf,
+                           feedback_m=replay_feedback(table, res.machine), **kw)
+
+
+# --- running halrun -------------------------------------------------------------------
+
+
+def _halrun_env(root: Path) -> dict:
+    """halrun's environment: its own rtapi socket; as root an unprivileged RTAPI_UID."""
+    env = dict(os.environ, RTAPI_FIFO_PATH=str(root / "rtapi_fifo"))
+    if os.geteuid() == 0:
+        try:
+            env["RTAPI_UID"] = str(pwd.getpwnam("nobody").pw_uid)
+        except KeyError:
+            env["RTAPI_UID"] = "65534"
+    return env
+
+
+def _isolated() -> list[str]:
+    """A private SysV IPC namespace (HAL's shared memory keys are fixed, so two sessions at
+    once would share one HAL) where the kernel allows it; else an exclusive lock."""
+    if shutil.which("unshare") and subprocess.run(
+            ["unshare", "--ipc", "true"], capture_output=True).returncode == 0:
+        return ["unshare", "--ipc"]
+    return ["flock", os.path.join(tempfile.gettempdir(), "oga-halrun.lock")]
+
+
+def _run_hal(export, *, period_ns=None, abort_after=None) -> tuple[np.ndarray, np.ndarray]:
+    """Run an export in halrun; the sampled pid outputs (N_s, axes) and oga-valid (N_s,).
+
+    ``period_ns`` None runs the exported bench file as it is (servo period = Te); otherwise
+    the same set-up with a faster thread (the outputs do not depend on the period: no term
+    of the loop differentiates numerically). ``abort_after``: ``sets oga-run 0`` once at
+    least that many rows were read.
+    """
+    assert shutil.which("halrun"), "halrun missing: install linuxcnc-uspace (.ci/run does)"
+    root = Path(tempfile.mkdtemp(prefix="oga-hal-"))
+    try:
+        os.chmod(root, 0o777)  # RTAPI_UID's user writes its socket here
+        for name, text in export.files.items():
+            (root / name).write_text(text)
+        joints = [export.joints[a] for a in export.axes]
+        samples = export.rows + POST
+        if period_ns is None:
+            lines = [f"source {BENCH_HAL}"]
+        else:
+            lines = [f"loadrt threads name1=servo-thread period1={period_ns} fp1=1",
+                     f"loadrt pid num_chan={max(joints) + 1}",
+                     *(f"addf pid.{j}.do-pid-calcs servo-thread" for j in joints),
+                     f"source {TABLE_HAL}",
+                     *(f"setp pid.{j}.enable 1" for j in joints),
+                     *(f"net oga-{a}-fb-sim => pid.{export.joints[a]}.feedback"
+                       for a in export.axes),
+                     f"loadusr -w timeout 60 halstreamer -c 0 {STREAM}",
+                     "start"]
+        names = [f"oga-test-{a}" for a in export.axes]
+        lines += [f"loadrt scale names={','.join(names)}",
+                  f"loadrt sampler depth={samples + 10} cfg={'f' * len(names)}b"]
+        for k, (a, s) in enumerate(zip(export.axes, names)):
+            lines += [f"net oga-test-{a}-out pid.{export.joints[a]}.output => {s}.in",
+                      f"setp {s}.gain {SCALE!r}",
+                      f"net oga-test-{a}-scaled {s}.out => sampler.0.pin.{k}"]
+        lines += [f"net oga-valid => sampler.0.pin.{len(names)}",
+                  "net oga-started => sampler.0.enable",  # from the first row on
+                  *(f"addf {s} servo-thread" for s in names),  # after the pid loops
+                  "addf sampler.0 servo-thread",
+                  "loadusr -w sleep 0.05",  # the loops run before the start
+                  "sets oga-run 1"]
+        if abort_after is not None:
+            (root / "wait.sh").write_text(  # halcmd would expand "$" itself
+                'until [ "$(halcmd -s getp streamer.0.curr-depth)" -le '
+                f'{export.rows - abort_after} ]; do sleep 0.005; done\n')
+            lines += ["loadusr -w timeout 60 sh wait.sh",
+                      "sets oga-run 0"]
+        lines += [f"loadusr -w timeout 120 halsampler -c 0 -n {samples} out.txt"]
+        (root / "test.hal").write_text("\n".join(lines) + "\n")
+        proc = subprocess.run([*_isolated(), "halrun", "-f", "test.hal"], cwd=root,
+                              env=_halrun_env(root), capture_output=True, text=True,
+                              timeout=180)
+        out = root / "out.txt"
+        assert proc.returncode == 0 and out.exists(), proc.stdout + proc.stderr
+        rows = [line.split() for line in out.read_text().splitlines()]
+        assert "overrun" not in {r[0] for r in rows if r}
+        data = np.array(rows, dtype=np.float64)
+        assert data.shape == (samples, len(names) + 1)
+        return data[:, :-1] / SCALE, data[:, -1].astype(bool)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _expected(job, export, read: int, total: int) -> np.ndarray:
+    """oga's velocity command (m/s) for the sampled periods: the verified replay for the
+    ``read`` rows, then the baseline P term on the held command and feedback."""
+    res = job.result
+    cols = [AXES.index(a) for a in export.axes]
+    u = res.optimized.u[:read, cols]
+    pd, p = res.setpoints.pos[:, cols], res.optimized.pos[:, cols]
+    n = len(res.setpoints)
+    held = pd[min(read, n - 1)] if export.error_previous_target else pd[read - 1]
+    kp = np.array([res.baseline_kp[a] for a in export.axes]) * KP_SI_PER_M_MIN_PER_MM
+    tail = kp * (held / UNIT_M[export.units] - p[read - 1] / UNIT_M[export.units])
+    return np.vstack([u, np.tile(tail * UNIT_M[export.units], (total - read, 1))])
+
+
+def _check(job, export, out, valid, read):
+    """Sample for sample: relative error <= 1e-9 of the loop's terms (after units), plus the
+    rounding of the two positions to machine units (one unit in the last place each)."""
+    assert valid[:read].all() and not valid[read:].any()
+    want = _expected(job, export, read, len(out))
+    got = out * UNIT_M[export.units]
+    res = job.result
+    cols = [AXES.index(a) for a in export.axes]
+    kp = res.schedule.kp_m_min_per_mm[:read, cols] * KP_SI_PER_M_MIN_PER_MM
+    pd, p = res.setpoints.pos[:read, cols], res.optimized.pos[:read, cols]
+    terms = np.abs(want).copy()
+    terms[:read] = np.abs(kp * (pd - p)) + np.abs(res.schedule.kf[:read, cols]
+                                                  * res.setpoints.vel[:read, cols])
+    floor = np.zeros_like(want)
+    floor[:read] = kp * np.finfo(float).eps * (np.abs(pd) + np.abs(p))
+    err = np.abs(got - want)
+    assert (err <= 1e-9 * terms + floor).all(), float(np.max((err - floor) / terms))
+    nz = terms > 0
+    return float(np.max(err[nz] / terms[nz]))
+
+
+# --- halrun: the exported files reproduce oga's command --------------------------------
+
+
+def test_bench_file_mm_previous_target(ref):
+    """The bench file as exported (1 ms servo period), mm, error-previous-target TRUE,
+    to the table's end and past it (baseline gains, command held)."""
+    export = _export(ref, units="mm", error_previous_target=True)
+    out, valid = _run_hal(export)
+    _check(ref, export, out, valid, export.rows)
+
+
+def test_inch_current_target(ref):
+    """An inch machine with error-previous-target FALSE (the command of the same period)."""
+    export = _export(ref, units="inch", error_previous_target=False, joints={"x": 2, "z": 0})
+    out, valid = _run_hal(export, period_ns=20_000)
+    _check(ref, export, out, valid, export.rows)
+
+
+def test_real_program_with_rapids(cncjs):
+    """A real program, rapids included (every axis; 50 s of motion at a 10 us thread)."""
+    res = cncjs.result
+    assert res.setpoints.rapid.any() and not res.setpoints.rapid.all()
+    export = _export(cncjs)
+    assert export.axes == ("x", "y", "z")
+    out, valid = _run_hal(export, period_ns=10_000)
+    _check(cncjs, export, out, valid, export.rows)
+
+
+@pytest.mark.parametrize("ept", [True, False])
+def test_abort_falls_back_to_baseline(ref, ept):
+    """oga-run FALSE in the middle: from the next period on the gains are the baseline,
+    command-deriv 0, the command held at the last row read."""
+    export = _export(ref, units="mm", error_previous_target=ept)
+    out, valid = _run_hal(export, period_ns=None if ept else 100_000, abort_after=300)
+    read = int(valid.sum())
+    assert 300 <= read < export.rows
+    _check(ref, export, out, valid, read)
