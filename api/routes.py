@@ -104,8 +104,15 @@ def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Respo
     blob = _store(request).table(row.id)
     if row.status != "succeeded" or blob is None:
         raise HTTPException(409, f"job {row.id} is {row.status}: no table")
-    data = render_table(table_from_npz(blob), fmt, name=name)
-    suffix, media = TABLE_FORMATS[fmt]
+    if fmt == "linuxcnc":  # a zip of the LinuxCNC files (oga export --format linuxcnc)
+        from oga.linuxcnc import export_table
+
+        data = export_table(table_from_npz(blob), summary=row.summary, with_feedback=True,
+                            machine=machine_from_dict(row.machine)).zip_bytes()
+        suffix, media = ".zip", "application/zip"
+    else:
+        data = render_table(table_from_npz(blob), fmt, name=name)
+        suffix, media = TABLE_FORMATS[fmt]
     stem = PurePath(row.source).stem or row.id
     return Response(data, media_type=media, headers={
         "Content-Disposition": f'attachment; filename="{_ascii(stem)}{suffix}"',
@@ -167,7 +174,9 @@ def cancel_job(job_id: str, request: Request) -> dict:
 def get_table(job_id: str, request: Request, format: TableFormat = "csv",
               name: Name = C_NAME) -> Response:
     """``csv`` is byte-identical to ``oga optimize --out``; ``json`` holds the columns and
-    the metadata; ``npz`` one float64 array per column; ``c`` a C header for firmware."""
+    the metadata; ``npz`` one float64 array per column; ``c`` a C header for firmware;
+    ``linuxcnc`` a zip of the streamer and HAL files (mm, error-previous-target TRUE,
+    simulated feedback included; ``oga export`` for other settings)."""
     return _table_response(request, _job(request, job_id), format, name)
 
 

@@ -26,8 +26,8 @@ __all__ = [
     "json_safe",
 ]
 
-#: Formats of ``GET /v1/jobs/{id}/table`` (``oga.export.TABLE_FORMATS``).
-TableFormat = Literal["csv", "json", "npz", "c"]
+#: Formats of ``GET /v1/jobs/{id}/table`` (``oga.export.TABLE_FORMATS``, and ``linuxcnc``).
+TableFormat = Literal["csv", "json", "npz", "c", "linuxcnc"]
 
 
 class _Strict(BaseModel):

@@ -222,3 +222,140 @@ def test_abort_falls_back_to_baseline(ref, ept):
     read = int(valid.sum())
     assert 300 <= read < export.rows
     _check(ref, export, out, valid, read)
+
+
+# --- the files, without halrun ----------------------------------------------------------
+
+
+def _stream(export) -> np.ndarray:
+    lines = [ln for ln in export.files[STREAM].splitlines() if not ln.startswith("#")]
+    return np.array([ln.split() for ln in lines], dtype=np.float64)
+
+
+def test_stream_columns_are_the_table_in_machine_units(ref):
+    """Per axis: command (one sample ahead with error-previous-target), velocity, Pgain in
+    1/s (the same in mm and inch), FF1; exact float64 round trip."""
+    res = ref.result
+    table = gain_table(res)
+    x, z = AXES.index("x"), AXES.index("z")
+    for units, ept in (("mm", True), ("inch", False)):
+        export = linuxcnc_export(table, res.baseline_kp, res.baseline_kf, units=units,
+                                 error_previous_target=ept)
+        assert export.columns == ("x_cmd", "x_vel", "x_kp", "x_kf", "z_cmd", "z_vel", "z_kp",
+                                  "z_kf")
+        s, unit = _stream(export), UNIT_M[units]
+        pd = res.setpoints.pos[:, z]
+        cmd = np.append(pd[1:], pd[-1]) if ept else pd
+        assert np.array_equal(s[:, 4], cmd / unit)
+        assert np.array_equal(s[:, 1], res.setpoints.vel[:, x] / unit)
+        assert np.allclose(s[:, 2], res.schedule.kp_m_min_per_mm[:, x] * 1000 / 60, rtol=1e-15)
+        assert np.array_equal(s[:, 7], res.schedule.kf[:, z])
+        hal = export.files[TABLE_HAL]
+        assert f"setp pid.1.error-previous-target {int(ept)}" in hal
+        assert f"loadrt streamer depth={len(pd) + 1} cfg=ffffffff" in hal
+        assert f"setp oga-x-kp.in0 {res.baseline_kp['x'] * KP_SI_PER_M_MIN_PER_MM!r}" in hal
+        assert f"setp oga-z-cmd.in0 {float(pd[0] / unit)!r}" in hal
+    assert abs(UNIT_M["inch"] / UNIT_M["mm"] - 25.4) < 1e-12
+
+
+def test_feedback_is_the_verified_replay(ref):
+    res = ref.result
+    fb = replay_feedback(gain_table(res), res.machine)
+    for a, p in fb.items():
+        assert np.array_equal(p, res.optimized.pos[:, AXES.index(a)])
+    other = load_machine("mcv-op")
+    with pytest.raises(MachineError, match="computed for machine 'ucp710'"):
+        replay_feedback(gain_table(res), other)
+
+
+def test_bad_options_are_refused(ref):
+    res = ref.result
+    table = gain_table(res)
+    kp, kf = res.baseline_kp, res.baseline_kf
+    with pytest.raises(OptionError, match="units"):
+        linuxcnc_export(table, kp, kf, units="m")
+    with pytest.raises(OptionError, match="joints"):
+        linuxcnc_export(table, kp, kf, joints={"x": 0, "z": 0})
+    with pytest.raises(OptionError, match="joints"):
+        linuxcnc_export(table, kp, kf, joints={"x": 0, "z": 16})
+    with pytest.raises(OptionError, match="axes"):
+        linuxcnc_export(table, kp, kf, axes=["x", "q"])
+    with pytest.raises(OptionError, match="baseline"):
+        linuxcnc_export(table, {"x": 3.0}, kf)
+    with pytest.raises(OptionError, match="thread"):
+        linuxcnc_export(table, kp, kf, thread="servo thread")
+
+
+def test_cli_csv_and_summary_give_the_library_files(ref, tmp_path, capsys):
+    res = ref.result
+    (tmp_path / "t.csv").write_text(table_csv(res))
+    summary = res.summary()
+    (tmp_path / "s.json").write_text(json.dumps(summary))
+    args = ["export", str(tmp_path / "t.csv"), "--summary", str(tmp_path / "s.json"),
+            "--out", str(tmp_path / "lc"), "--with-feedback", "--units", "inch",
+            "--error-previous-target", "false", "--joints", "x=0,z=2"]
+    assert main(args) == 0
+    assert "linuxcnc: 3004 rows (x -> pid.0, z -> pid.2), inch" in capsys.readouterr().out
+    want = _export(ref, units="inch", error_previous_target=False, joints={"x": 0, "z": 2})
+    got = {p.name: p.read_text() for p in (tmp_path / "lc").iterdir()}
+    assert got[STREAM] == want.files[STREAM] and got[TABLE_HAL] == want.files[TABLE_HAL]
+    # the NPZ table (the API's) gives the same stream
+    (tmp_path / "t.npz").write_bytes(render_table(gain_table(res), "npz"))
+    assert main(["export", str(tmp_path / "t.npz"), "--out", str(tmp_path / "n"),
+                 "--summary", str(tmp_path / "s.json"), "--machine", "ucp710",
+                 "--with-feedback", "--units", "inch", "--error-previous-target", "false",
+                 "--joints", "x=0,z=2"]) == 0
+    assert (tmp_path / "n" / STREAM).read_text().splitlines()[4:] == \
+        want.files[STREAM].splitlines()[4:]
+
+
+def test_cli_refuses_bad_input(ref, tmp_path, capsys):
+    res = ref.result
+    (tmp_path / "t.csv").write_text(table_csv(res))
+    other = dict(res.summary(), setpoints_sha256="0" * 64)
+    (tmp_path / "s.json").write_text(json.dumps(other))
+    (tmp_path / "bad.csv").write_text("t_s,s_m\n0,0\n0.001,x\n")
+    out = str(tmp_path / "o")
+    cases = [
+        (["export", str(tmp_path / "t.csv"), "--out", out], "baseline"),
+        (["export", str(tmp_path / "t.csv"), "--summary", str(tmp_path / "s.json"), "--out", out],
+         "not the same program"),
+        (["export", str(tmp_path / "bad.csv"), "--baseline", "3,0.8", "--out", out], "bad.csv"),
+        (["export", str(tmp_path / "t.csv"), "--baseline", "3", "--out", out], "--baseline"),
+        (["export", str(tmp_path / "t.csv"), "--baseline", "3,0.8", "--joints", "x:0",
+          "--out", out], "--joints"),
+        (["export", str(tmp_path / "t.csv"), "--baseline", "3,0.8", "--with-feedback",
+          "--out", out], "--with-feedback"),
+        (["export", str(tmp_path / "missing.npz"), "--baseline", "3,0.8", "--out", out],
+         "cannot read"),
+    ]
+    for argv, what in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert what in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_api_table_format_linuxcnc_is_a_zip_of_the_files(ref, tmp_path):
+    """GET /v1/jobs/ID/table?format=linuxcnc: the files of oga export --with-feedback."""
+    from fastapi.testclient import TestClient
+
+    from api import Settings, create_app
+    from api.workers import run_claimed
+    from tests.test_api import _owner
+
+    app = create_app(Settings(db_path=str(tmp_path / "q.db"), workers=0))
+    text = (DATA / "reference_xz.ngc").read_text()
+    with TestClient(app) as client:
+        job_id = client.post("/v1/jobs", json={
+            "toolpath": {"format": "gcode", "content": text, "name": "reference_xz.ngc"},
+            "machine": "ucp710", "options": {}}).json()["id"]
+        store = app.state.store
+        run_claimed(store, store.claim(_owner(12345)))
+        r = client.get(f"/v1/jobs/{job_id}/table", params={"format": "linuxcnc"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(r.content)) as z:
+        files = {n.split("/")[-1]: z.read(n).decode() for n in z.namelist()}
+    want = _export(ref)
+    assert set(files) == {STREAM, TABLE_HAL, BENCH_HAL}
+    assert files[STREAM].splitlines()[4:] == want.files[STREAM].splitlines()[4:]

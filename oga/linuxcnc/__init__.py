@@ -12,9 +12,10 @@ from oga.linuxcnc.export import (
     TABLE_HAL,
     UNIT_M,
     LinuxcncExport,
+    export_table,
     linuxcnc_export,
     replay_feedback,
 )
 
-__all__ = ["BENCH_HAL", "STREAM", "TABLE_HAL", "UNIT_M", "LinuxcncExport", "linuxcnc_export",
+__all__ = ["BENCH_HAL", "STREAM", "TABLE_HAL", "UNIT_M", "LinuxcncExport", "export_table", "linuxcnc_export",
            "replay_feedback"]

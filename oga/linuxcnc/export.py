@@ -42,6 +42,7 @@ __all__ = [
     "BENCH_HAL",
     "LinuxcncExport",
     "linuxcnc_export",
+    "export_table",
     "replay_feedback",
 ]
 
@@ -386,3 +387,53 @@ def _bench_hal(about, axes, joints, period_ns, thread, feedback) -> str:
         lines += [f"net oga-{a}-fb-sim => pid.{joints[a]}.feedback" for a in axes]
     lines += [f"loadusr -w halstreamer -c 0 {STREAM}", "start"]
     return "\n".join(lines) + "\n"
+
+
+def export_table(table, *, summary: dict | None = None, baseline=None, machine=None,
+                 with_feedback: bool = False, **options) -> LinuxcncExport:
+    """:func:`linuxcnc_export` of a stored table, its summary and its machine.
+
+    Parameters
+    ----------
+    table : GainTable
+        The table (its metadata may hold the setpoints' and machine's SHA-256).
+    summary : dict, optional
+        Its summary (``oga optimize --summary``): the baseline gains, and the hashes, which
+        must be the table's.
+    baseline : (float, float), optional
+        Fixed Kp ((m/min)/mm) and Kf for every axis, instead of the summary's.
+    machine : Machine, optional
+        Needed with ``with_feedback`` (the table's replay).
+    with_feedback : bool
+        Stream the simulated actual positions (:func:`replay_feedback`).
+    **options
+        ``units``, ``error_previous_target``, ``axes``, ``joints``, ``thread``.
+
+    Raises
+    ------
+    InputError
+        The summary belongs to another table, or no baseline is given.
+    """
+    if summary is not None:
+        for key in ("setpoints_sha256", "machine_sha256"):
+            ours, theirs = table.meta.get(key), summary.get(key)
+            if ours and theirs and ours != theirs:
+                raise InputError(f"summary: {key} {theirs[:12]}... is not the table's "
+                                 f"({ours[:12]}...): not the same "
+                                 + ("program" if key.startswith("setpoints") else "machine"))
+    if baseline is not None:
+        kp, kf = baseline
+        base_kp, base_kf = dict.fromkeys(AXES, kp), dict.fromkeys(AXES, kf)
+    elif summary is not None and isinstance(summary.get("baseline"), dict):
+        base_kp, base_kf = summary["baseline"].get("kp"), summary["baseline"].get("kf")
+        if not isinstance(base_kp, dict) or not isinstance(base_kf, dict):
+            raise InputError("summary: baseline has no kp and kf per axis")
+    else:
+        raise InputError("the fixed baseline gains are needed (the loops fall back to them): "
+                         "give the summary or Kp,Kf")
+    feedback = None
+    if with_feedback:
+        if machine is None:
+            raise OptionError("with_feedback: the machine is needed to replay the table")
+        feedback = replay_feedback(table, machine, options.get("axes"))
+    return linuxcnc_export(table, base_kp, base_kf, feedback_m=feedback, **options)
