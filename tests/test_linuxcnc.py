@@ -8,6 +8,7 @@ without ``halrun`` they fail, never skip.
 
 from __future__ import annotations
 
+import fcntl
 import io
 import json
 import os
@@ -26,7 +27,8 @@ from feedplan.setpoints import AXES
 from oga.cli import main
 from oga.errors import InputError, MachineError, OptionError
 from oga.export import gain_table, render_table, table_csv
-from oga.linuxcnc import BENCH_HAL, STREAM, TABLE_HAL, UNIT_M, linuxcnc_export, replay_feedback
+from oga.linuxcnc import (BENCH_HAL, STREAM, TABLE_HAL, UNIT_M, export_table, linuxcnc_export,
+                          replay_feedback)
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.options import options_from_dict
 from oga.pipeline import run_job
@@ -59,9 +61,8 @@ def cncjs():
 
 def _export(job, **kw):
     res = job.result
-    table = gain_table(res)
-    return linuxcnc_export(table, res.baseline_kp, res.baseline_kf,
-                           feedback_m=replay_feedback(table, res.machine), **kw)
+    return export_table(gain_table(res), summary=res.summary(), machine=res.machine,
+                        with_feedback=True, **kw)
 
 
 # --- running halrun -------------------------------------------------------------------
@@ -79,75 +80,86 @@ def _halrun_env(root: Path) -> dict:
 
 
 def _isolated() -> list[str]:
-    """A private SysV IPC namespace (HAL's shared memory keys are fixed, so two sessions at
-    once would share one HAL) where the kernel allows it; else an exclusive lock."""
+    """A private SysV IPC namespace where the kernel allows it: HAL's shared memory keys are
+    fixed, so two sessions at once (or a LinuxCNC running here) would share one HAL.
+    Sessions of these tests also take :data:`_LOCK` (for hosts without namespaces)."""
     if shutil.which("unshare") and subprocess.run(
             ["unshare", "--ipc", "true"], capture_output=True).returncode == 0:
         return ["unshare", "--ipc"]
-    return ["flock", os.path.join(tempfile.gettempdir(), "oga-halrun.lock")]
+    return []
 
 
-def _run_hal(export, *, period_ns=None, abort_after=None) -> tuple[np.ndarray, np.ndarray]:
-    """Run an export in halrun; the sampled pid outputs (N_s, axes) and oga-valid (N_s,).
+#: Lock file serialising the halrun sessions of concurrent test processes.
+_LOCK = os.path.join(tempfile.gettempdir(), "oga-halrun.lock")
 
-    ``period_ns`` None runs the exported bench file as it is (servo period = Te); otherwise
-    the same set-up with a faster thread (the outputs do not depend on the period: no term
-    of the loop differentiates numerically). ``abort_after``: ``sets oga-run 0`` once at
-    least that many rows were read.
-    """
+
+def _session(export, period_ns, lines, out_name, *, files=None, before_start=()) -> list:
+    """Run the export in halrun: its bench set-up (the exported bench file if ``period_ns`` is
+    None, else the same with a thread of that period: the outputs do not depend on it, no
+    term of the loop differentiates numerically; ``before_start`` lines come before the
+    thread starts), then ``lines``; the rows of ``out_name``."""
     assert shutil.which("halrun"), "halrun missing: install linuxcnc-uspace (.ci/run does)"
     root = Path(tempfile.mkdtemp(prefix="oga-hal-"))
     try:
         os.chmod(root, 0o777)  # RTAPI_UID's user writes its socket here
-        for name, text in export.files.items():
+        for name, text in {**export.files, **(files or {})}.items():
             (root / name).write_text(text)
         joints = [export.joints[a] for a in export.axes]
-        samples = export.rows + POST
         if period_ns is None:
-            lines = [f"source {BENCH_HAL}"]
+            head = [f"source {BENCH_HAL}"]
         else:
-            lines = [f"loadrt threads name1=servo-thread period1={period_ns} fp1=1",
-                     f"loadrt pid num_chan={max(joints) + 1}",
-                     *(f"addf pid.{j}.do-pid-calcs servo-thread" for j in joints),
-                     f"source {TABLE_HAL}",
-                     *(f"setp pid.{j}.enable 1" for j in joints),
-                     *(f"net oga-{a}-fb-sim => pid.{export.joints[a]}.feedback"
-                       for a in export.axes),
-                     f"loadusr -w timeout 60 halstreamer -c 0 {STREAM}",
-                     "start"]
-        names = [f"oga-test-{a}" for a in export.axes]
-        lines += [f"loadrt scale names={','.join(names)}",
-                  f"loadrt sampler depth={samples + 10} cfg={'f' * len(names)}b"]
-        for k, (a, s) in enumerate(zip(export.axes, names)):
-            lines += [f"net oga-test-{a}-out pid.{export.joints[a]}.output => {s}.in",
-                      f"setp {s}.gain {SCALE!r}",
-                      f"net oga-test-{a}-scaled {s}.out => sampler.0.pin.{k}"]
-        lines += [f"net oga-valid => sampler.0.pin.{len(names)}",
-                  "net oga-started => sampler.0.enable",  # from the first row on
-                  *(f"addf {s} servo-thread" for s in names),  # after the pid loops
-                  "addf sampler.0 servo-thread",
-                  "loadusr -w sleep 0.05",  # the loops run before the start
-                  "sets oga-run 1"]
-        if abort_after is not None:
-            (root / "wait.sh").write_text(  # halcmd would expand "$" itself
-                'until [ "$(halcmd -s getp streamer.0.curr-depth)" -le '
-                f'{export.rows - abort_after} ]; do sleep 0.005; done\n')
-            lines += ["loadusr -w timeout 60 sh wait.sh",
-                      "sets oga-run 0"]
-        lines += [f"loadusr -w timeout 120 halsampler -c 0 -n {samples} out.txt"]
-        (root / "test.hal").write_text("\n".join(lines) + "\n")
-        proc = subprocess.run([*_isolated(), "halrun", "-f", "test.hal"], cwd=root,
-                              env=_halrun_env(root), capture_output=True, text=True,
-                              timeout=180)
-        out = root / "out.txt"
+            head = [f"loadrt threads name1=servo-thread period1={period_ns} fp1=1",
+                    f"loadrt pid num_chan={max(joints) + 1}",
+                    *(f"addf pid.{j}.do-pid-calcs servo-thread" for j in joints),
+                    f"source {TABLE_HAL}",
+                    *(f"setp pid.{j}.enable 1" for j in joints),
+                    *(f"net oga-{a}-fb-sim => pid.{export.joints[a]}.feedback"
+                      for a in export.axes),
+                    *before_start,
+                    f"loadusr -w timeout 60 halstreamer -c 0 {STREAM}",
+                    "start"]
+        (root / "test.hal").write_text("\n".join(head + lines) + "\n")
+        (root / "wait.sh").write_text(  # in a file: halcmd would expand "$" itself
+            'until [ "$(halcmd -s getp streamer.0.curr-depth)" -le "$1" ]; do sleep 0.005; done\n')
+        with open(_LOCK, "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            proc = subprocess.run([*_isolated(), "halrun", "-f", "test.hal"], cwd=root,
+                                  env=_halrun_env(root), capture_output=True, text=True,
+                                  timeout=180)
+        out = root / out_name
         assert proc.returncode == 0 and out.exists(), proc.stdout + proc.stderr
         rows = [line.split() for line in out.read_text().splitlines()]
         assert "overrun" not in {r[0] for r in rows if r}
-        data = np.array(rows, dtype=np.float64)
-        assert data.shape == (samples, len(names) + 1)
-        return data[:, :-1] / SCALE, data[:, -1].astype(bool)
+        return rows
     finally:
         shutil.rmtree(root, ignore_errors=True)
+
+
+def _run_hal(export, *, period_ns=None, abort_after=None) -> tuple[np.ndarray, np.ndarray]:
+    """The sampled pid outputs (N_s, axes) and oga-valid (N_s,) of an export run in halrun,
+    from its first row to POST periods past its end. ``abort_after``: ``sets oga-run 0``
+    once at least that many rows were read."""
+    samples = export.rows + POST
+    names = [f"oga-test-{a}" for a in export.axes]
+    lines = [f"loadrt scale names={','.join(names)}",
+             f"loadrt sampler depth={samples + 10} cfg={'f' * len(names)}b"]
+    for k, (a, s) in enumerate(zip(export.axes, names)):
+        lines += [f"net oga-test-{a}-out pid.{export.joints[a]}.output => {s}.in",
+                  f"setp {s}.gain {SCALE!r}",
+                  f"net oga-test-{a}-scaled {s}.out => sampler.0.pin.{k}"]
+    lines += [f"net oga-valid => sampler.0.pin.{len(names)}",
+              "net oga-started => sampler.0.enable",  # from the first row on
+              *(f"addf {s} servo-thread" for s in names),  # after the pid loops
+              "addf sampler.0 servo-thread",
+              "loadusr -w sleep 0.05",  # the loops run before the start
+              "sets oga-run 1"]
+    if abort_after is not None:
+        lines += [f"loadusr -w timeout 60 sh wait.sh {export.rows - abort_after}",
+                  "sets oga-run 0"]
+    lines += [f"loadusr -w timeout 120 halsampler -c 0 -n {samples} out.txt"]
+    data = np.array(_session(export, period_ns, lines, "out.txt"), dtype=np.float64)
+    assert data.shape == (samples, len(names) + 1)
+    return data[:, :-1] / SCALE, data[:, -1].astype(bool)
 
 
 def _expected(job, export, read: int, total: int) -> np.ndarray:
@@ -181,8 +193,8 @@ def _check(job, export, out, valid, read):
     floor[:read] = kp * np.finfo(float).eps * (np.abs(pd) + np.abs(p))
     err = np.abs(got - want)
     assert (err <= 1e-9 * terms + floor).all(), float(np.max((err - floor) / terms))
-    nz = terms > 0
-    return float(np.max(err[nz] / terms[nz]))
+    big = np.abs(want) >= 1e-6  # figures for the record: 1 um/s and more, and absolute
+    return float(np.max(err[big] / np.abs(want[big]))), float(err.max())
 
 
 # --- halrun: the exported files reproduce oga's command --------------------------------
@@ -196,9 +208,10 @@ def test_bench_file_mm_previous_target(ref):
     _check(ref, export, out, valid, export.rows)
 
 
-def test_inch_current_target(ref):
-    """An inch machine with error-previous-target FALSE (the command of the same period)."""
-    export = _export(ref, units="inch", error_previous_target=False, joints={"x": 2, "z": 0})
+@pytest.mark.parametrize("ept", [False, True])
+def test_inch(ref, ept):
+    """An inch machine, both error-previous-target settings, other pid loops."""
+    export = _export(ref, units="inch", error_previous_target=ept, joints={"x": 2, "z": 0})
     out, valid = _run_hal(export, period_ns=20_000)
     _check(ref, export, out, valid, export.rows)
 
@@ -359,3 +372,32 @@ def test_api_table_format_linuxcnc_is_a_zip_of_the_files(ref, tmp_path):
     want = _export(ref)
     assert set(files) == {STREAM, TABLE_HAL, BENCH_HAL}
     assert files[STREAM].splitlines()[4:] == want.files[STREAM].splitlines()[4:]
+
+
+def test_trace_example_records_command_and_feedback(ref):
+    """examples/linuxcnc/record_trace.hal records what its comments say: sample number, then
+    per axis x, y, z the command and the feedback in machine units (the bench's signals
+    named as in pncconf configurations)."""
+    export = _export(ref, axes=("x", "y", "z"), error_previous_target=False)
+    example = (Path(__file__).parents[1] / "examples" / "linuxcnc" / "record_trace.hal")
+    copies = [f"oga-copy-{a}-{w}" for a in export.axes for w in ("cmd", "fb")]
+    lines = [f"loadrt scale names={','.join(copies)}"]
+    for a in export.axes:  # the pncconf signal names, written by copies of the loop's pins
+        lines += [f"net oga-{a}-cmd => oga-copy-{a}-cmd.in",
+                  f"net oga-{a}-fb-sim => oga-copy-{a}-fb.in",
+                  f"net {a}-pos-cmd oga-copy-{a}-cmd.out",
+                  f"net {a}-pos-fb oga-copy-{a}-fb.out"]
+    lines += [*(f"setp {c}.gain 1" for c in copies), *(f"addf {c} servo-thread" for c in copies),
+              "source record_trace.hal",
+              "net oga-started => sampler.0.enable"]
+    run = ["sets oga-run 1",
+           f"loadusr -w timeout 120 halsampler -t -c 0 -n {export.rows} trace.txt"]
+    rows = _session(export, 20_000, run, "trace.txt", before_start=lines,
+                    files={"record_trace.hal": example.read_text()})
+    trace = np.array(rows, dtype=np.float64)
+    assert trace.shape == (export.rows, 7)
+    assert np.array_equal(np.diff(trace[:, 0]), np.ones(export.rows - 1))
+    res = ref.result
+    for c in range(3):
+        assert np.abs(trace[:, 1 + 2 * c] - res.setpoints.pos[:, c] * 1e3).max() <= 5.1e-7
+        assert np.abs(trace[:, 2 + 2 * c] - res.optimized.pos[:, c] * 1e3).max() <= 5.1e-7
