@@ -25,7 +25,7 @@ import pytest
 from feedplan.read import read_file
 from feedplan.setpoints import AXES
 from oga.cli import main
-from oga.errors import InputError, MachineError, OptionError
+from oga.errors import MachineError, OptionError
 from oga.export import gain_table, render_table, table_csv
 from oga.linuxcnc import (BENCH_HAL, STREAM, TABLE_HAL, UNIT_M, export_table, linuxcnc_export,
                           replay_feedback)
@@ -279,6 +279,16 @@ def test_feedback_is_the_verified_replay(ref):
     other = load_machine("mcv-op")
     with pytest.raises(MachineError, match="computed for machine 'ucp710'"):
         replay_feedback(gain_table(res), other)
+
+
+def test_metadata_cannot_leave_the_comments(ref):
+    """A program named with a newline stays inside the HAL comment line."""
+    table = gain_table(ref.result)
+    table.meta["toolpath"] = "part.ngc\nloadusr -w rm -rf /"
+    export = linuxcnc_export(table, ref.result.baseline_kp, ref.result.baseline_kf)
+    for text in export.files.values():
+        assert not any(line.startswith("loadusr -w rm") for line in text.splitlines())
+    assert "# oga gain table for LinuxCNC: part.ngc?loadusr -w rm -rf /," in export.files[TABLE_HAL]
 
 
 def test_bad_options_are_refused(ref):

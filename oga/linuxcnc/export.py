@@ -209,6 +209,12 @@ def replay_feedback(table, machine, axes=None) -> dict[str, np.ndarray]:
     return out
 
 
+def _printable(text: str) -> str:
+    """``text`` for a comment line: printable ASCII kept, anything else (a newline would end
+    the comment and start a HAL command) as ``?``."""
+    return "".join(c if " " <= c <= "~" else "?" for c in text)
+
+
 def _stream_text(head: list[str], data: np.ndarray) -> str:
     buf = io.StringIO()
     for line in head:
@@ -285,7 +291,7 @@ def linuxcnc_export(table, baseline_kp: dict, baseline_kf: dict, *, units: str |
     data = np.column_stack(cols)
     if not np.isfinite(data).all():
         raise InputError("table: non-finite values; not exported")
-    m = table.meta
+    m = {k: _printable(v) for k, v in table.meta.items() if isinstance(v, str)}
     per_axis = list(_COLUMNS) + ([_FEEDBACK] if feedback_m is not None else [])
     about = [
         f"oga gain table for LinuxCNC: {m.get('toolpath', '')}, machine {m.get('machine', '')}",
