@@ -162,13 +162,13 @@ def _run_hal(export, *, period_ns=None, abort_after=None) -> tuple[np.ndarray, n
     return data[:, :-1] / SCALE, data[:, -1].astype(bool)
 
 
-def _expected(job, export, read: int, total: int) -> np.ndarray:
+def _expected(job, export, read: int, total: int, offset: float) -> np.ndarray:
     """oga's velocity command (m/s) for the sampled periods: the verified replay for the
     ``read`` rows, then the baseline P term on the held command and feedback."""
     res = job.result
     cols = [AXES.index(a) for a in export.axes]
     u = res.optimized.u[:read, cols]
-    pd, p = res.setpoints.pos[:, cols], res.optimized.pos[:, cols]
+    pd, p = res.setpoints.pos[:, cols] + offset, res.optimized.pos[:, cols] + offset
     n = len(res.setpoints)
     held = pd[min(read, n - 1)] if export.error_previous_target else pd[read - 1]
     kp = np.array([res.baseline_kp[a] for a in export.axes]) * KP_SI_PER_M_MIN_PER_MM
@@ -176,23 +176,25 @@ def _expected(job, export, read: int, total: int) -> np.ndarray:
     return np.vstack([u, np.tile(tail * UNIT_M[export.units], (total - read, 1))])
 
 
-def _check(job, export, out, valid, read):
+def _check(job, export, out, valid, read, offset=0.0):
     """Sample for sample: relative error <= 1e-9 of the loop's terms (after units), plus the
     rounding of the two positions to machine units (one unit in the last place each)."""
     assert valid[:read].all() and not valid[read:].any()
-    want = _expected(job, export, read, len(out))
+    want = _expected(job, export, read, len(out), offset)
     got = out * UNIT_M[export.units]
     res = job.result
     cols = [AXES.index(a) for a in export.axes]
     kp = res.schedule.kp_m_min_per_mm[:read, cols] * KP_SI_PER_M_MIN_PER_MM
-    pd, p = res.setpoints.pos[:read, cols], res.optimized.pos[:read, cols]
+    pd, p = res.setpoints.pos[:read, cols] + offset, res.optimized.pos[:read, cols] + offset
     terms = np.abs(want).copy()
     terms[:read] = np.abs(kp * (pd - p)) + np.abs(res.schedule.kf[:read, cols]
                                                   * res.setpoints.vel[:read, cols])
     floor = np.zeros_like(want)
     floor[:read] = kp * np.finfo(float).eps * (np.abs(pd) + np.abs(p))
     err = np.abs(got - want)
-    assert (err <= 1e-9 * terms + floor).all(), float(np.max((err - floor) / terms))
+    excess = err - 1e-9 * terms - floor
+    assert (excess <= 0).all(), f"{int((excess > 0).sum())} samples off, by up to " \
+        f"{excess.max():.3g} m/s (first at {np.argwhere(excess > 0)[0].tolist()})"
     big = np.abs(want) >= 1e-6  # figures for the record: 1 um/s and more, and absolute
     return float(np.max(err[big] / np.abs(want[big]))), float(err.max())
 
@@ -224,6 +226,21 @@ def test_real_program_with_rapids(cncjs):
     assert export.axes == ("x", "y", "z")
     out, valid = _run_hal(export, period_ns=10_000)
     _check(cncjs, export, out, valid, export.rows)
+
+
+def test_table_away_from_zero_primes_the_previous_target(ref):
+    """A table whose positions are far from 0 (every program here starts at 0): with
+    error-previous-target TRUE the first row's error uses the command held before the
+    start, which must be the table's first position."""
+    res, offset = ref.result, 0.1234
+    table = gain_table(res)
+    for c, a in enumerate(AXES):
+        table.data[:, table.header.index(f"{a}_pos_m")] += offset
+    fb = {a: res.optimized.pos[:, AXES.index(a)] + offset for a in ("x", "z")}
+    export = linuxcnc_export(table, res.baseline_kp, res.baseline_kf, feedback_m=fb,
+                             error_previous_target=True)
+    out, valid = _run_hal(export, period_ns=20_000)
+    _check(ref, export, out, valid, export.rows, offset)
 
 
 @pytest.mark.parametrize("ept", [True, False])

@@ -121,8 +121,8 @@ def _period_ns(table) -> int:
 
 
 def _axes(table, axes) -> tuple[str, ...]:
-    if axes is None:  # the axes the table moves
-        axes = tuple(a for a in AXES if np.ptp(_column(table, f"{a}_pos_m")) > 0)
+    if axes is None:  # the axes the table moves (by more than 1 nm, as Setpoints.moving_axes)
+        axes = tuple(a for a in AXES if np.ptp(_column(table, f"{a}_pos_m")) > 1e-9)
         if not axes:
             raise InputError("table: no axis moves; name the axes to export")
         return axes
