@@ -17,5 +17,5 @@ from oga.linuxcnc.export import (
     replay_feedback,
 )
 
-__all__ = ["BENCH_HAL", "STREAM", "TABLE_HAL", "UNIT_M", "LinuxcncExport", "export_table", "linuxcnc_export",
-           "replay_feedback"]
+__all__ = ["BENCH_HAL", "STREAM", "TABLE_HAL", "UNIT_M", "LinuxcncExport", "export_table",
+           "linuxcnc_export", "replay_feedback"]

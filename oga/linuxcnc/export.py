@@ -353,7 +353,8 @@ def _table_hal(about, axes, joints, base, start, data, per_axis, n, ept, thread,
         j, (kp, kf) = joints[a], base[a]
         lines += ["", f"# axis {a} -> pid.{j} ({units}; Pgain in 1/s = Kp in (m/min)/mm x 1000/60)"]
         for k, (c, _, _) in enumerate(per_axis):
-            lines.append(f"net oga-{a}-{c}-stream streamer.0.pin.{i * width + k} => oga-{a}-{c}.in1")
+            pin = f"streamer.0.pin.{i * width + k}"
+            lines.append(f"net oga-{a}-{c}-stream {pin} => oga-{a}-{c}.in1")
         lines += [
             f"setp oga-{a}-cmd.in0 {start[a]!r}",
             f"setp oga-{a}-vel.in0 0",
