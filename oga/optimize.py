@@ -313,7 +313,6 @@ def optimize(
     for arr in (fixed_kp, fixed_kf):
         arr.flags.writeable = False
     baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
-    feed = np.ascontiguousarray(~setpoints.rapid)
     ferror_max = machine.ferror_limits()
     gain_bounds = (adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
     chunk = _CHUNK
@@ -324,7 +323,7 @@ def optimize(
             search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
                          run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
                          kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
-                         is_moving, *run[4:], feed, ferror_max)
+                         is_moving, *run[4:], ferror_max)
     else:
         from oga.contour import path_index
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
@@ -339,7 +338,9 @@ def optimize(
         pad = wlen + defaults.MPC_SETTLE_TAIL + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-        feed_pad = np.concatenate([feed, np.zeros(pad, dtype=bool)])
+        feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+        # eq. 2 and the following-error limit: every sample of the program, not the padding
+        live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
         # the contour error's index and windows, as the replay measures it
         tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
         # the plan's spline control points per axis and gain, carried across chunks (as many
@@ -352,7 +353,7 @@ def optimize(
                       kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, tree, win_lo, win_hi, is_moving,
-                      feed_pad, points, *run[4:], defaults.MPC_STOP,
+                      feed_pad, live_pad, points, *run[4:], defaults.MPC_STOP,
                       defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE,
                       defaults.MPC_SETTLE_TAIL)
 
