@@ -17,7 +17,7 @@ import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
-from oga.errors import OptionError
+from oga.errors import MachineError, OptionError
 from oga.machine import Machine
 from oga.options import OptimizeOptions, options_from_dict
 from oga.verify import Verification, verify
@@ -125,6 +125,11 @@ class OptimizeResult:
                                       "track_max_um")}
 
         moving = [AXES[i] for i in self.setpoints.moving_axes]
+
+        def command_ratio(v: Verification) -> dict:  # over every sample, rapids included
+            return {a: dict(zip(("v", "a", "j"), v.command_ratio[i].tolist()))
+                    for i, a in enumerate(AXES) if a in moving}
+
         return {
             "toolpath": toolpath or self.setpoints.source,
             "toolpath_sha256": toolpath_sha256,
@@ -139,7 +144,8 @@ class OptimizeResult:
             "gains": list(self.options.gains),
             "kp_bounds_m_min_per_mm": {a: list(b) for a, b in self.kp_bounds.items()},
             "baseline": {"kp": self.baseline_kp, "kf": self.baseline_kf,
-                         **metrics(self.baseline), "violations": list(self.baseline.violations)},
+                         **metrics(self.baseline), "violations": list(self.baseline.violations),
+                         "command_ratio_to_limits": command_ratio(self.baseline)},
             "optimized": metrics(self.optimized),
             "ratio_mse": self.ratio_mse,
             "kept_baseline": self.kept_baseline,
@@ -148,10 +154,7 @@ class OptimizeResult:
             "limits_ok": self.optimized.limits_ok,
             "stability_ok": self.optimized.stability_ok,
             "violations": list(self.optimized.violations),
-            "command_ratio_to_limits": {
-                a: dict(zip(("v", "a", "j"), self.optimized.command_ratio[i].tolist()))
-                for i, a in enumerate(AXES) if a in moving
-            },
+            "command_ratio_to_limits": command_ratio(self.optimized),
             "ferror_ratio_to_limit": {
                 a: (float(r) if np.isfinite(r) else None)
                 for a, r in zip(AXES, self.optimized.ferror_ratio) if a in moving
@@ -181,6 +184,11 @@ def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, flo
     bounds = {}
     for a in moving:
         rng = stable_range(machine, a)
+        if not rng.ok:  # the stability margins, not the kinematics, rule every Kp out
+            raise MachineError(
+                f"machine {machine.name} [gains]: {rng.message} (m/min)/mm: no gain is stable "
+                "enough; lower pm_min_deg / gm_min_db or widen kp_bounds_m_min_per_mm"
+            )
         lo, hi = rng.kp_min, rng.kp_max
         if options.kp_range is not None and a in adjusted:
             rlo, rhi = options.kp_range
@@ -197,13 +205,22 @@ def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, flo
 def _baseline(setpoints, machine, options, moving):
     if options.baseline == "best":
         from oga.ranges import best_fixed_gains
+        from oga.stability import stable_range
 
         best = best_fixed_gains(setpoints, machine)
         if best is None:
+            stable = {a: stable_range(machine, a) for a in moving}
+            if max(r.kp_min for r in stable.values()) > min(r.kp_max for r in stable.values()):
+                spans = ", ".join(f"{a} [{r.kp_min}, {r.kp_max}]" for a, r in stable.items())
+                raise MachineError(
+                    f"machine {machine.name} [gains]: the stable Kp ranges of the contouring "
+                    f"axes do not overlap ({spans} (m/min)/mm): no equal fixed gains are stable "
+                    "on all of them; give --baseline KP,KF"
+                )
             raise OptionError(
                 "baseline: no equal fixed gains meet the kinematic limits (and the "
-                "following-error limits, where the machine sets them) on this toolpath; "
-                "give --baseline KP,KF"
+                "following-error limits, where the machine sets them) at every sample of "
+                "this toolpath; give --baseline KP,KF"
             )
         kp = {a: float(best.kp[a]) for a in moving}
         kf = {a: float(best.kf[a]) for a in moving}

@@ -489,7 +489,7 @@ def _fig_commands(d: ReportData, max_points: int) -> tuple[str, str]:
     caption = ("Per contouring axis, the velocity command u of each replay and its acceleration "
                "and jerk as paper eq. 2 computes them (first and second differences over Te, the "
                "axis at rest before the start), against the axis limits (red). Eq. 2 is checked "
-               "on feed samples; rapids are planned at the limits.")
+               "at every sample, rapids, dwells, the start and the end included.")
     return _replays_figure(d, rows, "velocity command", max_points), caption
 
 
@@ -499,8 +499,8 @@ def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
     rows = [(AXES[k], [(sp.pos[:, k] - v.pos[:, k]) * _MM for v in (d.baseline, d.optimized)],
              float(limit[k]), "following error (mm)") for k in sp.moving_axes]
     caption = ("Per contouring axis, the following error pd - p of each replay, against the "
-               "machine's limit (red) where its file sets one (ferror_max_m, checked at the feed "
-               "samples). On straight moves the schedule may let an axis lag along the path, "
+               "machine's limit (red) where its file sets one (ferror_max_m, checked at every "
+               "sample, rapids included). On straight moves the schedule may let an axis lag along the path, "
                "which costs no contour error.")
     return _replays_figure(d, rows, "following error", max_points), caption
 
