@@ -44,8 +44,8 @@ contours), coming to rest one interval before the window's end, and recedes:
    following-error limit on the linearised positions where it sets one (below,
    "eq. 2" includes it), at every sample of the program the window covers: rapids and
    dwells too (no contour error counts there, so the cost leaves the gains to the
-   smoothness and anchor terms, but the machine runs the table through them); the QP is solved exactly by the dual active-set method of
-   Goldfarb and Idnani;
+   smoothness and anchor terms, but the machine runs the table through them); the QP
+   is solved exactly by the dual active-set method of Goldfarb and Idnani;
 4. exact line search: the full step is simulated exactly from the true state and
    taken if its velocity command meets eq. 2 over the whole window and it lowers the
    window's exact cost below the current plan's (the usual case); otherwise the steps
@@ -687,9 +687,9 @@ def mpc_chunk(
             if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, col0, col1, x):
                 stats[STAT_QP_SHORT] += 1
             # 4: exact line search along the step: 1, 1/2, 1/4, 0 (the current plan). Eq. 2
-            #    (every sample of the program) must hold on the samples to be committed now; it should also
-            #    hold on those committed next (the plan, shifted, is the next window's fallback)
-            #    and over the whole window. Classes: 0 the whole window, 1 the next two
+            #    (every sample of the program) must hold on the samples to be committed now;
+            #    it should also hold on those committed next (the plan, shifted, is the next
+            #    window's fallback) and over the whole window. Classes: 0 the whole window, 1 the next two
             #    commits, 2 this commit, 3 none (fallback); the least class wins, then the
             #    least cost (class 0) or the least excess over the window (1, 2) or commit (3)
             best_cls = 4

@@ -500,8 +500,8 @@ def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
              float(limit[k]), "following error (mm)") for k in sp.moving_axes]
     caption = ("Per contouring axis, the following error pd - p of each replay, against the "
                "machine's limit (red) where its file sets one (ferror_max_m, checked at every "
-               "sample, rapids included). On straight moves the schedule may let an axis lag along the path, "
-               "which costs no contour error.")
+               "sample, rapids included). On straight moves the schedule may let an axis lag "
+               "along the path, which costs no contour error.")
     return _replays_figure(d, rows, "following error", max_points), caption
 
 
