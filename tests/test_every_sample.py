@@ -154,3 +154,19 @@ def test_an_impossible_stability_margin_is_named(ucp, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "PM >= 89.0 deg" in err and "kinematic" not in err
     assert not out.exists()
+
+
+def test_report_shades_the_rapids_on_the_command_and_following_error_figures(ucp, rapids):
+    from oga.report import render_report
+
+    r = optimize(rapids, ucp, {})
+    edges = np.flatnonzero(np.diff(np.r_[0, rapids.rapid.astype(int), 0]))
+    runs = len(edges) // 2
+    assert runs == 2  # the two G0 moves of the program
+    page = render_report(r)
+    figures = page.split("<figure")[1:]
+    shade = 'fill="#888888" fill-opacity="0.2"'
+    panels = len(rapids.moving_axes)
+    assert figures[3].count(shade) == 3 * panels * runs  # velocity, acceleration, jerk
+    assert figures[4].count(shade) == panels * runs  # following error
+    assert ">rapid</text>" in figures[3]
