@@ -195,10 +195,14 @@ class Ranges:
             for a in self.axes
         }
         best = self.best_fixed
-        if best is None:
+        if best is None and self.kp_grid.size == 0:  # the margins rule every Kp out
+            best_d = {"found": False, "message": "no Kp of the grid meets the stability "
+                      f"criteria on every contouring axis ({', '.join(self.axes)}): "
+                      + "; ".join(self.stability[a].message for a in self.axes)}
+        elif best is None:
             best_d = {"found": False, "message": "no equal-gain configuration is kinematically "
                       f"feasible on every contouring axis ({', '.join(self.axes)}): eq. 2, and "
-                      "the following-error limits where the machine sets them"}
+                      "the following-error limits where the machine sets them, at every sample"}
         else:
             best_d = {"found": True, "kp": best.kp, "kf": best.kf,
                       "mse_ce_um2": best.mse_ce_m2 * _UM2, "metrics": best.metrics.to_dict()}

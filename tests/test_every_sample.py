@@ -170,3 +170,14 @@ def test_report_shades_the_rapids_on_the_command_and_following_error_figures(ucp
     assert figures[3].count(shade) == 3 * panels * runs  # velocity, acceleration, jerk
     assert figures[4].count(shade) == panels * runs  # following error
     assert ">rapid</text>" in figures[3]
+
+
+def test_ranges_name_the_stability_margins_when_no_kp_is_stable(ucp):
+    from oga.ranges import gain_ranges
+
+    data = ucp.model_dump(mode="json")
+    data["gains"]["pm_min_deg"] = 89.0
+    sp = plan(load_toolpath(DATA / "short_xz.ngc"), ucp.planning_limits())
+    best = gain_ranges(sp, machine_from_dict(data)).to_dict()["best_fixed"]
+    assert not best["found"] and "PM >= 89.0 deg" in best["message"]
+    assert "kinematically" not in best["message"]
