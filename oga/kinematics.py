@@ -22,7 +22,7 @@ def command_peaks(u, check, te):
     u : ndarray, shape (N,)
         Velocity commands, m/s; the axis is at rest before sample 0.
     check : ndarray of bool, shape (N,)
-        Samples where eq. 2 applies.
+        Samples to check (the differences still reach back to the others).
     te : float
         Sample period, s.
 
@@ -50,7 +50,8 @@ def command_peaks(u, check, te):
 @njit(cache=True)
 def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, check):
     """Largest excess over 1 of ``|u|/V``, ``|du|/(A Te)``, ``|d2u|/(J Te^2)`` over ``u[:n]``
-    at the samples where ``check`` is True (feed samples: eq. 2 concerns contouring).
+    at the samples where ``check`` is True (every sample of the program: the callers
+    leave out only the padding past its end, or history checked before).
 
     Parameters
     ----------
@@ -65,7 +66,7 @@ def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, check):
     n : int
         Samples to check.
     check : ndarray of bool, shape (>= n,)
-        Samples where eq. 2 applies (the differences still reach back to the others).
+        Samples to check (the differences still reach back to the others).
 
     Returns
     -------

@@ -72,8 +72,8 @@ class Limits(_Frozen):
     ``ferror_max_m``, optional, is the largest following error ``|pd - p|`` the
     controller's following-error monitor tolerates on the axis (LinuxCNC's ``FERROR``,
     which grows with speed from ``MIN_FERROR``: give the least of them). When it is
-    set, the best fixed gains, the search and the verification keep every feed sample
-    within it; when unset, nothing bounds the following error (it is reported).
+    set, the best fixed gains, the search and the verification keep every sample (rapids
+    included) within it; when unset, nothing bounds the following error (it is reported).
     """
 
     vmax_m_s: Pos

@@ -16,7 +16,7 @@ _UM = 1e6
 
 @dataclass(frozen=True)
 class ContourMetrics:
-    """Contour-error and tracking-error statistics over the samples that count.
+    """Contour-error and tracking-error statistics.
 
     Attributes
     ----------
@@ -28,8 +28,11 @@ class ContourMetrics:
         Root mean square and largest |CE|, m.
     p50_m, p95_m, p99_m : float
         Percentiles of |CE|, m (linear interpolation).
-    track_max_m, track_rms_m : tuple of 3 float
-        Per axis (x, y, z): largest |pd - pa| and its RMS, m.
+    track_max_m : tuple of 3 float
+        Per axis (x, y, z): largest |pd - pa| over EVERY sample (rapids included: a
+        controller's following-error limit applies there too), m.
+    track_rms_m : tuple of 3 float
+        Per axis: RMS of |pd - pa| over the samples counted, m.
     """
 
     n: int
@@ -69,7 +72,8 @@ def contour_metrics(
     pd, pa : array_like, shape (N, 3)
         Desired and actual positions, m.
     mask : array_like of bool, shape (N,), optional
-        Samples to count (typically ``~setpoints.rapid``); default all.
+        Samples to count (typically ``~setpoints.rapid``); default all. The largest
+        tracking error is taken over every sample regardless.
 
     Returns
     -------
@@ -95,7 +99,8 @@ def contour_metrics(
     if not keep.any():
         raise InputError("contour_metrics: no sample to count (all masked, e.g. only rapids)")
     a = np.abs(ce[keep])
-    err = np.abs(pd[keep] - pa[keep])
+    err_all = np.abs(pd - pa)
+    err = err_all[keep]
     mse = float(np.mean(a * a))
     p50, p95, p99 = (float(v) for v in np.percentile(a, [50, 95, 99]))
     return ContourMetrics(
@@ -106,6 +111,6 @@ def contour_metrics(
         p50_m=p50,
         p95_m=p95,
         p99_m=p99,
-        track_max_m=tuple(float(v) for v in err.max(axis=0)),
+        track_max_m=tuple(float(v) for v in err_all.max(axis=0)),
         track_rms_m=tuple(float(v) for v in np.sqrt(np.mean(err * err, axis=0))),
     )

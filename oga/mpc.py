@@ -42,8 +42,10 @@ contours), coming to rest one interval before the window's end, and recedes:
    where the linearisation holds, and eq. 2 on the linearised velocity command
    over the whole window (with a small margin), and likewise the machine's
    following-error limit on the linearised positions where it sets one (below,
-   "eq. 2" includes it); the QP is solved exactly by the dual active-set method of
-   Goldfarb and Idnani;
+   "eq. 2" includes it), at every sample of the program the window covers: rapids and
+   dwells too (no contour error counts there, so the cost leaves the gains to the
+   smoothness and anchor terms, but the machine runs the table through them); the QP
+   is solved exactly by the dual active-set method of Goldfarb and Idnani;
 4. exact line search: the full step is simulated exactly from the true state and
    taken if its velocity command meets eq. 2 over the whole window and it lowers the
    window's exact cost below the current plan's (the usual case); otherwise the steps
@@ -396,8 +398,8 @@ def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
-    lam, anchor, tree, win_lo, win_hi, moving, feed, points, kp_out, kf_out, u_out, stats, stop,
-    settled, ferror_max, restore, tail,
+    lam, anchor, tree, win_lo, win_hi, moving, feed, live, points, kp_out, kf_out, u_out, stats,
+    stop, settled, ferror_max, restore, tail,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place.
 
@@ -417,10 +419,12 @@ def mpc_chunk(
     ``c_{-1}, c_0, ...`` of :func:`_plan_at` (the first two fixed: with them the
     applied gains and their slope, the rest free); it is shifted by ``commit``
     samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where
-    eq. 2 applies and the contour error counts (feed moves; rapids and the padding are
-    not checked, as in :mod:`oga.verify`); ``stop`` is :data:`oga.defaults.MPC_STOP`,
+    the contour error counts (feed moves; not rapids, not the padding), ``live`` (likewise)
+    those where eq. 2 and the following-error limit apply: every sample of the program,
+    rapids included, as in :mod:`oga.verify` (not the padding); ``stop`` is
+    :data:`oga.defaults.MPC_STOP`,
     ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (3,) the machine's
-    following-error limit per axis (m, ``inf``: none), kept at the window's feed samples
+    following-error limit per axis (m, ``inf``: none), kept at the window's live samples
     like eq. 2 (linearised rows, then the exact check of the line search); ``restore``
     is :data:`oga.defaults.MPC_RESTORE`; ``tail`` the samples a window whose adjusted
     axis comes to rest inside it looks further (:data:`oga.defaults.MPC_SETTLE_TAIL`,
@@ -645,7 +649,7 @@ def mpc_chunk(
                         _LIN_MARGIN * jmax[a] * te * te)
                 for r in range(3):
                     for i in range(wk):
-                        if not feed[k + i]:  # eq. 2 concerns contouring (feed) samples
+                        if not live[k + i]:  # eq. 2 on every sample of the program
                             continue
                         nominal = u0[a, i]
                         if r >= 1:
@@ -669,7 +673,7 @@ def mpc_chunk(
                     continue
                 scale = 1.0 / ferror_max[a]
                 for i in range(wk):
-                    if not feed[k + i]:
+                    if not live[k + i]:
                         continue
                     nominal = (pdT[a, k + i] - p0[a, i]) * scale
                     reach = 0.0
@@ -683,9 +687,9 @@ def mpc_chunk(
             if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, col0, col1, x):
                 stats[STAT_QP_SHORT] += 1
             # 4: exact line search along the step: 1, 1/2, 1/4, 0 (the current plan). Eq. 2
-            #    (feed samples) must hold on the samples to be committed now; it should also
-            #    hold on those committed next (the plan, shifted, is the next window's fallback)
-            #    and over the whole window. Classes: 0 the whole window, 1 the next two
+            #    (every sample of the program) must hold on the samples to be committed now;
+            #    it should also hold on those committed next (the plan, shifted, is the next
+            #    window's fallback) and over the whole window. Classes: 0 the whole window, 1 the next two
             #    commits, 2 this commit, 3 none (fallback); the least class wins, then the
             #    least cost (class 0) or the least excess over the window (1, 2) or commit (3)
             best_cls = 4
@@ -715,7 +719,7 @@ def mpc_chunk(
                         _sim_plan(states, params, pdT, vdT, k, wk, trial_points, a, kspace, kpa,
                                   kfa, trial[a], tmp_u, scratch)
                         stats[STAT_WINDOWS] += 1
-                    fk = feed[k:k + wk]
+                    fk = live[k:k + wk]
                     worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
                                                    amax[a], jmax[a], te, wk, fk))
                     worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],

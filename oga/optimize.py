@@ -17,7 +17,7 @@ import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
-from oga.errors import OptionError
+from oga.errors import MachineError, OptionError
 from oga.machine import Machine
 from oga.options import OptimizeOptions, options_from_dict
 from oga.verify import Verification, verify
@@ -125,6 +125,11 @@ class OptimizeResult:
                                       "track_max_um")}
 
         moving = [AXES[i] for i in self.setpoints.moving_axes]
+
+        def command_ratio(v: Verification) -> dict:  # over every sample, rapids included
+            return {a: dict(zip(("v", "a", "j"), v.command_ratio[i].tolist()))
+                    for i, a in enumerate(AXES) if a in moving}
+
         return {
             "toolpath": toolpath or self.setpoints.source,
             "toolpath_sha256": toolpath_sha256,
@@ -139,7 +144,8 @@ class OptimizeResult:
             "gains": list(self.options.gains),
             "kp_bounds_m_min_per_mm": {a: list(b) for a, b in self.kp_bounds.items()},
             "baseline": {"kp": self.baseline_kp, "kf": self.baseline_kf,
-                         **metrics(self.baseline), "violations": list(self.baseline.violations)},
+                         **metrics(self.baseline), "violations": list(self.baseline.violations),
+                         "command_ratio_to_limits": command_ratio(self.baseline)},
             "optimized": metrics(self.optimized),
             "ratio_mse": self.ratio_mse,
             "kept_baseline": self.kept_baseline,
@@ -148,10 +154,7 @@ class OptimizeResult:
             "limits_ok": self.optimized.limits_ok,
             "stability_ok": self.optimized.stability_ok,
             "violations": list(self.optimized.violations),
-            "command_ratio_to_limits": {
-                a: dict(zip(("v", "a", "j"), self.optimized.command_ratio[i].tolist()))
-                for i, a in enumerate(AXES) if a in moving
-            },
+            "command_ratio_to_limits": command_ratio(self.optimized),
             "ferror_ratio_to_limit": {
                 a: (float(r) if np.isfinite(r) else None)
                 for a, r in zip(AXES, self.optimized.ferror_ratio) if a in moving
@@ -181,6 +184,11 @@ def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, flo
     bounds = {}
     for a in moving:
         rng = stable_range(machine, a)
+        if not rng.ok:  # the stability margins, not the kinematics, rule every Kp out
+            raise MachineError(
+                f"machine {machine.name} [gains]: {rng.message} (m/min)/mm: no gain is stable "
+                "enough; lower pm_min_deg / gm_min_db or widen kp_bounds_m_min_per_mm"
+            )
         lo, hi = rng.kp_min, rng.kp_max
         if options.kp_range is not None and a in adjusted:
             rlo, rhi = options.kp_range
@@ -197,13 +205,22 @@ def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, flo
 def _baseline(setpoints, machine, options, moving):
     if options.baseline == "best":
         from oga.ranges import best_fixed_gains
+        from oga.stability import stable_range
 
         best = best_fixed_gains(setpoints, machine)
         if best is None:
+            stable = {a: stable_range(machine, a) for a in moving}
+            if max(r.kp_min for r in stable.values()) > min(r.kp_max for r in stable.values()):
+                spans = ", ".join(f"{a} [{r.kp_min}, {r.kp_max}]" for a, r in stable.items())
+                raise MachineError(
+                    f"machine {machine.name} [gains]: the stable Kp ranges of the contouring "
+                    f"axes do not overlap ({spans} (m/min)/mm): no equal fixed gains are stable "
+                    "on all of them; give --baseline KP,KF"
+                )
             raise OptionError(
                 "baseline: no equal fixed gains meet the kinematic limits (and the "
-                "following-error limits, where the machine sets them) on this toolpath; "
-                "give --baseline KP,KF"
+                "following-error limits, where the machine sets them) at every sample of "
+                "this toolpath; give --baseline KP,KF"
             )
         kp = {a: float(best.kp[a]) for a in moving}
         kf = {a: float(best.kf[a]) for a in moving}
@@ -313,7 +330,6 @@ def optimize(
     for arr in (fixed_kp, fixed_kf):
         arr.flags.writeable = False
     baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
-    feed = np.ascontiguousarray(~setpoints.rapid)
     ferror_max = machine.ferror_limits()
     gain_bounds = (adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
     chunk = _CHUNK
@@ -324,7 +340,7 @@ def optimize(
             search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
                          run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
                          kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
-                         is_moving, *run[4:], feed, ferror_max)
+                         is_moving, *run[4:], ferror_max)
     else:
         from oga.contour import path_index
         from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
@@ -339,7 +355,9 @@ def optimize(
         pad = wlen + defaults.MPC_SETTLE_TAIL + 1
         pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
         vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-        feed_pad = np.concatenate([feed, np.zeros(pad, dtype=bool)])
+        feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+        # eq. 2 and the following-error limit: every sample of the program, not the padding
+        live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
         # the contour error's index and windows, as the replay measures it
         tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
         # the plan's spline control points per axis and gain, carried across chunks (as many
@@ -352,7 +370,7 @@ def optimize(
                       kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
                       defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
                       options.anchor_value, tree, win_lo, win_hi, is_moving,
-                      feed_pad, points, *run[4:], defaults.MPC_STOP,
+                      feed_pad, live_pad, points, *run[4:], defaults.MPC_STOP,
                       defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE,
                       defaults.MPC_SETTLE_TAIL)
 

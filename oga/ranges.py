@@ -3,15 +3,15 @@
 For every fixed configuration (Kp, Kf) of a grid, each contouring (moving)
 axis is simulated on the setpoints with the nonlinear cascade
 (:mod:`oga.simulate`), and the configuration is kinematically feasible for that
-axis when its velocity command ``u`` meets paper eq. 2 at every feed sample::
+axis when its velocity command ``u`` meets paper eq. 2 at every sample::
 
     |u_k| <= Vmax,   |u_k - u_{k-1}| / Te <= Amax,   |u_k - 2 u_{k-1} + u_{k-2}| / Te^2 <= Jmax
 
-with the axis at rest before the first sample (``u_{-1} = u_{-2} = 0``). Samples
-of rapid (G0) moves are not checked: the gains concern contouring, and a rapid
-planned at the axis limits leaves no room for any position-loop correction.
+with the axis at rest before the first sample (``u_{-1} = u_{-2} = 0``): rapids,
+dwells, the start and the end included (the machine runs the table through them; a
+command that breaks a limit there is as wrong as on a cut).
 Where the machine sets a following-error limit (``ferror_max_m``), a feasible
-configuration also keeps ``|pd - p|`` within it at every feed sample.
+configuration also keeps ``|pd - p|`` within it at every sample.
 
 The best fixed gains (paper case C1, the honest baseline) are the
 configuration with EQUAL Kp and EQUAL Kf on every contouring axis (industrial
@@ -85,14 +85,14 @@ class KinematicRange:
     kf_grid : ndarray, shape (F,)
         Kf values (factor).
     feasible : ndarray of bool, shape (P, F)
-        True where eq. 2 holds at every feed sample, and the machine's following-error
+        True where eq. 2 holds at every sample, and the machine's following-error
         limit where it sets one.
     vel_peak_m_s, acc_peak_m_s2, jerk_peak_m_s3 : ndarray, shape (P, F)
-        Largest ``|u|``, ``|du|/Te``, ``|d2u|/Te^2`` over the feed samples.
+        Largest ``|u|``, ``|du|/Te``, ``|d2u|/Te^2`` over every sample.
     mse_track_m2 : ndarray, shape (P, F)
         Mean squared tracking error ``(pd - p)^2`` of the axis over the feed samples, m^2.
     track_max_m : ndarray, shape (P, F)
-        Largest following error ``|pd - p|`` of the axis over the feed samples, m.
+        Largest following error ``|pd - p|`` of the axis over every sample, m.
     """
 
     axis: str
@@ -195,10 +195,14 @@ class Ranges:
             for a in self.axes
         }
         best = self.best_fixed
-        if best is None:
+        if best is None and self.kp_grid.size == 0:  # the margins rule every Kp out
+            best_d = {"found": False, "message": "no Kp of the grid meets the stability "
+                      f"criteria on every contouring axis ({', '.join(self.axes)}): "
+                      + "; ".join(self.stability[a].message for a in self.axes)}
+        elif best is None:
             best_d = {"found": False, "message": "no equal-gain configuration is kinematically "
                       f"feasible on every contouring axis ({', '.join(self.axes)}): eq. 2, and "
-                      "the following-error limits where the machine sets them"}
+                      "the following-error limits where the machine sets them, at every sample"}
         else:
             best_d = {"found": True, "kp": best.kp, "kf": best.kf,
                       "mse_ce_um2": best.mse_ce_m2 * _UM2, "metrics": best.metrics.to_dict()}
@@ -237,7 +241,7 @@ def stability_to_dict(rng) -> dict:
 
 
 def _feed_mask(setpoints: Setpoints, machine: Machine) -> np.ndarray:
-    """Samples where eq. 2 applies (feed samples); refuses an unusable toolpath."""
+    """Samples where the contour error counts (feed samples); refuses an unusable toolpath."""
     if not math.isclose(setpoints.dt, machine.te, rel_tol=1e-9):
         raise OptionError(
             f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
@@ -257,6 +261,7 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
     tracking error) and ``mse_ce`` of shape (len(common), F).
     """
     feed = _feed_mask(setpoints, machine)
+    every = np.ones(len(setpoints), dtype=bool)  # eq. 2 and the following error: all samples
     te = machine.te
     cols = {a: AXES.index(a) for a in axis_grids}
     params = {a: axis_params(machine, a) for a in axis_grids}
@@ -279,9 +284,9 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
                 p_act, u = simulate_axis(
                     params[a], pos[a][0], pos[a], vel[a], kp * KP_SI_PER_M_MIN_PER_MM, float(kf)
                 )
-                err = (pos[a] - p_act)[feed]
-                per_axis[a][:3, i, j] = command_peaks(u, feed, te)
-                per_axis[a][3, i, j] = np.mean(err * err)
+                err = pos[a] - p_act
+                per_axis[a][:3, i, j] = command_peaks(u, every, te)
+                per_axis[a][3, i, j] = np.mean(err[feed] ** 2)
                 per_axis[a][4, i, j] = np.abs(err).max()
                 pa[:, c] = p_act
             if kp in common_row:
@@ -516,7 +521,7 @@ def _mse_ce(setpoints, machine, axes, kp: float, kf: float, feed) -> float:
 
 
 @njit(cache=True)
-def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act, u, check) -> bool:
+def _run_checked(state, params, pd, vd, kp_si, kf, te, lim, k0, k1, p_act, u, check) -> bool:
     """Simulate one axis over samples ``k0 .. k1 - 1`` and check eq. 2 and the
     following-error limit there.
 
@@ -533,8 +538,6 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
         :func:`oga.simulate.axis_params` of the axis.
     pd, vd, kp_si, kf : ndarray, shape (N,)
         Setpoints (m, m/s) and gains (1/s, factor) per sample (read over ``k0 .. k1 - 1``).
-    feed : ndarray of bool, shape (N,)
-        Samples where eq. 2 applies.
     te : float
         Sample period, s.
     lim : ndarray, shape (4,)
@@ -549,20 +552,20 @@ def _run_checked(state, params, pd, vd, kp_si, kf, feed, te, lim, k0, k1, p_act,
     Returns
     -------
     bool
-        Whether eq. 2 and the following-error limit hold at every feed sample of the
+        Whether eq. 2 and the following-error limit hold at every sample of the
         range (the latter as :func:`_kinematic` checks it: ``|pd - p| <= limit``).
     """
     run(state, params, pd[k0:k1], vd[k0:k1], kp_si[k0:k1], kf[k0:k1], p_act[k0:k1], u[k0:k1])
     h = max(k0 - 2, 0)
     mask = check[: k1 - h]
-    mask[:] = feed[h:k1]
-    mask[: k0 - h] = False
+    mask[:] = True
+    mask[: k0 - h] = False  # the history, checked with the previous samples
     v_pk, a_pk, j_pk = command_peaks(u[h:k1], mask, te)
     if not (v_pk <= lim[0] and a_pk <= lim[1] and j_pk <= lim[2]):
         return False
     if lim[3] < np.inf:  # the following-error limit, where one is set
         for k in range(k0, k1):
-            if feed[k] and not abs(pd[k] - p_act[k]) <= lim[3]:
+            if not abs(pd[k] - p_act[k]) <= lim[3]:
                 return False
     return True
 
@@ -575,9 +578,10 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
     The configurations are visited in the order ``visit``. The moving axes are
     simulated together, ``_CHUNK`` samples at a time (:func:`_run_checked`); a
     configuration is dropped at its first violation of eq. 2 or of the following-error
-    limit. After each chunk the squared contour error of its feed samples is added to a
-    running sum, in time order (:func:`oga.contour.ce2_at`, each sample's search hinted
-    with the previous sample's nearest segment).
+    limit (at any sample, rapids included). After each chunk the squared contour error of
+    its feed samples is added to a running sum, in time order
+    (:func:`oga.contour.ce2_at`, each sample's search hinted with the previous sample's
+    nearest segment).
 
     Pruning: a sum of non-negative terms only grows, so once the running sum exceeds
     the best complete sum (times ``1 + slack``, covering the rounding of both sums and
@@ -597,7 +601,7 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
     pos : ndarray, shape (N, 3)
         Setpoint positions of x, y, z (the path; axes not simulated hold them), m.
     feed : ndarray of bool, shape (N,)
-        Feed samples (eq. 2 and the MSE apply there).
+        Feed samples (the MSE counts them; eq. 2 applies at every sample).
     te : float
         Sample period, s.
     kp_si : ndarray, shape (P,)
@@ -645,7 +649,7 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
             kp_k[k0:k1] = kp_si[i]
             kf_k[k0:k1] = kf[j]
             for a in range(n_ax):
-                if not _run_checked(states[a], params[a], pd[a], vd[a], kp_k, kf_k, feed, te,
+                if not _run_checked(states[a], params[a], pd[a], vd[a], kp_k, kf_k, te,
                                     limits[a], k0, k1, p_act[a], u[a], check):
                     alive = False
                     break

@@ -453,19 +453,24 @@ def _fig_ce(d: ReportData, max_points: int) -> tuple[str, str]:
     return _svg(1100, 520, "".join(body), "contour error"), caption
 
 
-def _replays_panel(y, s, vals, limit: float, axis: str, ylabel: str, max_points: int) -> str:
+def _replays_panel(y, s, vals, limit: float, axis: str, ylabel: str, max_points: int,
+                   rapids) -> str:
     """One panel of a per-axis figure at height ``y``: the baseline's and the schedule's
-    series ``vals`` against path length ``s`` (mm), and ``+-limit`` in red (``inf``: none)."""
+    series ``vals`` against path length ``s`` (mm), ``+-limit`` in red (``inf``: none), and
+    the rapids' spans ``(s0, s1)`` (mm) shaded."""
     limited = math.isfinite(limit)
     panel = _Panel(80, y, 960, 110, (s[0], s[-1]),
                    _limits(*vals, include=[-limit, limit] if limited else []))
+    for lo, hi in rapids:
+        panel.vspan(lo, hi, _GREY, opacity=0.2)
     for colour, val in zip((_BASE, _OPT), vals):
         idx = decimate(val, max_points)
         panel.line(s[idx], val[idx], colour, width=1.0)
     if limited:
         panel.hline(limit, _LIMIT, label="limit")
         panel.hline(-limit, _LIMIT)
-    panel.legend([(f"axis {axis}", "#222"), ("baseline", _BASE), ("optimised", _OPT)])
+    panel.legend([(f"axis {axis}", "#222"), ("baseline", _BASE), ("optimised", _OPT)]
+                 + ([("rapid", _GREY)] if rapids else []))
     return panel.render("s (mm)", ylabel)
 
 
@@ -473,7 +478,9 @@ def _replays_figure(d: ReportData, rows, title: str, max_points: int) -> str:
     """A figure of :func:`_replays_panel` panels stacked top to bottom, one per row
     ``(axis, vals, limit, ylabel)``."""
     s = d.setpoints.s * _MM
-    body = [_replays_panel(28 + r * (110 + 58), s, vals, limit, a, ylabel, max_points)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], d.setpoints.rapid.astype(np.int8), [0]])))
+    rapids = [(s[a], s[b - 1]) for a, b in zip(edges[::2], edges[1::2])]  # runs [a, b)
+    body = [_replays_panel(28 + r * (110 + 58), s, vals, limit, a, ylabel, max_points, rapids)
             for r, (a, vals, limit, ylabel) in enumerate(rows)]
     return _svg(1100, 28 + len(rows) * (110 + 58) + 10, "".join(body), title)
 
@@ -489,7 +496,7 @@ def _fig_commands(d: ReportData, max_points: int) -> tuple[str, str]:
     caption = ("Per contouring axis, the velocity command u of each replay and its acceleration "
                "and jerk as paper eq. 2 computes them (first and second differences over Te, the "
                "axis at rest before the start), against the axis limits (red). Eq. 2 is checked "
-               "on feed samples; rapids are planned at the limits.")
+               "at every sample, rapids (shaded), dwells, the start and the end included.")
     return _replays_figure(d, rows, "velocity command", max_points), caption
 
 
@@ -499,9 +506,9 @@ def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
     rows = [(AXES[k], [(sp.pos[:, k] - v.pos[:, k]) * _MM for v in (d.baseline, d.optimized)],
              float(limit[k]), "following error (mm)") for k in sp.moving_axes]
     caption = ("Per contouring axis, the following error pd - p of each replay, against the "
-               "machine's limit (red) where its file sets one (ferror_max_m, checked at the feed "
-               "samples). On straight moves the schedule may let an axis lag along the path, "
-               "which costs no contour error.")
+               "machine's limit (red) where its file sets one (ferror_max_m, checked at every "
+               "sample, rapids (shaded) included). On straight moves the schedule may let an axis lag "
+               "along the path, which costs no contour error.")
     return _replays_figure(d, rows, "following error", max_points), caption
 
 

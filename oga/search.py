@@ -179,13 +179,13 @@ def _candidates(
 
 @njit(cache=True)
 def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te, u,
-                      every, feed, ferror_max):
+                      every, ferror_max):
     """Eq. 2 excess (:func:`oga.kinematics.eq2_excess`) of a candidate's predicted commands.
 
     The commands of the window's samples ``k .. k+n-1`` are rebuilt into ``u`` from
     the predicted positions (``p_now`` at k, then ``pred[m-1]``) with the candidate
     gains held. The excess of the following error ``|pd - p|`` over ``ferror_max`` (m,
-    ``inf``: none) at the predicted feed samples (``feed``, indexed like ``pd``) counts
+    ``inf``: none) at the predicted samples of the program (rapids included) counts
     alike.
     """
     last = pd.shape[0] - 1
@@ -194,7 +194,7 @@ def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, 
         i = min(k + m, last)
         p = p_now if m == 0 else pred[m - 1]
         u[m] = kp_si * (pd[i] - p) + (kf * vd[i] if k + m <= last else 0.0)
-        if m > 0 and k + m <= last and feed[i] and ferror_max < np.inf:
+        if m > 0 and k + m <= last and ferror_max < np.inf:
             worst = max(worst, abs(pd[i] - p) / ferror_max - 1.0)
     return max(worst, eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, every))
 
@@ -216,7 +216,7 @@ def apply_gains(k, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hi
 def search_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     vmax, amax, jmax, te, u_hist, n_pred, lam, mu, kp_base, kf_base, a1, a2, ce_window, moving,
-    kp_out, kf_out, u_out, stats, feed, ferror_max,
+    kp_out, kf_out, u_out, stats, ferror_max,
 ):
     """Run the receding-horizon search over samples ``k0 .. k1 - 1`` in place.
 
@@ -258,11 +258,10 @@ def search_chunk(
         Schedule and velocity commands, written for samples k0 .. k1 - 1.
     stats : ndarray of int64, shape (2,)
         Counters, see ``STAT_*``.
-    feed : ndarray of bool, shape (N,)
-        Feed samples (the following-error limit applies there, as in :mod:`oga.verify`).
     ferror_max : ndarray, shape (3,)
         Following-error limit per axis, m (``inf``: none); a candidate's predicted
-        excess over it counts as an eq. 2 excess does.
+        excess over it counts as an eq. 2 excess does (at every sample, as in
+        :mod:`oga.verify`).
     """
     n_total = pd.shape[0]
     ncand = np.ones(3, dtype=np.int64)
@@ -314,7 +313,7 @@ def search_chunk(
                 viol[a, c] = _window_violation(
                     states[a, 0], pred[a, c], pdT[a], vdT[a], k, n_pred, kp_si,
                     kf[a] + dkf[a, c], u_hist[a, 0], u_hist[a, 1], vmax[a], amax[a], jmax[a], te,
-                    u_scratch, every, feed, ferror_max[a],
+                    u_scratch, every, ferror_max[a],
                 )
                 least = min(least, max(viol[a, c], _SLACK))
             for c in range(ncand[a]):  # only the candidates that keep eq. 2 (or least violate it)

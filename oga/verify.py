@@ -3,12 +3,13 @@
 Every metric a user sees comes from this replay on the nonlinear model, never
 from the search's predictions. The checks:
 
-- the velocity command ``u`` of every axis meets paper eq. 2 at every feed sample:
-  ``|u| <= Vmax``, ``|u_k - u_{k-1}| / Te <= Amax``,
+- the velocity command ``u`` of every axis meets paper eq. 2 at every sample, rapids,
+  dwells, the start and the end included (the machine runs the table through all of
+  them): ``|u| <= Vmax``, ``|u_k - u_{k-1}| / Te <= Amax``,
   ``|u_k - 2 u_{k-1} + u_{k-2}| / Te^2 <= Jmax`` (commands before the start are 0:
   the axis starts at rest);
 - where the machine sets a following-error limit (``ferror_max_m``), the following
-  error ``|pd - p|`` of the axis stays within it at every feed sample;
+  error ``|pd - p|`` of the axis stays within it at every sample;
 - every Kp lies inside its axis's allowed range (within the stable range);
 - Kf lies in the machine's Kf range.
 """
@@ -35,15 +36,14 @@ _SLACK = 1e-9
 def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.ndarray:
     """Largest ratio of the velocity command's |v|, |a|, |j| to the axis limits (paper eq. 2).
 
-    Checked over the feed samples, as the kinematic range is (:mod:`oga.ranges`):
-    rapids are planned at the limits and leave no room for any position loop.
+    Checked over every sample, rapids included, as the kinematic range is (:mod:`oga.ranges`).
 
     Parameters
     ----------
     u : ndarray, shape (N, 3)
         Velocity commands, m/s (axes x, y, z); the axes are at rest before sample 0.
     setpoints : Setpoints
-        The setpoints (sample period and rapid flags).
+        The setpoints (sample period).
     machine : Machine
         Supplies the limits; an axis the machine lacks must have u == 0.
 
@@ -54,7 +54,7 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
     """
     lim = machine.axis_limits()
     limits = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
-    check = np.ascontiguousarray(~setpoints.rapid)
+    check = np.ones(len(u), dtype=bool)
     out = np.zeros((3, 3))
     for k in range(3):
         peaks = command_peaks(np.ascontiguousarray(u[:, k], dtype=np.float64), check, setpoints.dt)
@@ -66,8 +66,23 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
     return out
 
 
+def _peak_sample(u: np.ndarray, order: int) -> int:
+    """Index of the sample where ``|u|`` (order 0), ``|du|`` (1) or ``|d2u|`` (2) of the
+    commands ``u`` (N,) peaks, the axis at rest before sample 0."""
+    return int(np.argmax(np.abs(np.diff(np.concatenate([np.zeros(2), u]), order)[2 - order:])))
+
+
+def _where(setpoints: Setpoints, k: int) -> str:
+    """Sample ``k`` in words: index, time, program line, rapid or feed."""
+    kind = "in a rapid" if setpoints.rapid[k] else "in a feed move"
+    return f"at sample {k} (t = {k * setpoints.dt:.3f} s, line {setpoints.block[k]}, {kind})"
+
+
 def ferror_ratios(metrics: ContourMetrics, machine: Machine) -> np.ndarray:
     """Largest following error per axis (x, y, z) over the machine's limit (``ferror_max_m``).
+
+    ``metrics.track_max_m`` covers every sample, rapids included
+    (:func:`oga.metrics.contour_metrics`).
 
     Returns
     -------
@@ -88,7 +103,7 @@ class Verification:
     ok : bool
         Every check passed (``limits_ok and stability_ok``).
     limits_ok : bool
-        Eq. 2 holds for every axis at every feed sample, and so does the machine's
+        Eq. 2 holds for every axis at every sample, and so does the machine's
         following-error limit where it sets one.
     stability_ok : bool
         Every Kp inside its allowed range and Kf inside the machine's Kf range.
@@ -99,7 +114,8 @@ class Verification:
     ce : ndarray, shape (N,)
         Contour error of the replay, m.
     metrics : ContourMetrics
-        Statistics over the feed samples.
+        Contour-error statistics over the feed samples, the largest following error over
+        every sample.
     command_ratio : ndarray, shape (3, 3)
         Largest |v|, |a|, |j| of the command per axis as a ratio to the limit.
     ferror_ratio : ndarray, shape (3,)
@@ -108,7 +124,8 @@ class Verification:
     max_dkp_per_sample, max_dkf_per_sample : ndarray, shape (3,)
         Largest gain change between consecutive samples per axis ((m/min)/mm, 1).
     violations : tuple of str
-        What failed, in words.
+        What failed, in words (a limit: with the sample where it is worst, its time, program
+        line, and whether it lies in a rapid or a feed move).
     """
 
     ok: bool
@@ -161,7 +178,8 @@ def verify(
     metrics = contour_metrics(ce, setpoints.pos, sim.pos, ~setpoints.rapid)
     ratio = command_ratios(sim.u, setpoints, machine)
     limit_v = [
-        f"axis {a}: velocity command {what} reaches {ratio[k, j]:.3f}x its limit"
+        f"axis {a}: velocity command {what} reaches {ratio[k, j]:.3f}x its limit "
+        + _where(setpoints, _peak_sample(sim.u[:, k], j))
         for k, a in enumerate(AXES)
         for j, what in enumerate(("velocity", "acceleration", "jerk"))
         if ratio[k, j] > 1.0 + _SLACK
@@ -171,7 +189,8 @@ def verify(
     ferror_ratio = ferror_ratios(metrics, machine)
     limit_v += [
         f"axis {a}: following error reaches {track_max[k] * 1e3:.4f} mm, "
-        f"{ferror_ratio[k]:.3f}x its limit ferror_max_m = {ferror_max[k] * 1e3:.4f} mm"
+        f"{ferror_ratio[k]:.3f}x its limit ferror_max_m = {ferror_max[k] * 1e3:.4f} mm "
+        + _where(setpoints, int(np.argmax(np.abs(setpoints.pos[:, k] - sim.pos[:, k]))))
         for k, a in enumerate(AXES)
         if ferror_ratio[k] > 1.0 + _SLACK
     ]

@@ -168,25 +168,19 @@ def test_window_violation_is_eq2_on_the_rebuilt_commands(short, machine):
         up = np.concatenate([[us[-2], us[-1]], u])
         excess = max(np.max(np.abs(u)) / vmax, np.max(np.abs(np.diff(up)[1:])) / (amax * 1e-3),
                      np.max(np.abs(np.diff(up, 2))) / (jmax * 1e-6)) - 1.0
-        feed = np.ones(zd.size, dtype=bool)
         got = _window_violation(state[0], pred, zd, vz, k, n, kp * C, 0.9, us[-1], us[-2],
                                 vmax, amax, jmax, 1e-3, np.empty(n), np.ones(n, dtype=bool),
-                                feed, np.inf)
+                                np.inf)
         assert got == pytest.approx(max(excess, 0.0), rel=1e-9, abs=1e-12)
         assert (got > 0.0) == (kp != 1.6)
         # a following-error limit below the predicted lag counts as the same kind of excess,
-        # at the predicted samples only (p_now is not the candidate's doing), feed ones only
+        # at the predicted samples (p_now is not the candidate's doing), rapids or not
         lag = np.abs(zd[k + 1:k + n] - pred[:-1])
         limit = 0.5 * lag.max()
         got = _window_violation(state[0], pred, zd, vz, k, n, kp * C, 0.9, us[-1], us[-2],
                                 vmax, amax, jmax, 1e-3, np.empty(n), np.ones(n, dtype=bool),
-                                feed, limit)
+                                limit)
         assert got == pytest.approx(max(excess, lag.max() / limit - 1.0), rel=1e-12)
-        feed[k + 1:k + n] = False
-        got = _window_violation(state[0], pred, zd, vz, k, n, kp * C, 0.9, us[-1], us[-2],
-                                vmax, amax, jmax, 1e-3, np.empty(n), np.ones(n, dtype=bool),
-                                feed, limit)
-        assert got == pytest.approx(max(excess, 0.0), rel=1e-9, abs=1e-12)
 
 
 # --- the search ---------------------------------------------------------------------
@@ -249,7 +243,7 @@ def test_the_choice_is_the_least_cost_combination(short, machine, adjust):
                                              (prev + d) * C, 0.9, *hist[a], lim.vmax_m_s[a],
                                              lim.amax_m_s2[a], lim.jmax_m_s3[a], 1e-3,
                                              np.empty(n_pred), np.ones(n_pred, dtype=bool),
-                                             np.ones(n, dtype=bool), np.inf)
+                                             np.inf)
                     rows.append((d, pred, viol))
                 least = min(max(v, 1e-9) for _, _, v in rows)
                 cands[a] = [(d, p) for d, p, v in rows if v <= least]
