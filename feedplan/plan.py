@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -514,6 +515,7 @@ def plan(
     feed_m_s: float | None = None,
     tol_m: float = TOL_M,
     dt: float = DT_S,
+    progress: Callable[[float], None] | None = None,
 ) -> Setpoints:
     """Plan jerk-limited setpoints along a path.
 
@@ -529,6 +531,8 @@ def plan(
         Largest distance of a feed setpoint to the programmed geometry, metres.
     dt : float
         Sample period, seconds.
+    progress : callable, optional
+        Called with the fraction of the blocks planned (0..1) after each block.
 
     Returns
     -------
@@ -552,7 +556,7 @@ def plan(
     seg_feed = _feeds(path, feed_m_s)
     blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION)
     pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]
-    for blk in blocks:
+    for k, blk in enumerate(blocks):
         if blk.rapid:
             p, ln = _rapid(blk, path, limits, dt)
         else:
@@ -560,6 +564,8 @@ def plan(
         pos.append(p[1:])  # p[0] is where the previous block ended, at rest
         line.append(ln[1:])
         rapid.append(np.full(len(p) - 1, blk.rapid))
+        if progress is not None:
+            progress((k + 1) / len(blocks))
     if blocks:  # the first sample belongs to the first move
         line[0][0], rapid[0][0] = line[1][0], rapid[1][0]
     pos, line, rapid = np.concatenate(pos), np.concatenate(line), np.concatenate(rapid)
