@@ -24,7 +24,7 @@ from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
-from starlette.routing import Match
+from starlette.routing import Match, Route
 
 from api import routes
 from api.schemas import Health, error_body
@@ -73,7 +73,7 @@ class Settings:
     job_cpu_s : float
         CPU time of one attempt of a job, s (the job fails beyond).
     job_memory_bytes : int
-        Memory one attempt of a job may add to its worker, bytes (the job fails beyond).
+        Resident memory of the worker running a job, bytes (the job fails beyond).
     stall_s : float
         ``/healthz`` says "degraded" while a running job's progress has not moved for this
         long, s.
@@ -108,27 +108,30 @@ async def _send_json(send, status: int, body: dict, headers: tuple = ()) -> None
 def _unsupported_body(headers: dict) -> str | None:
     """Why a request body cannot be read as JSON (415), or None.
 
-    No Content-Type is read as JSON (as FastAPI does); ``application/json`` and
-    ``application/*+json`` are JSON; any Content-Encoding but identity is refused.
+    ``application/json`` and ``application/*+json`` are JSON (FastAPI reads no other
+    body, and none without a Content-Type); any Content-Encoding but identity is refused.
     """
     encoding = headers.get(b"content-encoding", b"").decode("latin-1").strip().lower()
     if encoding not in ("", "identity"):
         return f"Content-Encoding {encoding} is not supported: send the JSON body uncompressed"
-    ctype = headers.get(b"content-type")
-    if ctype is None:
-        return None
-    media = ctype.decode("latin-1").split(";")[0].strip().lower()
+    media = headers.get(b"content-type", b"").decode("latin-1").split(";")[0].strip().lower()
     if media == "application/json" or (media.startswith("application/") and media.endswith("+json")):
         return None
-    return f"Content-Type {media or '(empty)'} is not supported: the body must be application/json"
+    return (f"Content-Type {media} is not supported" if media else "no Content-Type"
+            ) + ": the body must be application/json"
 
 
-def _allowed_methods(app, scope) -> str:
+def _http_routes(app: FastAPI) -> list[Route]:
+    """The routes of the app and of the ``/v1`` router."""
+    return [*routes.router.routes, *(r for r in app.router.routes if isinstance(r, Route))]
+
+
+def _allowed_methods(app: FastAPI, scope) -> str:
     """Every method of every route at the request's path (a 405's Allow header)."""
     methods: set[str] = set()
-    for route in app.router.routes:
+    for route in _http_routes(app):
         if route.matches(scope)[0] != Match.NONE:
-            methods |= getattr(route, "methods", None) or set()
+            methods |= route.methods or set()
     return ", ".join(sorted(methods))
 
 
@@ -230,7 +233,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.store = Store(settings.db_path)
     app.state.pool = None
     app.include_router(routes.router)
-    json_paths = frozenset(r.path for r in app.routes
+    json_paths = frozenset(r.path for r in routes.router.routes
                            if isinstance(r, APIRoute) and r.body_field is not None)
     app.add_middleware(_Guard, api_key=settings.api_key, max_bytes=settings.max_upload_bytes,
                        json_paths=json_paths)

@@ -85,9 +85,11 @@ def _check_motion(path, machine, feed_m_s: float | None, limit_s: float, advice:
     total, longest, where = 0.0, 0.0, 0
     for seg in path.segments:
         points = (seg.start, seg.end, getattr(seg, "center", seg.end))
-        if not (all(np.isfinite(p).all() for p in points) and math.isfinite(seg.length)):
-            raise ToolpathError("a coordinate of this move is out of range (too large to be "
-                                "a finite number)", line=seg.line)
+        with np.errstate(over="ignore"):
+            finite = all(np.isfinite(p).all() for p in points) and math.isfinite(seg.length)
+        if not finite:
+            raise ToolpathError("the coordinates of this move are too large to compute with "
+                                "(its length overflows floating point)", line=seg.line)
         feed = seg.feed_m_s if seg.rapid or feed_m_s is None else feed_m_s
         seconds = seg.length / (min(feed, cap) if feed > 0 else cap)
         total += seconds

@@ -5,12 +5,13 @@ from the store, runs :func:`oga.pipeline.run_job`, reports progress into the
 store and writes the result in one transaction. The server's event loop never
 runs an optimisation.
 
-Limits: each attempt of a job runs under a CPU-time cap (``RLIMIT_CPU``, counted
-from the job's start) and a memory cap (``RLIMIT_AS``, above the worker's own
-address space at the job's start). A job that exceeds its memory fails with
-"job exceeded its memory limit"; one that exceeds its CPU time is killed by the
-kernel (SIGXCPU) and the supervisor fails it with "job exceeded its CPU-time
-limit". Neither is requeued; the worker is replaced.
+Limits: each attempt of a job runs under a CPU-time cap (``RLIMIT_CPU`` of its
+worker, counted from the job's start: the kernel ends the worker with SIGXCPU)
+and a memory cap (the supervisor reads each worker's resident size every
+:data:`WATCH_S` and ends a worker above it). Either way the supervisor fails the
+job ("job exceeded its CPU-time limit of 1800 s", "... its memory limit of
+4096 MiB"); it is not requeued, and another worker starts. (``RLIMIT_AS`` is not
+used: OpenBLAS spins instead of failing when it cannot allocate.)
 
 Cancelling: ``DELETE`` of a running job kills its worker (SIGKILL, through
 :meth:`WorkerPool.kill`); the supervisor wakes on the death and starts another.
@@ -67,6 +68,8 @@ MAX_ATTEMPTS = 3
 POLL_S = 0.2
 #: Supervisor period (heartbeat, recovery, stalls), s; it also wakes at once when a worker dies.
 HEARTBEAT_S = 2.0
+#: Period of the supervisor's check of the workers' resident memory, s.
+WATCH_S = 0.1
 #: A job of another host's server is requeued after this long without a heartbeat, s.
 LEASE_S = 60.0
 #: Shortest interval between two progress writes of a worker, s.
@@ -82,7 +85,7 @@ class JobLimits:
     cpu_s : float
         CPU time, s (rounded up to whole seconds).
     memory_bytes : int
-        Address space above the worker's own at the job's start, bytes.
+        Resident memory of the worker running the job, bytes.
     """
 
     cpu_s: float = defaults.API_JOB_CPU_S
@@ -110,13 +113,13 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def run_claimed(store: Store, job: JobRow, limits: JobLimits | None = None) -> str:
+def run_claimed(store: Store, job: JobRow) -> str:
     """Run a job this process has claimed, and store its outcome.
 
     A verified schedule stores the summary and the table; a schedule that
     fails verification fails the job with its violations (and keeps the
     summary); a bad input fails it with the error naming line/field; a
-    ``MemoryError`` (the memory cap of ``limits``) fails it with the limit.
+    ``MemoryError`` fails it.
 
     Returns
     -------
@@ -174,45 +177,32 @@ def run_claimed(store: Store, job: JobRow, limits: JobLimits | None = None) -> s
                                                      f"{err}", "type": "InternalError"})
         return "failed"
     gc.collect()
-    message = limits.memory_message() if limits else "job ran out of memory"
-    log.warning("job %s: %s", job.id, message)
-    store.fail(job.id, job.attempts, {"message": message, "type": "MemoryLimit"})
+    store.fail(job.id, job.attempts, {"message": "job ran out of memory (an allocation failed)",
+                                      "type": "MemoryLimit"})
     return "memory"
 
 
-def _address_space_bytes() -> int | None:
-    """This process's virtual size (Linux ``/proc/self/statm``), or None where unknown."""
+_PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def _resident_bytes(pid: int) -> int:
+    """Resident memory of process ``pid`` (Linux ``/proc``), bytes; 0 where unknown."""
     try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        with open(f"/proc/{pid}/statm") as f:
+            return int(f.read().split()[1]) * _PAGE
     except (OSError, ValueError, IndexError):
-        return None
+        return 0
 
 
-def _cap(limits: JobLimits) -> tuple:
-    """Cap this process for one job (CPU time from now, memory above its size now).
-
-    Returns the limits to restore after the job.
-    """
-    saved = (resource.getrlimit(resource.RLIMIT_CPU), resource.getrlimit(resource.RLIMIT_AS))
-
-    def soft(value: float, hard: int) -> int:
-        return int(value) if hard == resource.RLIM_INFINITY else min(int(value), hard)
-
+def _cap_cpu(cpu_s: float) -> tuple[int, int]:
+    """Cap this process's CPU time at ``cpu_s`` from now; returns the limit to restore."""
+    saved = resource.getrlimit(resource.RLIMIT_CPU)
     use = resource.getrusage(resource.RUSAGE_SELF)
-    cpu_hard = saved[0][1]
-    resource.setrlimit(resource.RLIMIT_CPU, (
-        soft(math.ceil(use.ru_utime + use.ru_stime + limits.cpu_s), cpu_hard), cpu_hard))
-    size = _address_space_bytes()
-    if size is not None:
-        as_hard = saved[1][1]
-        resource.setrlimit(resource.RLIMIT_AS, (soft(size + limits.memory_bytes, as_hard), as_hard))
+    soft = math.ceil(use.ru_utime + use.ru_stime + cpu_s)
+    if saved[1] != resource.RLIM_INFINITY:
+        soft = min(soft, saved[1])
+    resource.setrlimit(resource.RLIMIT_CPU, (soft, saved[1]))
     return saved
-
-
-def _uncap(saved: tuple) -> None:
-    resource.setrlimit(resource.RLIMIT_CPU, saved[0])
-    resource.setrlimit(resource.RLIMIT_AS, saved[1])
 
 
 def _die_with_parent(parent: int) -> None:
@@ -243,11 +233,11 @@ def _worker_main(db_path: str, server_pid: int, instance: str, limits: JobLimits
         if job is None:
             time.sleep(POLL_S)
             continue
-        saved = _cap(limits)
+        saved = _cap_cpu(limits.cpu_s)
         try:
-            outcome = run_claimed(store, job, limits)
+            outcome = run_claimed(store, job)
         finally:
-            _uncap(saved)
+            resource.setrlimit(resource.RLIMIT_CPU, saved)
         if outcome == "memory":
             return
 
@@ -341,18 +331,34 @@ class WorkerPool:
         # (PR_SET_PDEATHSIG follows the thread that started the child)
         with self._lock:
             self._procs = [self._spawn() for _ in range(self.n)]
+        beat = 0.0
         while not self._halt.is_set():
             with self._lock:
                 sentinels = [p.sentinel for p in self._procs]
-            wait_ready([*sentinels, self._wake_r], timeout=HEARTBEAT_S)
+            wait_ready([*sentinels, self._wake_r], timeout=WATCH_S)
             if self._halt.is_set():
                 break
             try:
-                self._store.heartbeat(self.instance)
+                self._check_memory()
                 self._replace_dead()
-                self._watch()
+                if time.monotonic() - beat >= HEARTBEAT_S:
+                    beat = time.monotonic()
+                    self._store.heartbeat(self.instance)
+                    self.recover()
+                    self._watch()
             except Exception:  # keep supervising whatever happens
                 log.error("supervisor: %s", traceback.format_exc())
+
+    def _check_memory(self) -> None:
+        """Fail the job of a worker above the memory limit, and end that worker."""
+        with self._lock:
+            over = [p.pid for p in self._procs if p.pid not in self._killed
+                    and _resident_bytes(p.pid) > self.limits.memory_bytes]
+        for pid in over:
+            if self._fail_jobs_of(pid, self.limits.memory_message(), "MemoryLimit"):
+                with self._lock:
+                    self._killed.add(pid)
+                    os.kill(pid, signal.SIGKILL)  # not reaped yet: the pid is still ours
 
     def _replace_dead(self) -> None:
         with self._lock:
@@ -371,13 +377,18 @@ class WorkerPool:
                     log.warning("worker %s died (exit code %s); starting another",
                                 p.pid, p.exitcode)
                 self._procs[self._procs.index(p)] = self._spawn()
+        self._watch()
 
-    def _fail_jobs_of(self, worker_pid: int, message: str, kind: str) -> None:
+    def _fail_jobs_of(self, worker_pid: int, message: str, kind: str) -> bool:
+        """Fail the job that worker ``worker_pid`` runs; False if it runs none."""
+        failed = False
         for job in self._store.running():
             o = job.owner
             if o is not None and o.instance == self.instance and o.worker_pid == worker_pid:
                 log.warning("job %s: %s", job.id, message)
-                self._store.fail(job.id, job.attempts, {"message": message, "type": kind})
+                failed |= self._store.fail(job.id, job.attempts, {"message": message,
+                                                                  "type": kind})
+        return failed
 
     def _watch(self) -> None:
         """Note when each running job's progress last moved."""

@@ -201,8 +201,8 @@ AFSMC_TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)
 API_JOB_MAX_MOTION_S = 3600.0
 #: CPU time one attempt of a job may use (RLIMIT_CPU of its worker), s; the job fails beyond.
 API_JOB_CPU_S = 1800.0
-#: Memory one attempt of a job may add to its worker (RLIMIT_AS above the worker's own address
-#: space at the job's start), bytes; the job fails beyond.
+#: Resident memory of the worker running a job (the engine itself takes about 250 MB), bytes;
+#: the job fails beyond.
 API_JOB_MEMORY_BYTES = 4 * 1024**3
 #: A running job whose progress has not moved for this long marks /healthz "degraded", s.
 API_STALL_S = 120.0

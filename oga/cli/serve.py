@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="CPU time one job may use, s (default "
                    f"{defaults.API_JOB_CPU_S:g}); the job fails beyond it")
     p.add_argument("--job-memory-mb", type=float, default=defaults.API_JOB_MEMORY_BYTES / 2**20,
-                   metavar="MB", help="memory one job may add to its worker, MiB (default "
+                   metavar="MB", help="resident memory of the worker running a job, MiB (default "
                    f"{defaults.API_JOB_MEMORY_BYTES / 2**20:g}); the job fails beyond it")
     p.add_argument("--job-max-motion-s", type=float, default=defaults.API_JOB_MAX_MOTION_S,
                    metavar="S", help="longest toolpath of POST /v1/jobs, s of motion at the "
