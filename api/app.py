@@ -2,7 +2,8 @@
 
 Every error answer is an :class:`api.schemas.ErrorBody` (``{"message", ...}``):
 bad input is 4xx (422 naming field, line and column; 400 for malformed JSON;
-413 for an oversized body), never 5xx. The API key, when set, is required (header
+413 for an oversized body or a toolpath beyond the motion-time limit; 415 for a
+body that is not ``application/json``; 405 with every allowed method), never 5xx. The API key, when set, is required (header
 ``X-API-Key`` or ``Authorization: Bearer``) by every route but ``/healthz`` and the web
 page (``/`` and ``/static/``: they hold no data; the page sends the key its user types).
 """

@@ -74,6 +74,8 @@ WATCH_S = 0.1
 LEASE_S = 60.0
 #: Shortest interval between two progress writes of a worker, s.
 PROGRESS_EVERY_S = 0.25
+#: Niceness added to worker processes: the server's answers come before the jobs' CPU time.
+WORKER_NICE = 5
 
 
 @dataclass(frozen=True)
@@ -224,6 +226,7 @@ def _worker_main(db_path: str, server_pid: int, instance: str, limits: JobLimits
     _die_with_parent(server_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when workers stop
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a job killed at its CPU cap: no core file
+    os.nice(WORKER_NICE)
     import oga.pipeline  # noqa: F401  (load the engine before the first job)
 
     store = Store(db_path)
