@@ -3,9 +3,10 @@
 Every error answer is an :class:`api.schemas.ErrorBody` (``{"message", ...}``):
 bad input is 4xx (422 naming field, line and column; 400 for malformed JSON;
 413 for an oversized body or a toolpath beyond the motion-time limit; 415 for a
-body that is not ``application/json``; 405 with every allowed method), never 5xx. The API key, when set, is required (header
-``X-API-Key`` or ``Authorization: Bearer``) by every route but ``/healthz`` and the web
-page (``/`` and ``/static/``: they hold no data; the page sends the key its user types).
+body that is not ``application/json``; 405 with every allowed method), never 5xx.
+The API key, when set, is required (header ``X-API-Key`` or ``Authorization:
+Bearer``) by every route but ``/healthz`` and the web page (``/`` and
+``/static/``: they hold no data; the page sends the key its user types).
 """
 
 from __future__ import annotations
@@ -116,7 +117,8 @@ def _unsupported_body(headers: dict) -> str | None:
     if encoding not in ("", "identity"):
         return f"Content-Encoding {encoding} is not supported: send the JSON body uncompressed"
     media = headers.get(b"content-type", b"").decode("latin-1").split(";")[0].strip().lower()
-    if media == "application/json" or (media.startswith("application/") and media.endswith("+json")):
+    if media == "application/json" or (media.startswith("application/")
+                                       and media.endswith("+json")):
         return None
     return (f"Content-Type {media} is not supported" if media else "no Content-Type"
             ) + ": the body must be application/json"

@@ -73,16 +73,17 @@ def _duration(seconds: float) -> str:
             else "longer than any limit")
 
 
-def _check_motion(path, machine, feed_m_s: float | None, limit_s: float, advice: str) -> None:
+def _check_motion(path, machine, feed_m_s: float | None, limit_s: float, *, where: str = "",
+                  advice: str = "") -> None:
     """Refuse a toolpath whose motion would take longer than ``limit_s`` (413) or that holds
     a coordinate beyond floating point (422 naming its line), before anything is planned.
 
     The estimate is a lower bound: each move at its feed (or the override), capped at the
     machine's slowest axis speed (rapids at that speed; a move without feed too: the planner
-    names it).
+    names it). ``where`` and ``advice`` complete the message.
     """
     cap = min(a.limits.vmax_m_s for a in machine.axes.values())
-    total, longest, where = 0.0, 0.0, 0
+    total, longest, line = 0.0, 0.0, 0
     for seg in path.segments:
         points = (seg.start, seg.end, getattr(seg, "center", seg.end))
         with np.errstate(over="ignore"):
@@ -94,12 +95,12 @@ def _check_motion(path, machine, feed_m_s: float | None, limit_s: float, advice:
         seconds = seg.length / (min(feed, cap) if feed > 0 else cap)
         total += seconds
         if seconds > longest:
-            longest, where = seconds, seg.line
+            longest, line = seconds, seg.line
     if total > limit_s:
         raise HTTPException(
-            413, f"toolpath too long{advice[0]}: about {_duration(total)} of motion at the "
-            f"programmed feeds (the longest move, line {where}, {_duration(longest)}); the "
-            f"limit is {limit_s:g} s{advice[1]}")
+            413, f"toolpath too long{where}: about {_duration(total)} of motion at the "
+            f"programmed feeds (the longest move, line {line}, {_duration(longest)}); the "
+            f"limit is {limit_s:g} s{advice}")
 
 
 def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
@@ -117,10 +118,11 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
     settings = request.app.state.settings
     if sync:
         _check_motion(path, machine, body.options.feed_m_s, settings.sync_max_motion_s,
-                      (" for the synchronous endpoint", "; submit it with POST /v1/jobs instead"))
+                      where=" for the synchronous endpoint",
+                      advice="; submit it with POST /v1/jobs instead")
     else:
         _check_motion(path, machine, body.options.feed_m_s, settings.job_max_motion_s,
-                      ("", " (the server's --job-max-motion-s)"))
+                      advice=" (the server's --job-max-motion-s)")
     return _store(request).submit(
         source=tp.name, toolpath_format=tp.format, toolpath=tp.content,
         machine=machine.model_dump(mode="json", exclude_none=True), options=body.options.as_dict(),

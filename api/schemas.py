@@ -77,7 +77,8 @@ class JobOut(BaseModel):
 
     id: str
     status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
-    progress: float = Field(description="fraction of the search done, 0..1")
+    progress: float = Field(description="fraction of the job done (planning, the best fixed "
+                            "gains, the search), 0..1")
     error: dict[str, Any] | None = Field(description="null, or an ErrorBody")
     created_at: str
     started_at: str | None

@@ -273,8 +273,6 @@ class WorkerPool:
         self.host = socket.gethostname()
         self._ctx = mp.get_context("spawn")
         self._halt = threading.Event()
-        self._wake_r, self._wake_w = os.pipe()
-        os.set_blocking(self._wake_r, False)
         self._procs: list = []
         self._killed: set[int] = set()
         self._moved: dict[tuple[str, int], tuple[float, float, int]] = {}
@@ -291,11 +289,6 @@ class WorkerPool:
         """Number of live worker processes."""
         with self._lock:
             return sum(p.is_alive() for p in self._procs)
-
-    def pids(self) -> list[int]:
-        """Process ids of the workers."""
-        with self._lock:
-            return [p.pid for p in self._procs]
 
     def kill(self, job: JobRow) -> bool:
         """End the worker that runs ``job`` (just cancelled) at once; another one starts.
@@ -338,7 +331,7 @@ class WorkerPool:
         while not self._halt.is_set():
             with self._lock:
                 sentinels = [p.sentinel for p in self._procs]
-            wait_ready([*sentinels, self._wake_r], timeout=WATCH_S)
+            wait_ready(sentinels, timeout=WATCH_S)  # wakes at once when a worker dies
             if self._halt.is_set():
                 break
             try:
@@ -436,7 +429,6 @@ class WorkerPool:
         A worker stopped inside a write leaves nothing: SQLite rolls the transaction back.
         """
         self._halt.set()
-        os.write(self._wake_w, b"x")
         if self._thread.is_alive():
             self._thread.join()
         with self._lock:
@@ -449,5 +441,3 @@ class WorkerPool:
             if job.owner is not None and job.owner.instance == self.instance:
                 self._store.requeue(job.id, job.attempts)
         self._store.close()
-        os.close(self._wake_r)
-        os.close(self._wake_w)
