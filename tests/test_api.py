@@ -232,6 +232,9 @@ def test_motion_time_beyond_the_limit_is_413_at_submission(queue_only):
             assert r.status_code == 413, r.text
             assert f"line 3, {seconds}" in message and "limit is 3600 s" in message, message
             assert "--job-max-motion-s" in message
+    nines = body("G21 G90\nG1 X0 Y0 F1000\nG1 X" + "9" * 320 + " Y5\nM2\n")
+    r = queue_only.post("/v1/gain-table", json=nines)  # was 413 "about inf s"
+    assert r.status_code == 422 and "line 3" in r.json()["message"], r.text
     assert queue_only.get("/v1/jobs").json()["total"] == 0
 
 
