@@ -313,8 +313,10 @@ class WorkerPool:
         now = time.monotonic()
         with self._lock:
             moved = dict(self._moved)
-        return [{"job": job_id, "worker_pid": pid, "seconds": round(now - since, 1)}
-                for (job_id, _), (_, since, pid) in moved.items() if now - since > self.stall_s]
+        running = {(job.id, job.attempts) for job in self._store.running()}  # still running now
+        return [{"job": key[0], "worker_pid": pid, "seconds": round(now - since, 1)}
+                for key, (_, since, pid) in moved.items()
+                if key in running and now - since > self.stall_s]
 
     def _spawn(self):
         p = self._ctx.Process(target=_worker_main, name="oga-worker", daemon=True,

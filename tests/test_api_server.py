@@ -175,13 +175,28 @@ def _gone(pid: int) -> bool:
         return True
 
 
+def _freeze(pid: int, db: Path) -> None:
+    """SIGSTOP the worker outside a write transaction (one it holds would lock the database)."""
+    for _ in range(50):
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            with sqlite3.connect(db, timeout=0.05, isolation_level=None) as con:
+                con.execute("BEGIN IMMEDIATE")
+                con.execute("ROLLBACK")
+            return
+        except sqlite3.OperationalError:  # locked: let it finish its write
+            os.kill(pid, signal.SIGCONT)
+            time.sleep(0.02)
+    raise AssertionError("the worker always holds the database's write lock")
+
+
 def test_a_stalled_worker_shows_in_healthz_and_delete_ends_it_at_once(tmp_path):
     server = Server(tmp_path / "oga.db", 1, tmp_path / "serve.log", "--stall-s", "1")
     try:
         long, short = submit(server, LONG, "long.ngc"), submit(server, SHORT, "short.ngc")
         wait_for(server, long, ("running",))
         pid = server.worker_of(long)
-        os.kill(pid, signal.SIGSTOP)  # a worker that makes no progress (as one that spins)
+        _freeze(pid, server.db)  # a worker that makes no progress (as one that spins)
         t_end, health = time.monotonic() + 15, {}
         while time.monotonic() < t_end:
             health = server.http.get("/healthz").json()
@@ -191,7 +206,7 @@ def test_a_stalled_worker_shows_in_healthz_and_delete_ends_it_at_once(tmp_path):
         assert server.http.get("/healthz").status_code == 200
         assert health["status"] == "degraded", health
         (stalled,) = health["stalled"]
-        assert stalled["job"] == long and stalled["worker_pid"] == pid and stalled["seconds"] > 1
+        assert stalled["job"] == long and stalled["worker_pid"] == pid and stalled["seconds"] >= 1
 
         t0 = time.monotonic()
         r = server.http.delete(f"/v1/jobs/{long}")
