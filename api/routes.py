@@ -46,6 +46,12 @@ _ERRORS = {
     413: {"model": ErrorBody, "description": "upload too large"},
     422: {"model": ErrorBody, "description": "invalid input (line and column for a toolpath)"},
 }
+#: Answers of the routes that read a JSON body.
+_BODY_ERRORS = {
+    **_ERRORS,
+    413: {"model": ErrorBody, "description": "upload too large, or the toolpath's motion too long"},
+    415: {"model": ErrorBody, "description": "the body is not application/json (or is compressed)"},
+}
 
 
 def _store(request: Request) -> Store:
@@ -149,7 +155,7 @@ Name = Annotated[str, Query(max_length=63, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$",
                             description="C identifier prefix (format c)")]
 
 
-@router.post("/jobs", status_code=202, response_model=JobAccepted, responses=_ERRORS,
+@router.post("/jobs", status_code=202, response_model=JobAccepted, responses=_BODY_ERRORS,
              summary="Submit a toolpath for optimisation")
 def submit_job(body: JobRequest, request: Request, response: Response) -> dict:
     """Queue a job. The toolpath is read at once (422 naming line and column if it is
@@ -251,7 +257,7 @@ def get_report(job_id: str, request: Request) -> Response:
 @router.post("/gain-table", responses={
     200: {"content": {m: {} for _, m in TABLE_FORMATS.values()}, "description": "the table"},
     202: {"model": JobAccepted, "description": "not done in time: poll the job"},
-    **_ERRORS}, response_class=Response, summary="Optimise a short toolpath and return the table")
+    **_BODY_ERRORS}, response_class=Response, summary="Optimise a short toolpath and return the table")
 async def gain_table(body: JobRequest, request: Request, format: TableFormat = "csv",
                      name: Name = C_NAME) -> Response:
     """Synchronous: for toolpaths up to the server's motion-time limit (default 10 s of

@@ -395,11 +395,18 @@ def test_table_formats_of_the_api_are_the_export_formats():
     assert set(TableFormat.__args__) == set(TABLE_FORMATS)
 
 
-def test_openapi_operations_never_answer_5xx(tmp_path):
-    """schemathesis generates requests from the OpenAPI schema (a few per operation)."""
+def test_openapi_operations_never_answer_5xx_and_answer_as_documented(tmp_path):
+    """schemathesis generates requests from the OpenAPI schema (a few per operation): no 5xx;
+    status codes, media types and bodies as documented; schema-invalid requests refused."""
     import schemathesis
     from hypothesis import given
     from schemathesis.checks import not_a_server_error
+    from schemathesis.specs.openapi.checks import (
+        content_type_conformance,
+        negative_data_rejection,
+        response_schema_conformance,
+        status_code_conformance,
+    )
 
     app = create_app(Settings(db_path=str(tmp_path / "f.db"), workers=0, sync_timeout_s=0.2))
     schema = schemathesis.openapi.from_asgi("/openapi.json", app)
@@ -411,7 +418,9 @@ def test_openapi_operations_never_answer_5xx(tmp_path):
         @settings(max_examples=8, deadline=None, derandomize=True, database=None,
                   phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
         def check(case):
-            case.call_and_validate(checks=[not_a_server_error])
+            case.call_and_validate(checks=[not_a_server_error, status_code_conformance,
+                                           content_type_conformance, response_schema_conformance,
+                                           negative_data_rejection])
 
         check()
 

@@ -179,14 +179,16 @@ def _freeze(pid: int, db: Path) -> None:
     """SIGSTOP the worker outside a write transaction (one it holds would lock the database)."""
     for _ in range(50):
         os.kill(pid, signal.SIGSTOP)
+        con = sqlite3.connect(db, timeout=0.05, isolation_level=None)
         try:
-            with sqlite3.connect(db, timeout=0.05, isolation_level=None) as con:
-                con.execute("BEGIN IMMEDIATE")
-                con.execute("ROLLBACK")
+            con.execute("BEGIN IMMEDIATE")
+            con.execute("ROLLBACK")
             return
         except sqlite3.OperationalError:  # locked: let it finish its write
             os.kill(pid, signal.SIGCONT)
             time.sleep(0.02)
+        finally:
+            con.close()
     raise AssertionError("the worker always holds the database's write lock")
 
 
