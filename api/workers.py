@@ -75,7 +75,7 @@ LEASE_S = 60.0
 #: Shortest interval between two progress writes of a worker, s.
 PROGRESS_EVERY_S = 0.25
 #: Niceness added to worker processes: the server's answers come before the jobs' CPU time.
-WORKER_NICE = 5
+WORKER_NICE = 10
 
 
 @dataclass(frozen=True)
