@@ -2,9 +2,11 @@
 
 Every error answer is an :class:`api.schemas.ErrorBody` (``{"message", ...}``):
 bad input is 4xx (422 naming field, line and column; 400 for malformed JSON;
-413 for an oversized body), never 5xx. The API key, when set, is required (header
-``X-API-Key`` or ``Authorization: Bearer``) by every route but ``/healthz`` and the web
-page (``/`` and ``/static/``: they hold no data; the page sends the key its user types).
+413 for an oversized body or a toolpath beyond the motion-time limit; 415 for a
+body that is not ``application/json``; 405 with every allowed method), never 5xx.
+The API key, when set, is required (header ``X-API-Key`` or ``Authorization:
+Bearer``) by every route but ``/healthz`` and the web page (``/`` and
+``/static/``: they hold no data; the page sends the key its user types).
 """
 
 from __future__ import annotations
@@ -20,14 +22,16 @@ from pathlib import Path
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
+from starlette.routing import Match, Route
 
 from api import routes
 from api.schemas import Health, error_body
 from api.storage import Store
-from api.workers import WorkerPool
+from api.workers import JobLimits, WorkerPool
 from oga import __version__, defaults
 from oga.errors import InputError
 
@@ -66,6 +70,15 @@ class Settings:
         Largest request body, bytes.
     sync_max_motion_s, sync_timeout_s : float
         Limits of ``POST /v1/gain-table`` (motion time of the toolpath, wait), s.
+    job_max_motion_s : float
+        Longest toolpath of ``POST /v1/jobs``, s of motion (413 beyond).
+    job_cpu_s : float
+        CPU time of one attempt of a job, s (the job fails beyond).
+    job_memory_bytes : int
+        Resident memory of the worker running a job, bytes (the job fails beyond).
+    stall_s : float
+        ``/healthz`` says "degraded" while a running job's progress has not moved for this
+        long, s.
     """
 
     db_path: str
@@ -74,6 +87,10 @@ class Settings:
     max_upload_bytes: int = defaults.API_MAX_UPLOAD_BYTES
     sync_max_motion_s: float = defaults.API_SYNC_MAX_MOTION_S
     sync_timeout_s: float = defaults.API_SYNC_TIMEOUT_S
+    job_max_motion_s: float = defaults.API_JOB_MAX_MOTION_S
+    job_cpu_s: float = defaults.API_JOB_CPU_S
+    job_memory_bytes: int = defaults.API_JOB_MEMORY_BYTES
+    stall_s: float = defaults.API_STALL_S
 
 
 def _message_of(err: dict) -> str:
@@ -90,13 +107,47 @@ async def _send_json(send, status: int, body: dict, headers: tuple = ()) -> None
     await send({"type": "http.response.body", "body": data})
 
 
-class _Guard:
-    """ASGI middleware: the API key, then the body-size limit (read before the app sees it)."""
+def _unsupported_body(headers: dict) -> str | None:
+    """Why a request body cannot be read as JSON (415), or None.
 
-    def __init__(self, app, api_key: str | None, max_bytes: int) -> None:
+    ``application/json`` and ``application/*+json`` are JSON (FastAPI reads no other
+    body, and none without a Content-Type); any Content-Encoding but identity is refused.
+    """
+    encoding = headers.get(b"content-encoding", b"").decode("latin-1").strip().lower()
+    if encoding not in ("", "identity"):
+        return f"Content-Encoding {encoding} is not supported: send the JSON body uncompressed"
+    media = headers.get(b"content-type", b"").decode("latin-1").split(";")[0].strip().lower()
+    if media == "application/json" or (media.startswith("application/")
+                                       and media.endswith("+json")):
+        return None
+    return (f"Content-Type {media} is not supported" if media else "no Content-Type"
+            ) + ": the body must be application/json"
+
+
+def _http_routes(app: FastAPI) -> list[Route]:
+    """The routes of the app and of the ``/v1`` router."""
+    return [*routes.router.routes, *(r for r in app.router.routes if isinstance(r, Route))]
+
+
+def _allowed_methods(app: FastAPI, scope) -> str:
+    """Every method of every route at the request's path (a 405's Allow header)."""
+    methods: set[str] = set()
+    for route in _http_routes(app):
+        if route.matches(scope)[0] != Match.NONE:
+            methods |= route.methods or set()
+    return ", ".join(sorted(methods))
+
+
+class _Guard:
+    """ASGI middleware: the API key, the body's media type (415 on the routes that read JSON,
+    ``json_paths``), then the body-size limit (read before the app sees it)."""
+
+    def __init__(self, app, api_key: str | None, max_bytes: int,
+                 json_paths: frozenset[str] = frozenset()) -> None:
         self.app = app
         self.api_key = api_key.encode() if api_key else None
         self.max_bytes = max_bytes
+        self.json_paths = json_paths
 
     def _authorised(self, scope) -> bool:
         if self.api_key is None or _public(scope["path"]):
@@ -115,6 +166,11 @@ class _Guard:
             return await _send_json(send, 401, {"message": "missing or wrong API key "
                                                 "(header X-API-Key)", "type": "Unauthorized"},
                                     ((b"www-authenticate", b'ApiKey header="X-API-Key"'),))
+        if scope["method"] in ("POST", "PUT", "PATCH") and scope["path"] in self.json_paths:
+            problem = _unsupported_body(dict(scope["headers"]))
+            if problem:
+                return await _send_json(send, 415, {"message": problem,
+                                                    "type": "UnsupportedMediaType"})
         too_big = {"message": f"request body larger than {self.max_bytes} bytes "
                               "(the server's --max-upload-mb)", "type": "TooLarge"}
         length = dict(scope["headers"]).get(b"content-length")
@@ -148,7 +204,11 @@ def create_app(settings: Settings) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        pool = WorkerPool(settings.db_path, settings.workers) if settings.workers else None
+        pool = None
+        if settings.workers:
+            pool = WorkerPool(settings.db_path, settings.workers,
+                              JobLimits(settings.job_cpu_s, settings.job_memory_bytes),
+                              settings.stall_s)
         app.state.pool = pool
         if pool is not None:
             await run_in_threadpool(pool.start)
@@ -176,7 +236,10 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.store = Store(settings.db_path)
     app.state.pool = None
     app.include_router(routes.router)
-    app.add_middleware(_Guard, api_key=settings.api_key, max_bytes=settings.max_upload_bytes)
+    json_paths = frozenset(r.path for r in routes.router.routes
+                           if isinstance(r, APIRoute) and r.body_field is not None)
+    app.add_middleware(_Guard, api_key=settings.api_key, max_bytes=settings.max_upload_bytes,
+                       json_paths=json_paths)
 
     @app.exception_handler(InputError)
     async def _input_error(request: Request, err: InputError):
@@ -196,8 +259,11 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def _http(request: Request, err: HTTPException):
+        headers = getattr(err, "headers", None)
+        if err.status_code == 405:
+            headers = {**(headers or {}), "Allow": _allowed_methods(app, request.scope)}
         return JSONResponse({"message": str(err.detail)}, status_code=err.status_code,
-                            headers=getattr(err, "headers", None))
+                            headers=headers)
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, err: Exception):
@@ -207,10 +273,15 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.get("/healthz", response_model=Health, summary="Liveness (no API key needed)")
     def healthz(request: Request) -> dict:
+        """Always 200 while the server answers. ``status`` is ``"degraded"`` while a running
+        job's progress has not moved for the server's stall time (``stalled`` names the job,
+        its worker and for how long), else ``"ok"``: the server still takes, serves and
+        cancels jobs, so a probe that restarts it on 503 would gain nothing."""
         pool = request.app.state.pool
-        return {"status": "ok", "version": __version__,
+        stalled = pool.stalled() if pool else []
+        return {"status": "degraded" if stalled else "ok", "version": __version__,
                 "workers_alive": pool.alive() if pool else 0,
-                "jobs": request.app.state.store.counts()}
+                "jobs": request.app.state.store.counts(), "stalled": stalled}
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 

@@ -8,6 +8,7 @@ holding a thread. No handler optimises: the worker processes do.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from pathlib import PurePath
 
@@ -45,6 +46,12 @@ _ERRORS = {
     413: {"model": ErrorBody, "description": "upload too large"},
     422: {"model": ErrorBody, "description": "invalid input (line and column for a toolpath)"},
 }
+#: Answers of the routes that read a JSON body.
+_BODY_ERRORS = {
+    **_ERRORS,
+    413: {"model": ErrorBody, "description": "upload too large, or the toolpath's motion too long"},
+    415: {"model": ErrorBody, "description": "the body is not application/json (or is compressed)"},
+}
 
 
 def _store(request: Request) -> Store:
@@ -67,18 +74,45 @@ def _machine(spec: str | dict) -> Machine:
     return machine_from_dict(spec)
 
 
-def _motion_time_s(path, machine, feed_m_s: float | None) -> float:
-    """Lower estimate of a toolpath's motion time: each move at its feed (or the override),
-    capped at the machine's slowest axis speed (rapids at that speed)."""
+def _duration(seconds: float) -> str:
+    return (f"{seconds:.1f} s" if seconds < 1e7 else f"{seconds:.2g} s" if math.isfinite(seconds)
+            else "longer than any limit")
+
+
+def _check_motion(path, machine, feed_m_s: float | None, limit_s: float, *, where: str = "",
+                  advice: str = "") -> None:
+    """Refuse a toolpath whose motion would take longer than ``limit_s`` (413) or that holds
+    a coordinate beyond floating point (422 naming its line), before anything is planned.
+
+    The estimate is a lower bound: each move at its feed (or the override), capped at the
+    machine's slowest axis speed (rapids at that speed; a move without feed too: the planner
+    names it). ``where`` and ``advice`` complete the message.
+    """
     cap = min(a.limits.vmax_m_s for a in machine.axes.values())
-    return sum(seg.length / min(seg.feed_m_s if seg.rapid or feed_m_s is None else feed_m_s, cap)
-               for seg in path.segments)
+    total, longest, line = 0.0, 0.0, 0
+    for seg in path.segments:
+        points = (seg.start, seg.end, getattr(seg, "center", seg.end))
+        with np.errstate(over="ignore"):
+            finite = all(np.isfinite(p).all() for p in points) and math.isfinite(seg.length)
+        if not finite:
+            raise ToolpathError("the coordinates of this move are too large to compute with "
+                                "(its length overflows floating point)", line=seg.line)
+        feed = seg.feed_m_s if seg.rapid or feed_m_s is None else feed_m_s
+        seconds = seg.length / (min(feed, cap) if feed > 0 else cap)
+        total += seconds
+        if seconds > longest:
+            longest, line = seconds, seg.line
+    if total > limit_s:
+        raise HTTPException(
+            413, f"toolpath too long{where}: about {_duration(total)} of motion at the "
+            f"programmed feeds (the longest move, line {line}, {_duration(longest)}); the "
+            f"limit is {limit_s:g} s{advice}")
 
 
 def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
-    """Validate a request (toolpath read, machine checked) and queue its job.
-
-    A synchronous job must stay within the motion-time limit and goes ahead of the queue.
+    """Validate a request (toolpath read, machine checked, motion time bounded) and queue
+    its job. A synchronous job has its own, shorter motion-time limit and goes ahead of the
+    queue.
     """
     from feedplan.read import read_toolpath
 
@@ -87,17 +121,18 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
     path = read_toolpath(tp.content, tp.format, source=tp.name)
     if not path.segments:
         raise ToolpathError("toolpath: the program has no moves")
-    limit = request.app.state.settings.sync_max_motion_s
-    motion_s = _motion_time_s(path, machine, body.options.feed_m_s) if sync else 0.0
-    if motion_s > limit:
-        raise HTTPException(
-            413, f"toolpath too long for the synchronous endpoint: about {motion_s:.1f} s of "
-            f"motion, the limit is {limit:g} s; submit it with POST /v1/jobs instead")
-    row = _store(request).submit(
+    settings = request.app.state.settings
+    if sync:
+        _check_motion(path, machine, body.options.feed_m_s, settings.sync_max_motion_s,
+                      where=" for the synchronous endpoint",
+                      advice="; submit it with POST /v1/jobs instead")
+    else:
+        _check_motion(path, machine, body.options.feed_m_s, settings.job_max_motion_s,
+                      advice=" (the server's --job-max-motion-s)")
+    return _store(request).submit(
         source=tp.name, toolpath_format=tp.format, toolpath=tp.content,
         machine=machine.model_dump(mode="json", exclude_none=True), options=body.options.as_dict(),
         priority=1 if sync else 0)
-    return row
 
 
 def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Response:
@@ -127,7 +162,7 @@ Name = Annotated[str, Query(max_length=63, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$",
                             description="C identifier prefix (format c)")]
 
 
-@router.post("/jobs", status_code=202, response_model=JobAccepted, responses=_ERRORS,
+@router.post("/jobs", status_code=202, response_model=JobAccepted, responses=_BODY_ERRORS,
              summary="Submit a toolpath for optimisation")
 def submit_job(body: JobRequest, request: Request, response: Response) -> dict:
     """Queue a job. The toolpath is read at once (422 naming line and column if it is
@@ -157,14 +192,19 @@ def get_job(job_id: str, request: Request) -> dict:
 
 @router.delete("/jobs/{job_id}", response_model=JobOut, responses=_ERRORS, summary="Cancel a job")
 def cancel_job(job_id: str, request: Request) -> dict:
-    """Cancel a queued or running job (a running one stops at its next progress report).
-    Cancelling a cancelled job is a no-op; a finished job answers 409."""
-    row = _job(request, job_id)
-    if not _store(request).cancel(job_id):
+    """Cancel a queued or running job. A running job's worker process is ended at once
+    (and another started); a job run by another server sharing the database stops at its
+    next progress report. Cancelling a cancelled job is a no-op; a finished job answers 409."""
+    _job(request, job_id)  # 404 for an unknown job
+    cancelled = _store(request).cancel(job_id)
+    if cancelled is None:
         row = _job(request, job_id)
         if row.status != "cancelled":
             raise HTTPException(409, f"job {job_id} has already {row.status}")
-    return job_out(_job(request, job_id))
+        return job_out(row)
+    if request.app.state.pool is not None:
+        request.app.state.pool.kill(cancelled)
+    return job_out(cancelled)
 
 
 @router.get("/jobs/{job_id}/table", responses={
@@ -191,7 +231,9 @@ def get_summary(job_id: str, request: Request) -> dict:
 
 @router.get("/jobs/{job_id}/report", responses={
     200: {"content": {"text/html": {}}, "description": "the report, one self-contained page"},
-    **_ERRORS}, response_class=HTMLResponse, summary="The optimisation report of a succeeded job")
+    **{code: {"description": _ERRORS[code]["description"], "content": {"application/json": {
+        "schema": {"$ref": "#/components/schemas/ErrorBody"}}}} for code in (404, 409, 422)}},
+    response_class=HTMLResponse, summary="The optimisation report of a succeeded job")
 def get_report(job_id: str, request: Request) -> Response:
     """As ``oga optimize --report``. Rebuilt from what the job stored: its toolpath is planned
     again (the setpoint hash must match the summary's) and the baseline gains and the stored
@@ -224,7 +266,7 @@ def get_report(job_id: str, request: Request) -> Response:
 @router.post("/gain-table", responses={
     200: {"content": {m: {} for _, m in TABLE_FORMATS.values()}, "description": "the table"},
     202: {"model": JobAccepted, "description": "not done in time: poll the job"},
-    **_ERRORS}, response_class=Response, summary="Optimise a short toolpath and return the table")
+    **_BODY_ERRORS}, response_class=Response, summary="Optimise a short toolpath and return the table")
 async def gain_table(body: JobRequest, request: Request, format: TableFormat = "csv",
                      name: Name = C_NAME) -> Response:
     """Synchronous: for toolpaths up to the server's motion-time limit (default 10 s of

@@ -20,6 +20,7 @@ __all__ = [
     "MachineInfo",
     "MachineList",
     "Health",
+    "Stalled",
     "TableFormat",
     "error_body",
     "job_out",
@@ -39,7 +40,7 @@ class ToolpathIn(_Strict):
 
     format: Literal["gcode", "csv", "json"] = Field(
         description="gcode (RS274/LinuxCNC), csv or json polyline")
-    content: str = Field(description="the program text (UTF-8)")
+    content: str = Field(min_length=1, description="the program text (UTF-8)")
     name: str = Field("", max_length=255, description="program name, for messages and the summary")
 
 
@@ -76,7 +77,8 @@ class JobOut(BaseModel):
 
     id: str
     status: Literal["queued", "running", "succeeded", "failed", "cancelled"]
-    progress: float = Field(description="fraction of the search done, 0..1")
+    progress: float = Field(description="fraction of the job done (planning, the best fixed "
+                            "gains, the search), 0..1")
     error: dict[str, Any] | None = Field(description="null, or an ErrorBody")
     created_at: str
     started_at: str | None
@@ -108,11 +110,19 @@ class MachineList(BaseModel):
     items: list[MachineInfo]
 
 
+class Stalled(BaseModel):
+    job: str = Field(description="id of the running job")
+    worker_pid: int
+    seconds: float = Field(description="time since its progress last moved, s")
+
+
 class Health(BaseModel):
-    status: str
+    status: Literal["ok", "degraded"] = Field(
+        description="degraded: a running job has made no progress for the server's stall time")
     version: str
     workers_alive: int
     jobs: dict[str, int]
+    stalled: list[Stalled] = Field(description="jobs without progress for the stall time")
 
 
 def error_body(err: BaseException) -> dict:

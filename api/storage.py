@@ -215,13 +215,15 @@ class Store:
         r = self._db().execute("SELECT table_npz FROM results WHERE job_id = ?", (job_id,)).fetchone()
         return None if r is None else bytes(r[0])
 
-    def cancel(self, job_id: str) -> bool:
-        """Cancel a queued or running job; False if it had already finished (or is unknown)."""
+    def cancel(self, job_id: str) -> JobRow | None:
+        """Cancel a queued or running job; returns it (with the owner that ran it, if it
+        was running), or None if it had already finished (or is unknown)."""
         with self._tx() as db:
-            cur = db.execute(
-                "UPDATE jobs SET status = 'cancelled', finished_at = ? "
-                "WHERE id = ? AND status IN ('queued', 'running')", (_now(), job_id))
-        return cur.rowcount == 1
+            r = db.execute(
+                f"UPDATE jobs SET status = 'cancelled', finished_at = ? "
+                f"WHERE id = ? AND status IN ('queued', 'running') RETURNING {_LIST_COLUMNS}",
+                (_now(), job_id)).fetchone()
+        return None if r is None else JobRow._from(r)
 
     # -- workers ----------------------------------------------------------------------------
 

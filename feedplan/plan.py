@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -390,9 +391,11 @@ def _joints(curve):
 
 
 def _plan_feed(
-    block: Block, path: Path, limits: AxisLimits, feeds: np.ndarray, tol_m: float, dt: float
+    block: Block, path: Path, limits: AxisLimits, feeds: np.ndarray, tol_m: float, dt: float,
+    progress: Callable[[float], None] | None = None,
 ):
-    """Samples of a feed block: positions (n, 3) m and source lines (n,)."""
+    """Samples of a feed block: positions (n, 3) m and source lines (n,); ``progress`` is
+    called with the fraction of the candidate filter lengths tried."""
     segs = [path.segments[i] for i in block.segments]
     fb = _Feed(
         block=block,
@@ -417,7 +420,10 @@ def _plan_feed(
     u_jump, d_kappa, u_kink, d_tan = _joints(block.curve)
     best = None
     lengths = sorted({max(1, round(t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
-    for m, (share, compensate) in itertools.product(lengths, _VARIANTS):
+    candidates = list(itertools.product(lengths, _VARIANTS))
+    for tried, (m, (share, compensate)) in enumerate(candidates):
+        if progress is not None:
+            progress(tried / len(candidates))
         T = m * dt
         rounding_m = (tol_m - block.fit_deviation_m) * share
         with np.errstate(divide="ignore"):
@@ -517,6 +523,7 @@ def plan(
     feed_m_s: float | None = None,
     tol_m: float = TOL_M,
     dt: float = DT_S,
+    progress: Callable[[float], None] | None = None,
 ) -> Setpoints:
     """Plan jerk-limited setpoints along a path.
 
@@ -532,6 +539,8 @@ def plan(
         Largest distance of a feed setpoint to the programmed geometry, metres.
     dt : float
         Sample period, seconds.
+    progress : callable, optional
+        Called with the fraction planned (0..1), feed blocks weighted by their length.
 
     Returns
     -------
@@ -555,14 +564,20 @@ def plan(
     seg_feed = _feeds(path, feed_m_s)
     blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION)
     pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]
-    for blk in blocks:
+    weight = np.array([0.0 if b.rapid else sum(path.segments[i].length for i in b.segments)
+                       for b in blocks])
+    done = np.concatenate([[0.0], np.cumsum(weight)]) / max(float(weight.sum()), 1e-300)
+    for k, blk in enumerate(blocks):
         if blk.rapid:
             p, ln = _rapid(blk, path, limits, dt)
         else:
-            p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt)
+            p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt, None if progress is None
+                               else lambda f, k=k: progress(done[k] + f * (done[k + 1] - done[k])))
         pos.append(p[1:])  # p[0] is where the previous block ended, at rest
         line.append(ln[1:])
         rapid.append(np.full(len(p) - 1, blk.rapid))
+    if progress is not None:
+        progress(1.0)
     if blocks:  # the first sample belongs to the first move
         line[0][0], rapid[0][0] = line[1][0], rapid[1][0]
     pos, line, rapid = np.concatenate(pos), np.concatenate(line), np.concatenate(rapid)

@@ -201,3 +201,15 @@ AFSMC_TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)
 LINUXCNC = {"units": "mm", "error_previous_target": True, "thread": "servo-thread",
             "max_rows": 4_000_000}
 __all__ += ["LINUXCNC"]
+
+# --- service bounds (oga serve: what one job may use) -----------------------------------------
+#: Longest toolpath of POST /v1/jobs, seconds of motion at the programmed feeds (413 beyond):
+#: estimated at submission from the moves' lengths and feeds (capped at the slowest axis).
+API_JOB_MAX_MOTION_S = 3600.0
+#: CPU time one attempt of a job may use (RLIMIT_CPU of its worker), s; the job fails beyond.
+API_JOB_CPU_S = 1800.0
+#: Resident memory of the worker running a job (the engine itself takes about 250 MB), bytes;
+#: the job fails beyond.
+API_JOB_MEMORY_BYTES = 4 * 1024**3
+#: A running job whose progress has not moved for this long marks /healthz "degraded", s.
+API_STALL_S = 120.0

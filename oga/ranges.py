@@ -35,6 +35,7 @@ summed only until the partial sum of squares proves that it cannot beat the best
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,6 +71,8 @@ _SUM_SLACK = 1e-6
 #: Samples simulated between two eq. 2 checks in :func:`_equal_gain_search` (speed only:
 #: a pruned configuration wastes the rest of its last chunk, a short chunk costs calls).
 _CHUNK = 64
+#: Parts of the equal-gain grid between two progress reports of :func:`best_fixed_gains`.
+_PROGRESS_PARTS = 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -440,7 +443,8 @@ def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
     )
 
 
-def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None:
+def best_fixed_gains(setpoints: Setpoints, machine: Machine, *,
+                     progress: Callable[[float], None] | None = None) -> BestFixed | None:
     """The best equal fixed gains (paper case C1) without the full tables of :func:`gain_ranges`.
 
     Returns exactly ``gain_ranges(setpoints, machine).best_fixed`` (same gains, same
@@ -457,6 +461,9 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
         Planned motion; its period must be the machine's Te.
     machine : Machine
         Machine description.
+    progress : callable, optional
+        Called with the fraction of the grid visited (0..1), :data:`_PROGRESS_PARTS` times
+        (the same result: the pruning bound is carried from part to part).
 
     Returns
     -------
@@ -487,13 +494,17 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine) -> BestFixed | None
     visit = np.array(
         [(i, j) for i in range(n_kp - 1, -1, -1) for j in range(n_kf - 1, -1, -1)], np.int64
     ).reshape(-1, 2)
-    sse = _equal_gain_search(
-        np.stack([axis_params(machine, a) for a in axes]),
-        np.ascontiguousarray(pos[:, cols].T),
-        np.ascontiguousarray(np.asarray(setpoints.vel, dtype=np.float64)[:, cols].T),
-        cols, pos, feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits, visit,
-        CE_WINDOW_SAMPLES, _SUM_SLACK,
-    )
+    args = (np.stack([axis_params(machine, a) for a in axes]),
+            np.ascontiguousarray(pos[:, cols].T),
+            np.ascontiguousarray(np.asarray(setpoints.vel, dtype=np.float64)[:, cols].T),
+            cols, pos, feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits)
+    parts = [visit] if progress is None else np.array_split(visit, _PROGRESS_PARTS)
+    sse = np.full((n_kp, n_kf), np.inf)
+    for k, part in enumerate(parts):
+        sse = np.minimum(sse, _equal_gain_search(*args, part, CE_WINDOW_SAMPLES, _SUM_SLACK,
+                                                 sse.min()))
+        if progress is not None:
+            progress((k + 1) / len(parts))
     if not np.isfinite(sse).any():
         return None
     # every configuration that may hold the least MSE(CE), Kp-major like gain_ranges' argmin
@@ -572,7 +583,7 @@ def _run_checked(state, params, pd, vd, kp_si, kf, te, lim, k0, k1, p_act, u, ch
 
 @njit(cache=True)
 def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, visit, window,
-                       slack):
+                       slack, best):
     """Sum of squared contour errors of the equal-gain configurations, pruned exactly.
 
     The configurations are visited in the order ``visit``. The moving axes are
@@ -617,6 +628,8 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
         Contour-error window (:func:`oga.contour.ce_series`).
     slack : float
         Relative margin of the pruning test.
+    best : float
+        Least complete sum of configurations visited before (``inf``: none).
 
     Returns
     -------
@@ -635,7 +648,6 @@ def _equal_gain_search(params, pd, vd, cols, pos, feed, te, kp_si, kf, limits, v
     check = np.empty(_CHUNK + 2, dtype=np.bool_)
     states = np.empty((n_ax, rest_state(params[0], 0.0).size))
     tree, lo, hi = path_index(pos, window)
-    best = np.inf
     for m in range(visit.shape[0]):
         i, j = visit[m, 0], visit[m, 1]
         for a in range(n_ax):

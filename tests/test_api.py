@@ -23,6 +23,8 @@ from oga.machine import load_machine, machine_from_dict
 from oga.options import options_from_dict
 from oga.pipeline import run_job
 
+DATA = __import__("pathlib").Path(__file__).parent / "data"
+
 #: A short XZ contour (line, arc, line; about 1 s of motion at F3000).
 PROGRAM = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nG2 X13 Z5 I0 K5\nG1 X25 Z5\nM2\n"
 OPTIONS: dict = {}  # the defaults of oga optimize
@@ -197,6 +199,11 @@ BAD = {
     "not an object": ([1, 2], 422, "body"),
     "empty toolpath": (body("G21\nM2\n"), 422, "no moves"),
     "nan in a csv polyline": (body("x,y,z\n0,0,0\nnan,1,0\n", fmt="csv"), 422, ""),
+    "empty content": (body(""), 422, "toolpath.content: String should have at least 1 character"),
+    "a coordinate beyond floating point": (
+        body("G21 G90\nG1 X0 Y0 F1000\nG1 X" + "9" * 320 + " Y5\nM2\n"), 422, "line 3"),
+    "a csv coordinate beyond floating point": (
+        body("x,y,z\n0,0,0\n1e308,0,0\n-1e308,0,0\n", fmt="csv"), 422, "line 3: "),
 }
 
 
@@ -206,6 +213,29 @@ def test_bad_input_answers_4xx_naming_what_is_wrong(queue_only, case):
     r = queue_only.post("/v1/jobs", json=payload)
     assert r.status_code == status, r.text
     assert words in r.json()["message"] and r.json()["message"]
+
+
+def test_motion_time_beyond_the_limit_is_413_at_submission(queue_only):
+    """Tiny feeds and huge moves are refused before anything is planned, naming the move.
+
+    (A reader that bounds feeds or coordinates itself may refuse them first: 422 naming
+    the same line.)"""
+    for payload, seconds in [
+        (body("G21 G90\nG1 X0 Y0 F0.001\nG1 X1 Y0\nM2\n"), "60000.0 s"),  # 1 mm, 0.001 mm/min
+        (body("G21 G90\nG1 X0 Y0 F3000\nG1 X100000000\nM2\n"), "2000000.0 s"),  # 100 km
+        (body("x,y,z,feed\n0,0,0,1\n1e150,0,0,1\n", fmt="csv"), "6e+151 s"),
+    ]:
+        r = queue_only.post("/v1/jobs", json=payload)
+        message = r.json()["message"]
+        assert "inf" not in message and "line 3" in message, message
+        if r.status_code != 422:
+            assert r.status_code == 413, r.text
+            assert f"line 3, {seconds}" in message and "limit is 3600 s" in message, message
+            assert "--job-max-motion-s" in message
+    nines = body("G21 G90\nG1 X0 Y0 F1000\nG1 X" + "9" * 320 + " Y5\nM2\n")
+    r = queue_only.post("/v1/gain-table", json=nines)  # was 413 "about inf s"
+    assert r.status_code == 422 and "line 3" in r.json()["message"], r.text
+    assert queue_only.get("/v1/jobs").json()["total"] == 0
 
 
 def test_malformed_gcode_names_line_and_column(queue_only):
@@ -365,11 +395,18 @@ def test_table_formats_of_the_api_are_the_export_formats():
     assert set(TableFormat.__args__) == set(TABLE_FORMATS) | {"linuxcnc"}
 
 
-def test_openapi_operations_never_answer_5xx(tmp_path):
-    """schemathesis generates requests from the OpenAPI schema (a few per operation)."""
+def test_openapi_operations_never_answer_5xx_and_answer_as_documented(tmp_path):
+    """schemathesis generates requests from the OpenAPI schema (a few per operation): no 5xx;
+    status codes, media types and bodies as documented; schema-invalid requests refused."""
     import schemathesis
     from hypothesis import given
     from schemathesis.checks import not_a_server_error
+    from schemathesis.specs.openapi.checks import (
+        content_type_conformance,
+        negative_data_rejection,
+        response_schema_conformance,
+        status_code_conformance,
+    )
 
     app = create_app(Settings(db_path=str(tmp_path / "f.db"), workers=0, sync_timeout_s=0.2))
     schema = schemathesis.openapi.from_asgi("/openapi.json", app)
@@ -381,6 +418,92 @@ def test_openapi_operations_never_answer_5xx(tmp_path):
         @settings(max_examples=8, deadline=None, derandomize=True, database=None,
                   phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
         def check(case):
-            case.call_and_validate(checks=[not_a_server_error])
+            case.call_and_validate(checks=[not_a_server_error, status_code_conformance,
+                                           content_type_conformance, response_schema_conformance,
+                                           negative_data_rejection])
 
         check()
+
+
+# -- HTTP conformance: media types, methods, the schema ---------------------------------------------
+
+@pytest.mark.parametrize("headers, content, words", [
+    ({"content-type": "text/plain"}, PROGRAM.encode(), "Content-Type text/plain"),
+    ({"content-type": "multipart/form-data; boundary=x"},
+     b'--x\r\nContent-Disposition: form-data; name="f"\r\n\r\nG1 X1\r\n--x--\r\n',
+     "Content-Type multipart/form-data"),
+    ({"content-type": "application/x-www-form-urlencoded"}, b"a=1", "application/x-www-form"),
+    ({"content-type": "application/json", "content-encoding": "br"}, b"x", "Content-Encoding br"),
+    ({"content-type": "application/json", "content-encoding": "gzip"},
+     __import__("gzip").compress(json.dumps(body()).encode()), "Content-Encoding gzip"),
+], ids=["text", "multipart", "form", "brotli", "gzip"])
+def test_bodies_that_are_not_json_are_415(queue_only, headers, content, words):
+    for path in ("/v1/jobs", "/v1/gain-table"):
+        r = queue_only.post(path, content=content, headers=headers)
+        assert r.status_code == 415, r.text
+        assert words in r.json()["message"] and r.json()["type"] == "UnsupportedMediaType"
+
+
+def test_json_bodies_need_a_json_content_type(queue_only):
+    raw = json.dumps(body()).encode()
+    for headers in ({"content-type": "application/json; charset=utf-8"},
+                    {"content-type": "application/vnd.oga+json"},
+                    {"content-type": "application/json", "content-encoding": "identity"}):
+        assert queue_only.post("/v1/jobs", content=raw, headers=headers).status_code == 202
+    r = queue_only.post("/v1/jobs", content=raw)
+    assert r.status_code == 415 and r.json()["message"].startswith("no Content-Type")
+
+
+def test_405_allows_every_method_of_the_path(queue_only):
+    for method, path, allow in [("PUT", "/v1/jobs/x", "DELETE, GET"),
+                                ("DELETE", "/v1/jobs", "GET, POST"),
+                                ("GET", "/v1/gain-table", "POST"),
+                                ("POST", "/healthz", "GET")]:
+        r = queue_only.request(method, path)
+        assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers)
+        for other in allow.split(", "):  # each one listed is served
+            assert queue_only.request(other, path, json=body()).status_code != 405
+
+
+def test_the_schema_says_what_the_server_answers(queue_only):
+    schema = queue_only.get("/openapi.json").json()
+    content = schema["components"]["schemas"]["ToolpathIn"]["properties"]["content"]
+    assert content["minLength"] == 1
+    report = schema["paths"]["/v1/jobs/{job_id}/report"]["get"]["responses"]
+    assert list(report["200"]["content"]) == ["text/html"]
+    for code in ("404", "409"):
+        assert list(report[code]["content"]) == ["application/json"]
+    job_id = queue_only.post("/v1/jobs", json=body()).json()["id"]
+    r = queue_only.get(f"/v1/jobs/{job_id}/report")
+    assert r.status_code == 409 and r.headers["content-type"] == "application/json"
+    health = schema["components"]["schemas"]["Health"]["properties"]
+    assert set(health["status"]["enum"]) == {"ok", "degraded"} and "stalled" in health
+
+
+# -- progress ------------------------------------------------------------------------------------
+
+def test_progress_moves_through_planning_the_baseline_and_the_search():
+    """A program of many blocks: the fraction rises through planning (to PLAN_SHARE), the
+    best-fixed-gains grid and the search, and never falls; the grid in parts finds the same
+    best fixed gains as in one pass."""
+    from feedplan.read import read_toolpath
+    from oga.pipeline import PLAN_SHARE, plan_toolpath
+    from oga.ranges import best_fixed_gains
+
+    text = (DATA / "reference_xz.ngc").read_text()
+    machine, seen = load_machine("ucp710"), []
+    job = run_job(text, "gcode", machine, options_from_dict({}), progress=seen.append)
+    assert seen == sorted(seen) and seen[-1] == 1.0
+    planning = [f for f in seen if f <= PLAN_SHARE]
+    grid = [f for f in seen if PLAN_SHARE < f <= PLAN_SHARE + (1 - PLAN_SHARE) / 2]
+    assert len(set(planning)) >= 5 and planning[-1] == PLAN_SHARE
+    assert len(set(grid)) >= 10
+    assert len(set(seen)) - len(set(planning)) - len(set(grid)) >= 1  # the search's chunks
+
+    sp = plan_toolpath(read_toolpath(text, "gcode"), machine, feed_m_s=None,
+                       tol_m=options_from_dict({}).tol_m)
+    parts: list[float] = []
+    split, whole = best_fixed_gains(sp, machine, progress=parts.append), best_fixed_gains(sp, machine)
+    assert (split.kp, split.kf, split.mse_ce_m2) == (whole.kp, whole.kf, whole.mse_ce_m2)
+    assert parts == sorted(parts) and len(parts) >= 10 and parts[-1] == 1.0
+    assert job.result.baseline_kp["x"] == whole.kp["x"]

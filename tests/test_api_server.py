@@ -1,4 +1,6 @@
-"""A real ``oga serve`` on 127.0.0.1: a job end to end, and a SIGKILL of the server mid-job."""
+"""A real ``oga serve`` on 127.0.0.1: a job end to end, a SIGKILL of the server mid-job, and jobs
+that obey: DELETE ends the worker, the CPU-time and memory caps fail a job, a stalled worker
+shows in /healthz."""
 
 from __future__ import annotations
 
@@ -18,6 +20,12 @@ import pytest
 DATA = Path(__file__).parent / "data"
 REFERENCE = (DATA / "reference_xz.ngc").read_text()
 SHORT = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nG2 X13 Z5 I0 K5\nG1 X25 Z5\nM2\n"
+#: One 1 m move at F600: 100 s of motion, about 10 s of work (several seconds of it planning
+#: its single block, without a progress report).
+LONG = "G21 G90\nG1 X0 Y0 F600\nG1 X1000\nM2\n"
+#: 600 s of motion: its worker's resident memory passes 300 MiB (about 220 MiB for SHORT).
+BIG = "G21 G90\nG1 X0 Y0 F600\nG1 X6000\nM2\n"
+FINISHED = ("succeeded", "failed", "cancelled")
 
 
 def _free_port() -> int:
@@ -29,13 +37,14 @@ def _free_port() -> int:
 class Server:
     """``oga serve`` in a subprocess on a free loopback port."""
 
-    def __init__(self, db: Path, workers: int, log: Path) -> None:
+    def __init__(self, db: Path, workers: int, log: Path, *flags: str) -> None:
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
+        self.db = db
         self.log = open(log, "ab")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "oga", "serve", "--port", str(self.port), "--db", str(db),
-             "--workers", str(workers)], stdout=self.log, stderr=subprocess.STDOUT)
+             "--workers", str(workers), *flags], stdout=self.log, stderr=subprocess.STDOUT)
         self.http = httpx.Client(base_url=self.url, timeout=30.0)
         t_end = time.monotonic() + 90
         while time.monotonic() < t_end:
@@ -47,6 +56,11 @@ class Server:
                 pass
             time.sleep(0.2)
         raise AssertionError("oga serve did not come up")
+
+    def worker_of(self, job_id: str) -> int:
+        """Pid of the worker that runs (or last ran) the job, from the database."""
+        with sqlite3.connect(self.db) as con:
+            return con.execute("SELECT worker_pid FROM jobs WHERE id = ?", (job_id,)).fetchone()[0]
 
     def kill(self) -> None:
         self.proc.send_signal(signal.SIGKILL)
@@ -147,5 +161,91 @@ def test_a_job_survives_sigkill_of_the_server(tmp_path, cli_table):
         assert server.http.get(f"/v1/jobs/{first}/table").text == cli_table
         job, _ = wait_for(server, second, ("succeeded", "failed", "cancelled"))
         assert job["status"] == "succeeded" and job["attempts"] == 1, job
+    finally:
+        server.stop()
+
+
+# -- jobs obey -------------------------------------------------------------------------------------
+
+def _gone(pid: int) -> bool:
+    """No such process, or a zombie (ended, not reaped yet)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+
+
+def _freeze(pid: int, db: Path) -> None:
+    """SIGSTOP the worker outside a write transaction (one it holds would lock the database)."""
+    for _ in range(50):
+        os.kill(pid, signal.SIGSTOP)
+        con = sqlite3.connect(db, timeout=0.05, isolation_level=None)
+        try:
+            con.execute("BEGIN IMMEDIATE")
+            con.execute("ROLLBACK")
+            return
+        except sqlite3.OperationalError:  # locked: let it finish its write
+            os.kill(pid, signal.SIGCONT)
+            time.sleep(0.02)
+        finally:
+            con.close()
+    raise AssertionError("the worker always holds the database's write lock")
+
+
+def test_a_stalled_worker_shows_in_healthz_and_delete_ends_it_at_once(tmp_path):
+    server = Server(tmp_path / "oga.db", 1, tmp_path / "serve.log", "--stall-s", "1")
+    try:
+        long, short = submit(server, LONG, "long.ngc"), submit(server, SHORT, "short.ngc")
+        wait_for(server, long, ("running",))
+        pid = server.worker_of(long)
+        _freeze(pid, server.db)  # a worker that makes no progress (as one that spins)
+        t_end, health = time.monotonic() + 15, {}
+        while time.monotonic() < t_end:
+            health = server.http.get("/healthz").json()
+            if health["status"] != "ok":
+                break
+            time.sleep(0.2)
+        assert server.http.get("/healthz").status_code == 200
+        assert health["status"] == "degraded", health
+        (stalled,) = health["stalled"]
+        assert stalled["job"] == long and stalled["worker_pid"] == pid and stalled["seconds"] >= 1
+
+        t0 = time.monotonic()
+        r = server.http.delete(f"/v1/jobs/{long}")
+        assert r.status_code == 200 and r.json()["status"] == "cancelled"
+        while not _gone(pid) and time.monotonic() - t0 < 1.0:
+            time.sleep(0.01)
+        ended_s = time.monotonic() - t0
+        assert _gone(pid), "the worker of a cancelled job still runs after 1 s"
+        print(f"\nDELETE -> worker {pid} gone in {ended_s * 1e3:.0f} ms")
+
+        job, _ = wait_for(server, short, FINISHED, timeout_s=120)
+        assert job["status"] == "succeeded" and job["attempts"] == 1, job
+        assert server.worker_of(short) != pid
+        assert server.http.get(f"/v1/jobs/{long}").json()["status"] == "cancelled"
+        health = server.http.get("/healthz").json()
+        assert (health["status"], health["workers_alive"], health["stalled"]) == ("ok", 1, [])
+    finally:
+        server.stop()
+
+
+@pytest.mark.parametrize("flags, program, words, kind", [
+    (("--job-cpu-s", "2"), LONG, "job exceeded its CPU-time limit of 2 s", "CpuTimeLimit"),
+    (("--job-memory-mb", "300"), BIG, "job exceeded its memory limit of 300 MiB", "MemoryLimit"),
+], ids=["cpu", "memory"])
+def test_a_job_over_its_cap_fails_once_and_the_next_job_runs(tmp_path, flags, program, words,
+                                                            kind):
+    server = Server(tmp_path / "oga.db", 1, tmp_path / "serve.log", *flags)
+    try:
+        hog, short = submit(server, program, "hog.ngc"), submit(server, SHORT, "short.ngc")
+        job, _ = wait_for(server, hog, FINISHED, timeout_s=120)
+        assert job["status"] == "failed" and job["attempts"] == 1, job
+        assert job["error"] == {"message": f"{words} (the server's --{flags[0][2:]})",
+                                "type": kind}
+        job, _ = wait_for(server, short, FINISHED, timeout_s=120)
+        assert job["status"] == "succeeded", job
+        assert server.worker_of(short) != server.worker_of(hog)  # the hog's worker was replaced
+        again = server.http.get(f"/v1/jobs/{hog}").json()  # failed for good: never requeued
+        assert (again["status"], again["attempts"]) == ("failed", 1)
     finally:
         server.stop()

@@ -11,7 +11,7 @@ __all__ = ["register", "run"]
 
 def register(sub: argparse._SubParsersAction) -> None:
     from api.storage import default_db_path
-    from oga.defaults import API_HOST, API_MAX_UPLOAD_BYTES, API_PORT
+    from oga import defaults
 
     p = sub.add_parser(
         "serve",
@@ -20,10 +20,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(OpenAPI docs at /docs). Jobs and results live in an SQLite database and "
         "survive a restart.",
     )
-    p.add_argument("--host", default=API_HOST,
-                   help=f"interface to bind (default {API_HOST}, loopback only; "
+    p.add_argument("--host", default=defaults.API_HOST,
+                   help=f"interface to bind (default {defaults.API_HOST}, loopback only; "
                    "0.0.0.0 for all)")
-    p.add_argument("--port", type=int, default=API_PORT, help=f"TCP port (default {API_PORT})")
+    p.add_argument("--port", type=int, default=defaults.API_PORT,
+                   help=f"TCP port (default {defaults.API_PORT})")
     p.add_argument("--db", default=None, metavar="PATH",
                    help=f"SQLite database of jobs and results (default {default_db_path()})")
     p.add_argument("--workers", type=int, default=None, metavar="N",
@@ -32,10 +33,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="require this key (header X-API-Key) on every route but /healthz and the web "
                    "page; "
                    "default the environment variable OGA_API_KEY, else none")
-    p.add_argument("--max-upload-mb", type=float, default=API_MAX_UPLOAD_BYTES / 2**20,
+    p.add_argument("--max-upload-mb", type=float, default=defaults.API_MAX_UPLOAD_BYTES / 2**20,
                    metavar="MB",
-                   help=f"largest request body in MiB (default {API_MAX_UPLOAD_BYTES / 2**20:g}; "
-                   "413 beyond)")
+                   help="largest request body in MiB (default "
+                   f"{defaults.API_MAX_UPLOAD_BYTES / 2**20:g}; 413 beyond)")
+    p.add_argument("--job-cpu-s", type=float, default=defaults.API_JOB_CPU_S, metavar="S",
+                   help="CPU time one job may use, s (default "
+                   f"{defaults.API_JOB_CPU_S:g}); the job fails beyond it")
+    p.add_argument("--job-memory-mb", type=float, default=defaults.API_JOB_MEMORY_BYTES / 2**20,
+                   metavar="MB", help="resident memory of the worker running a job, MiB (default "
+                   f"{defaults.API_JOB_MEMORY_BYTES / 2**20:g}); the job fails beyond it")
+    p.add_argument("--job-max-motion-s", type=float, default=defaults.API_JOB_MAX_MOTION_S,
+                   metavar="S", help="longest toolpath of POST /v1/jobs, s of motion at the "
+                   f"programmed feeds (default {defaults.API_JOB_MAX_MOTION_S:g}; 413 beyond)")
+    p.add_argument("--stall-s", type=float, default=defaults.API_STALL_S, metavar="S",
+                   help="/healthz says degraded while a running job's progress has not moved "
+                   f"for this long, s (default {defaults.API_STALL_S:g})")
     p.set_defaults(func=run)
 
 
@@ -51,8 +64,10 @@ def run(args: argparse.Namespace) -> int:
     workers = default_workers() if args.workers is None else args.workers
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
-    if not 0 < args.max_upload_mb < float("inf"):
-        raise InputError(f"--max-upload-mb must be a positive number, got {args.max_upload_mb}")
+    for flag in ("max_upload_mb", "job_cpu_s", "job_memory_mb", "job_max_motion_s", "stall_s"):
+        value = getattr(args, flag)
+        if not 0 < value < float("inf"):
+            raise InputError(f"--{flag.replace('_', '-')} must be a positive number, got {value}")
     api_key = args.api_key or os.environ.get("OGA_API_KEY") or None
     db = args.db or str(default_db_path())
     try:
@@ -60,7 +75,9 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, sqlite3.Error) as err:
         raise InputError(f"--db {db}: cannot open the database: {err}") from None
     settings = Settings(db_path=db, workers=workers, api_key=api_key,
-                        max_upload_bytes=int(args.max_upload_mb * 2**20))
+                        max_upload_bytes=int(args.max_upload_mb * 2**20),
+                        job_max_motion_s=args.job_max_motion_s, job_cpu_s=args.job_cpu_s,
+                        job_memory_bytes=int(args.job_memory_mb * 2**20), stall_s=args.stall_s)
     print(f"oga serve: http://{args.host}:{args.port} (docs /docs), database {db}, "
           f"{workers} worker(s){', API key required' if api_key else ''}", flush=True)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
