@@ -9,13 +9,16 @@ import tempfile
 from pathlib import Path as FilePath
 
 from oga.defaults import NP
-from oga.errors import InputError
+from oga.errors import InputError, OgaError
 
 __all__ = [
     "add_search_args",
+    "check_outputs",
     "add_toolpath_args",
     "load_inputs",
     "options_from_args",
+    "output_file",
+    "output_folder",
     "write_json",
     "write_text",
 ]
@@ -84,12 +87,91 @@ def load_inputs(args: argparse.Namespace):
     return path, machine, feed_m_s, tol_m
 
 
+def output_file(option: str, target: str) -> FilePath:
+    """Check, before any work, that the file ``target`` of ``option`` can be written.
+
+    Its folder must exist (oga creates no folders for a file), the name must not be a
+    folder or a special file, and the folder must accept a new file. InputError naming
+    the option, the path and the problem otherwise.
+    """
+    if not target:
+        raise InputError(f"{option}: empty file name")
+    path = FilePath(target)
+    if path.is_dir():
+        raise InputError(f"{option} {target}: is a folder, give a file name")
+    if path.exists() and not path.is_file():
+        raise InputError(f"{option} {target}: not a regular file")
+    folder = path.parent
+    if not folder.is_dir():
+        what = "is not a folder" if folder.exists() else "does not exist"
+        raise InputError(f"{option} {target}: folder {folder} {what}")
+    _probe(option, target, folder)
+    return path
+
+
+def output_folder(option: str, target: str) -> FilePath:
+    """Check the output folder ``target`` of ``option``, creating it (not its parents) if missing."""
+    if not target:
+        raise InputError(f"{option}: empty folder name")
+    path = FilePath(target)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{option} {target}: not a folder")
+    if not path.exists():
+        parent = path.absolute().parent
+        if not parent.is_dir():
+            raise InputError(f"{option} {target}: its parent folder {parent} does not exist "
+                             f"(oga creates {path.name} only)")
+        try:
+            path.mkdir()
+        except OSError as err:
+            raise InputError(f"{option} {target}: cannot create the folder ({err.strerror})"
+                             ) from None
+    _probe(option, target, path)
+    return path
+
+
+def _probe(option: str, target: str, folder: FilePath) -> None:
+    """InputError unless a file can be created in ``folder`` (tried, then removed)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".oga-probe.", suffix=".part")
+    except OSError as err:
+        raise InputError(f"{option} {target}: cannot write in {folder} ({err.strerror})"
+                         ) from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def check_outputs(args: argparse.Namespace, *names: str) -> None:
+    """Before any work: each output option given (``args.<name>``, flag ``--<name>``) can be
+    written, and names a file of its own, neither another output nor an input."""
+    seen = {}
+    for name, label in (("toolpath", "the TOOLPATH"), ("machine", "the --machine file")):
+        value = getattr(args, name, None)
+        if value and FilePath(value).is_file():
+            seen[os.path.realpath(value)] = label
+    for name in names:
+        value = getattr(args, name)
+        if value is None:
+            continue
+        option = "--" + name.replace("_", "-")
+        key = os.path.realpath(output_file(option, value))
+        if key in seen:
+            raise InputError(f"{option} {value}: the same file as {seen[key]}")
+        seen[key] = option
+
+
 def write_text(target: str | os.PathLike, text: str) -> None:
-    """Write ``text`` atomically (temporary file in the same folder, then rename)."""
+    """Write ``text`` atomically (temporary file in the same folder, then rename).
+
+    The folder must exist (checked beforehand by :func:`output_file`); a failure to write
+    (disk full, folder removed meanwhile) is an OgaError naming the file, and leaves no
+    temporary file behind.
+    """
     target = FilePath(target)
-    if target.parent and not target.parent.exists():
-        target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".part")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".part")
+    except OSError as err:
+        raise OgaError(f"cannot write {target}: {err.strerror}") from None
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
@@ -97,11 +179,13 @@ def write_text(target: str | os.PathLike, text: str) -> None:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as err:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(err, OSError):
+            raise OgaError(f"cannot write {target}: {err.strerror}") from None
         raise
 
 
