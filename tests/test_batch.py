@@ -55,7 +55,9 @@ def test_batch_writes_tables_reports_failures_and_resumes(tmp_path, reference):
     r = batch(str(src), "--out", str(out), "--jobs", "2", "--format", "csv,json,c", *OPTS)
     assert r.returncode == 1, r.stderr
     bad_line = BAD.splitlines()[2]
-    assert f"bad.ngc: bad.ngc:3:{bad_line.index('Q') + 1}:" in r.stderr  # reason, line, column
+    # the file named once, first, with the line and column
+    assert f"\n  {src / 'bad.ngc'}:3:{bad_line.index('Q') + 1}: Q word" in r.stderr
+    assert f"FAILED   {src / 'bad.ngc'}:3:{bad_line.index('Q') + 1}: Q word" in r.stdout
     assert "1 optimised, 0 skipped, 1 failed" in r.stdout
     assert sorted(p.name for p in out.iterdir()) == [
         "short.csv", "short.h", "short.json", "short.summary.json"]

@@ -21,9 +21,16 @@ __all__ = ["main"]
 COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "compare", "batch", "serve")
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (exit code 2)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command registered."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="oga", description="Offline gain-schedule optimizer for CNC machine tools."
     )
     parser.add_argument("--version", action="version", version=f"oga {__version__}")

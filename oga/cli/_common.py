@@ -9,14 +9,16 @@ import tempfile
 from pathlib import Path as FilePath
 
 from oga.defaults import NP
-from oga.errors import InputError, OgaError
+from oga.errors import GcodeError, InputError, OgaError, OptionError, ToolpathError
 
 __all__ = [
     "add_search_args",
     "check_outputs",
+    "flag_message",
     "add_toolpath_args",
     "load_inputs",
     "options_from_args",
+    "toolpath_message",
     "output_file",
     "output_folder",
     "write_json",
@@ -63,11 +65,22 @@ def options_from_args(args: argparse.Namespace):
     """OptimizeOptions from the search flags and --feed/--tolerance (OptionError if bad)."""
     from oga.options import options_from_dict
 
-    return options_from_dict(
-        None, mode=args.mode, baseline=args.baseline, adjust=args.adjust, gains=args.gains,
-        kp_range=args.kp_range, np=args.np, knot=args.knot, lam=args.lam, anchor=args.anchor,
-        feed=args.feed, tolerance=args.tolerance,
-    )
+    given = {name: getattr(args, name) for name in _SEARCH_FLAGS}
+    return options_from_dict(None, names={name: "--" + name.replace("_", "-")
+                                          for name in _SEARCH_FLAGS}, **given)
+
+
+def flag_message(err: OptionError) -> OptionError:
+    """``err`` with a leading option field (``kp_range: ...``) named as its flag (``--kp-range``)."""
+    head, sep, rest = str(err).partition(": ")
+    if sep and head in _SEARCH_FLAGS:
+        return OptionError(f"--{head.replace('_', '-')}: {rest}")
+    return err
+
+
+#: The flags of add_search_args and add_toolpath_args that are fields of OptimizeOptions.
+_SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot", "lam",
+                 "anchor", "feed", "tolerance")
 
 
 def load_inputs(args: argparse.Namespace):
@@ -81,10 +94,27 @@ def load_inputs(args: argparse.Namespace):
     if args.tolerance is not None and not (0 < args.tolerance <= 10):
         raise InputError(f"--tolerance must be in (0, 10] mm, got {args.tolerance}")
     machine = load_machine(args.machine)
-    path = load_toolpath(args.toolpath)
+    try:
+        path = load_toolpath(args.toolpath)
+    except InputError as err:
+        raise toolpath_message(err, args.toolpath) from None
     feed_m_s = None if args.feed is None else args.feed / 60e3
     tol_m = TOL_M if args.tolerance is None else args.tolerance * 1e-3
     return path, machine, feed_m_s, tol_m
+
+
+def toolpath_message(err: InputError, path: str) -> InputError:
+    """``err``, raised reading the toolpath file ``path``, as one message naming the file once,
+    first: ``path:line:column: what`` (the readers name it after the line, or not at all)."""
+    name = FilePath(path).name
+    if isinstance(err, (GcodeError, ToolpathError)):
+        message = err.message.removeprefix(f"{path}: ").removeprefix(f"{name}: ")
+        where = f":{err.line}" if err.line else ""
+        where += f":{err.column}" if err.line and err.column else ""
+        return InputError(f"{path}{where}: {message}")
+    if str(err).startswith((f"{path}:", f"{name}:")):
+        return err
+    return InputError(f"{path}: {err}")
 
 
 def output_file(option: str, target: str) -> FilePath:
@@ -103,8 +133,8 @@ def output_file(option: str, target: str) -> FilePath:
         raise InputError(f"{option} {target}: not a regular file")
     folder = path.parent
     if not folder.is_dir():
-        what = "is not a folder" if folder.exists() else "does not exist"
-        raise InputError(f"{option} {target}: folder {folder} {what}")
+        what = "is not a folder" if folder.exists() else "does not exist (oga creates no folder)"
+        raise InputError(f"{option} {target}: {folder} {what}")
     _probe(option, target, folder)
     return path
 

@@ -28,8 +28,10 @@ from pathlib import Path as FilePath
 
 from oga.cli._common import (
     add_search_args,
+    flag_message,
     options_from_args,
     output_folder,
+    toolpath_message,
     write_json,
     write_text,
 )
@@ -116,9 +118,10 @@ def _c_name(stem: str) -> str:
 
 
 def _run_one(task: _Task, progress) -> dict:
-    """In a worker process: optimise one program; returns its outputs or its failure."""
+    """In a worker process: optimise one program; returns its outputs or its failure (the
+    reason names the file first)."""
     from feedplan.read import read_file
-    from oga.errors import OgaError
+    from oga.errors import GcodeError, OgaError, OptionError, ToolpathError
     from oga.export import table_c_header, table_csv, table_json
     from oga.machine import machine_from_dict
     from oga.options import options_from_dict
@@ -133,7 +136,8 @@ def _run_one(task: _Task, progress) -> dict:
         summary = job.summary()
         if res.status != "ok":
             return {"status": "failed", "summary": summary, "time_s": time.perf_counter() - t0,
-                    "reason": "verification failed: " + "; ".join(res.optimized.violations)}
+                    "reason": f"{task.file}: verification failed: "
+                              + "; ".join(res.optimized.violations)}
         render = {
             "csv": lambda: table_csv(res),
             "json": lambda: table_json(res, toolpath_sha256=job.toolpath_sha256),
@@ -144,11 +148,15 @@ def _run_one(task: _Task, progress) -> dict:
                           (render[f]() for f in task.formats)))
         return {"status": "ok", "summary": summary, "tables": tables,
                 "time_s": time.perf_counter() - t0}
+    except (GcodeError, ToolpathError) as err:
+        reason = str(toolpath_message(err, task.file))
+    except OptionError as err:
+        reason = f"{task.file}: {flag_message(err)}"
     except OgaError as err:
-        return {"status": "failed", "reason": str(err), "time_s": time.perf_counter() - t0}
+        reason = f"{task.file}: {err}"
     except Exception as err:  # a bug must not stop the other programs
-        return {"status": "failed", "reason": f"internal error: {type(err).__name__}: {err}",
-                "time_s": time.perf_counter() - t0}
+        reason = f"{task.file}: internal error: {type(err).__name__}: {err}"
+    return {"status": "failed", "reason": reason, "time_s": time.perf_counter() - t0}
 
 
 def _worker(conn, parent_pid: int) -> None:
@@ -398,8 +406,8 @@ def _execute(out: FilePath, todo: list[_Task], workers: int, outcomes: dict[int,
                     if slot.task is not None:  # killed (out of memory?) while computing
                         code = slot.process.exitcode
                         finish(slot.task, {"status": "failed", "time_s": 0.0,
-                                           "reason": f"its worker process died (exit code "
-                                           f"{code}: out of memory?)"})
+                                           "reason": f"{slot.task.file}: its worker process "
+                                           f"died (exit code {code}: out of memory?)"})
                 bar.update(sum(partial.values()) / len(todo))
     finally:
         with _signals_deferred():  # a second Ctrl-C must not leave a worker behind
@@ -420,22 +428,21 @@ def _end_worker(slot: _Slot, *, kill: bool) -> None:
 
 def _line(task: _Task, outcome: dict) -> str:
     """The line printed when a program is finished."""
-    name = FilePath(task.file).name
     if outcome["status"] != "ok":
-        return f"FAILED   {name}: {outcome['reason']}"
+        return f"FAILED   {outcome['reason']}"
     s = outcome["summary"]
-    return (f"ok       {name}: MSE ratio {s['ratio_mse']:.3f}, CE rms "
+    return (f"ok       {FilePath(task.file).name}: MSE ratio {s['ratio_mse']:.3f}, CE rms "
             f"{s['optimized']['rms_ce_um']:.3f} um ({outcome['time_s']:.1f} s)")
 
 
 def _report(tasks, skipped, outcomes: dict[int, dict], out: FilePath, wall_s: float) -> None:
     """The batch's last line, and the failures again on stderr."""
-    failed = [(FilePath(t.file).name, outcomes[t.index]["reason"]) for t in tasks
+    failed = [outcomes[t.index]["reason"] for t in tasks
               if t.index in outcomes and outcomes[t.index]["status"] != "ok"]
     n_ok = len(outcomes) - len(failed)
     print(f"{len(tasks)} program(s): {n_ok} optimised, {len(skipped)} skipped, "
           f"{len(failed)} failed in {wall_s:.1f} s -> {out}", flush=True)
     if failed:
         print(f"oga batch: {len(failed)} program(s) failed:", file=sys.stderr)
-        for name, reason in failed:
-            print(f"  {name}: {reason}", file=sys.stderr)
+        for reason in failed:
+            print(f"  {reason}", file=sys.stderr)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import add_toolpath_args, load_inputs, write_json, write_text
+from oga.cli._common import add_toolpath_args, check_outputs, load_inputs, write_json, write_text
 
 __all__ = ["register", "run", "format_table"]
 
@@ -61,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from oga.pipeline import plan_toolpath
 
     names = parse_controllers(args.controllers)
+    check_outputs(args, "json", "report")
     path, machine, feed_m_s, tol_m = load_inputs(args)
     setpoints = plan_toolpath(path, machine, feed_m_s=feed_m_s, tol_m=tol_m)
     cmp = compare(setpoints, machine, names, tune=not args.no_tune)

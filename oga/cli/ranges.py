@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import add_toolpath_args, load_inputs, write_json
+from oga.cli._common import add_toolpath_args, check_outputs, load_inputs, write_json
 
 __all__ = ["register", "run"]
 
@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from oga.ranges import gain_ranges, stability_to_dict
     from oga.stability import stable_range
 
+    check_outputs(args, "json")
     if args.toolpath is None:
         given = [f"--{f}" for f in ("feed", "tolerance") if getattr(args, f) is not None]
         if given:
