@@ -57,11 +57,12 @@ def format_table(cmp) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args, "json", "report")  # before the compiled kernels load
+
     from oga.compare import compare, parse_controllers
     from oga.pipeline import plan_toolpath
 
     names = parse_controllers(args.controllers)
-    check_outputs(args, "json", "report")
     path, machine, feed_m_s, tol_m = load_inputs(args)
     setpoints = plan_toolpath(path, machine, feed_m_s=feed_m_s, tol_m=tol_m)
     cmp = compare(setpoints, machine, names, tune=not args.no_tune)

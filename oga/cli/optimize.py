@@ -39,15 +39,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    options = options_from_args(args)
+    check_outputs(args, "out", "summary", "report")  # before the compiled kernels load
+
+    from feedplan.read import read_file
+    from feedplan.setpoints import AXES
     from oga.errors import GcodeError, OptionError, ToolpathError
     from oga.export import table_csv
     from oga.machine import load_machine
     from oga.pipeline import run_job
-    from feedplan.read import read_file
-    from feedplan.setpoints import AXES
 
-    options = options_from_args(args)
-    check_outputs(args, "out", "summary", "report")
     machine = load_machine(args.machine)
     try:
         text, fmt = read_file(args.toolpath)

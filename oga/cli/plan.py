@@ -25,14 +25,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from feedplan.check import check_setpoints
-    from oga.pipeline import plan_toolpath
     from oga.errors import OptionError
-    from oga.export import setpoints_csv
 
     if args.dt is not None and not 0 < args.dt < float("inf"):
         raise OptionError(f"--dt must be a positive number of seconds, got {args.dt}")
-    check_outputs(args, "out", "summary")
+    check_outputs(args, "out", "summary")  # before the compiled kernels load
+
+    from feedplan.check import check_setpoints
+    from oga.export import setpoints_csv
+    from oga.pipeline import plan_toolpath
+
     path, machine, feed_m_s, tol_m = load_inputs(args)
     dt = machine.te if args.dt is None else args.dt
     limits = machine.axis_limits()

@@ -83,12 +83,13 @@ def _ranges_table(ranges, setpoints) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args, "json")  # before the compiled kernels load
+
     from oga.errors import OptionError
     from oga.machine import load_machine
     from oga.ranges import gain_ranges, stability_to_dict
     from oga.stability import stable_range
 
-    check_outputs(args, "json")
     if args.toolpath is None:
         given = [f"--{f}" for f in ("feed", "tolerance") if getattr(args, f) is not None]
         if given:
