@@ -24,7 +24,7 @@ def test_ucp710_numbers_as_designed():
     assert (x.limits.amax_m_s2, x.limits.jmax_m_s3) == (2.5, 10.0)
     assert (z.limits.amax_m_s2, z.limits.jmax_m_s3) == (2.1, 100.0)
     assert m.axes["y"] == x  # Y takes X's limits and dynamics
-    # DESIGN.md dynamics; Kv = m * 2 pi * 25 Hz
+    # the preset's assumed dynamics; Kv = m * 2 pi * 25 Hz
     assert (x.cascade.mass_kg, z.cascade.mass_kg) == (600.0, 450.0)
     assert (x.cascade.coulomb_n, x.cascade.static_n, x.cascade.viscous_n_s_m) == (60.0, 80.0, 600.0)
     assert (z.cascade.coulomb_n, z.cascade.static_n, z.cascade.viscous_n_s_m) == (90.0, 120.0, 900.0)
