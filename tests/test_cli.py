@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -223,3 +224,27 @@ def test_toolpath_errors_name_the_file_once_first(tmp_path, command):
         line = _one_line_error(oga(command, name, *outs, cwd=tmp_path))
         message = line.split(": error: ", 1)[1]
         assert message.startswith(start) and message.count(name) == 1, line
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_an_input_that_would_never_end_is_refused(tmp_path):
+    """A FIFO or a device (named like a program or a machine file) would block or never end."""
+    os.mkfifo(tmp_path / "fifo.ngc")
+    os.mkfifo(tmp_path / "mill.toml")
+    (tmp_path / "zero.ngc").symlink_to("/dev/zero")
+    src, out = str(DATA / "short_xz.ngc"), str(tmp_path / "o.csv")
+    for name in ("fifo.ngc", "zero.ngc"):
+        for command in (["plan", "--out", out], ["optimize", "--out", out], ["ranges"],
+                        ["compare"]):
+            _one_line_error(oga(command[0], str(tmp_path / name), *command[1:]),
+                            f"TOOLPATH {tmp_path / name}: not a regular file")
+        _one_line_error(oga("batch", str(tmp_path / name), "--out", str(tmp_path / "b")),
+                        f"{tmp_path / name}: not a regular file")
+    machine = str(tmp_path / "mill.toml")
+    _one_line_error(oga("ranges", "--machine", machine), f"--machine {machine}: not a regular")
+    _one_line_error(oga("batch", src, "--machine", machine, "--out", str(tmp_path / "b")),
+                    f"--machine {machine}: not a regular file")
+    # plan, ranges and compare take --feed and --tolerance within oga optimize's bounds
+    _one_line_error(oga("plan", src, "--out", out, "--feed", "1e300"), "--feed:", "1e+300")
+    _one_line_error(oga("compare", src, "--tolerance", "0"), "--tolerance:", "(got 0.0)")
+    assert not (tmp_path / "o.csv").exists() and not (tmp_path / "b").exists()

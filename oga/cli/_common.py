@@ -13,7 +13,7 @@ from oga.errors import GcodeError, InputError, OgaError, OptionError, ToolpathEr
 
 __all__ = [
     "add_search_args",
-    "check_outputs",
+    "check_files",
     "flag_message",
     "add_toolpath_args",
     "load_inputs",
@@ -61,20 +61,25 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                    help="weight pulling the gains back to the baseline (0: the paper's cost)")
 
 
-def options_from_args(args: argparse.Namespace):
-    """OptimizeOptions from the search flags and --feed/--tolerance (OptionError if bad)."""
+def options_from_args(args: argparse.Namespace, fields: tuple[str, ...] = ()):
+    """OptimizeOptions from the flags ``fields`` (default: the search flags and --feed,
+    --tolerance); OptionError naming the flag and the value given if bad."""
     from oga.options import options_from_dict
 
-    given = {name: getattr(args, name) for name in _SEARCH_FLAGS}
-    return options_from_dict(None, names={name: "--" + name.replace("_", "-")
-                                          for name in _SEARCH_FLAGS}, **given)
+    fields = fields or _SEARCH_FLAGS
+    given = {name: getattr(args, name) for name in fields}
+    return options_from_dict(None, names={name: _flag(name) for name in fields}, **given)
+
+
+def _flag(field: str) -> str:
+    return "--" + field.replace("_", "-")
 
 
 def flag_message(err: OptionError) -> OptionError:
     """``err`` with a leading option field (``kp_range: ...``) named as its flag (``--kp-range``)."""
     head, sep, rest = str(err).partition(": ")
     if sep and head in _SEARCH_FLAGS:
-        return OptionError(f"--{head.replace('_', '-')}: {rest}")
+        return OptionError(f"{_flag(head)}: {rest}")
     return err
 
 
@@ -86,21 +91,15 @@ _SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot"
 def load_inputs(args: argparse.Namespace):
     """(path, machine, feed_m_s or None, tol_m) from the common flags; InputError if bad."""
     from feedplan.read import load_toolpath
-    from oga.defaults import TOL_M
     from oga.machine import load_machine
 
-    if args.feed is not None and not (0 < args.feed < float("inf")):
-        raise InputError(f"--feed must be a positive number of mm/min, got {args.feed}")
-    if args.tolerance is not None and not (0 < args.tolerance <= 10):
-        raise InputError(f"--tolerance must be in (0, 10] mm, got {args.tolerance}")
+    options = options_from_args(args, ("feed", "tolerance"))  # the bounds of oga optimize's
     machine = load_machine(args.machine)
     try:
         path = load_toolpath(args.toolpath)
     except InputError as err:
         raise toolpath_message(err, args.toolpath) from None
-    feed_m_s = None if args.feed is None else args.feed / 60e3
-    tol_m = TOL_M if args.tolerance is None else args.tolerance * 1e-3
-    return path, machine, feed_m_s, tol_m
+    return path, machine, options.feed_m_s, options.tol_m
 
 
 def toolpath_message(err: InputError, path: str) -> InputError:
@@ -171,14 +170,18 @@ def _probe(option: str, target: str, folder: FilePath) -> None:
     os.unlink(tmp)
 
 
-def check_outputs(args: argparse.Namespace, *names: str) -> None:
-    """Before any work: each output option given (``args.<name>``, flag ``--<name>``) can be
-    written, and names a file of its own, neither another output nor an input."""
+def check_files(args: argparse.Namespace, *names: str) -> None:
+    """Before any work: the input files given (TOOLPATH, a --machine file) are regular files
+    (a FIFO or a device would block or never end), and each output option given
+    (``args.<name>``, flag ``--<name>``) can be written and names a file of its own,
+    neither another output nor an input."""
     seen = {}
-    for name, label in (("toolpath", "the TOOLPATH"), ("machine", "the --machine file")):
+    for name, label in (("toolpath", "TOOLPATH"), ("machine", "--machine")):
         value = getattr(args, name, None)
-        if value and FilePath(value).is_file():
-            seen[os.path.realpath(value)] = label
+        if value and os.path.exists(value):
+            if not os.path.isfile(value):
+                raise InputError(f"{label} {value}: not a regular file")
+            seen[os.path.realpath(value)] = f"the {label} file"
     for name in names:
         value = getattr(args, name)
         if value is None:

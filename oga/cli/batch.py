@@ -28,6 +28,7 @@ from pathlib import Path as FilePath
 
 from oga.cli._common import (
     add_search_args,
+    check_files,
     flag_message,
     options_from_args,
     output_folder,
@@ -92,8 +93,10 @@ def _expand(inputs: list[str]) -> list[FilePath]:
         p = FilePath(name)
         if p.is_dir():
             files += sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in SUFFIXES)
-        elif p.exists():
+        elif p.is_file():
             files.append(p)
+        elif p.exists():  # a FIFO or a device would block or never end
+            raise InputError(f"{name}: not a regular file")
         else:
             raise InputError(f"{name}: no such file or folder")
     if not files:
@@ -235,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
     jobs = (os.cpu_count() or 1) if args.jobs is None else args.jobs
     if jobs < 1:
         raise InputError(f"--jobs must be at least 1, got {jobs}")
+    check_files(args)
     machine = load_machine(args.machine)
     options = options_from_args(args).as_dict()
     files = _expand(args.inputs)

@@ -10,7 +10,7 @@ from pathlib import Path as FilePath
 from oga.cli._common import (
     add_search_args,
     add_toolpath_args,
-    check_outputs,
+    check_files,
     flag_message,
     options_from_args,
     toolpath_message,
@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
-    check_outputs(args, "out", "summary", "report")  # before the compiled kernels load
+    check_files(args, "out", "summary", "report")  # before the compiled kernels load
 
     from feedplan.read import read_file
     from feedplan.setpoints import AXES

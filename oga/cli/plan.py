@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from oga.cli._common import add_toolpath_args, check_outputs, load_inputs, write_json, write_text
+from oga.cli._common import add_toolpath_args, check_files, load_inputs, write_json, write_text
 
 __all__ = ["register", "run"]
 
@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.dt is not None and not 0 < args.dt < float("inf"):
         raise OptionError(f"--dt must be a positive number of seconds, got {args.dt}")
-    check_outputs(args, "out", "summary")  # before the compiled kernels load
+    check_files(args, "out", "summary")  # before the compiled kernels load
 
     from feedplan.check import check_setpoints
     from oga.export import setpoints_csv
