@@ -94,6 +94,9 @@ def test_bad_arguments_exit_2_before_any_work(tmp_path):
     assert r.returncode == 2 and "--format" in r.stderr
     r = batch(str(tmp_path / "a"), "--out", str(tmp_path / "out"), "--np", "0")
     assert r.returncode == 2 and "np" in r.stderr
+    limit = 4 * (os.cpu_count() or 1)  # defaults.BATCH_MAX_JOBS_PER_CPU per CPU
+    r = batch(str(tmp_path / "a"), "--out", str(tmp_path / "out"), "--jobs", str(limit + 1))
+    assert r.returncode == 2 and f"--jobs must be in 1..{limit}" in r.stderr
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
@@ -210,3 +213,23 @@ def test_sigterm_to_the_batch_alone_ends_its_workers(tmp_path):
         time.sleep(0.05)
     assert not [p for p in workers if _running(p)]
     assert list(out.iterdir()) == []
+
+
+def test_a_closed_stdout_stops_the_batch_quietly(tmp_path):
+    """``oga batch ... | head -1``: the reader has gone; no traceback, no worker left."""
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "p1.ngc").write_text(SHORT)
+    (src / "p2.ngc").write_text(_zigzag(400))
+    proc = _start_batch(src, tmp_path / "out", "--jobs", "2")
+    proc.stdout.close()
+    t_end = time.monotonic() + 60
+    while len(_children(proc.pid)) < 2 and time.monotonic() < t_end:
+        time.sleep(0.05)
+    workers = _children(proc.pid)
+    assert proc.wait(timeout=240) == 128 + signal.SIGPIPE  # at p1's line, long before p2 ends
+    assert proc.stderr.read() == ""
+    t_end = time.monotonic() + 10
+    while any(_running(p) for p in workers) and time.monotonic() < t_end:
+        time.sleep(0.05)
+    assert not [p for p in workers if _running(p)]

@@ -60,7 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="machine preset name or machine file (.toml/.json); default ucp710")
     p.add_argument("--out", required=True, metavar="DIR", help="folder of the outputs")
     p.add_argument("--jobs", type=int, default=None, metavar="N",
-                   help="programs optimised at once (default: one per CPU)")
+                   help="programs optimised at once, each in a process of its own (default: "
+                   "one per CPU; at most 4 per CPU)")
     p.add_argument("--format", default=",".join(BATCH_FORMATS), metavar="LIST",
                    help=f"table formats, comma-separated from {','.join(BATCH_TABLE_FORMATS)} "
                    f"(default {','.join(BATCH_FORMATS)})")
@@ -227,6 +228,7 @@ def _store(out: FilePath, task: _Task, outcome: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from oga.defaults import BATCH_MAX_JOBS_PER_CPU
     from oga.errors import InputError
     from oga.machine import load_machine
 
@@ -235,9 +237,11 @@ def run(args: argparse.Namespace) -> int:
     if bad or not formats or len(set(formats)) != len(formats):
         raise InputError(f"--format: expected names from {','.join(BATCH_TABLE_FORMATS)}, "
                          f"each once; got {args.format!r}")
-    jobs = (os.cpu_count() or 1) if args.jobs is None else args.jobs
-    if jobs < 1:
-        raise InputError(f"--jobs must be at least 1, got {jobs}")
+    cpus = os.cpu_count() or 1
+    jobs = cpus if args.jobs is None else args.jobs
+    if not 1 <= jobs <= BATCH_MAX_JOBS_PER_CPU * cpus:
+        raise InputError(f"--jobs must be in 1..{BATCH_MAX_JOBS_PER_CPU * cpus} "
+                         f"({BATCH_MAX_JOBS_PER_CPU} per CPU), got {jobs}")
     check_files(args)
     machine = load_machine(args.machine)
     options = options_from_args(args).as_dict()
@@ -392,17 +396,13 @@ def _execute(out: FilePath, todo: list[_Task], workers: int, outcomes: dict[int,
                             pass
                 _wait([s.conn for s in slots] + [s.process.sentinel for s in slots], 0.2)
                 for slot in list(slots):
-                    alive = True
-                    try:
-                        while slot.conn.poll():
-                            kind, value = slot.conn.recv()
-                            if kind == "progress":
-                                partial[slot.task.index] = value
-                            else:
-                                task, slot.task = slot.task, None
-                                finish(task, value)
-                    except (EOFError, OSError):
-                        alive = False
+                    messages, alive = _receive(slot.conn)
+                    for kind, value in messages:
+                        if kind == "progress":
+                            partial[slot.task.index] = value
+                        else:
+                            task, slot.task = slot.task, None
+                            finish(task, value)
                     if alive and slot.process.is_alive() and (slot.task or pending):
                         continue
                     slots.remove(slot)
@@ -417,6 +417,17 @@ def _execute(out: FilePath, todo: list[_Task], workers: int, outcomes: dict[int,
         with _signals_deferred():  # a second Ctrl-C must not leave a worker behind
             for slot in slots:
                 _end_worker(slot, kill=True)
+
+
+def _receive(conn: Connection) -> tuple[list, bool]:
+    """The messages a worker has sent, and False if its end of the pipe is closed (it died)."""
+    messages = []
+    try:
+        while conn.poll():
+            messages.append(conn.recv())
+    except (EOFError, OSError):
+        return messages, False
+    return messages, True
 
 
 def _end_worker(slot: _Slot, *, kill: bool) -> None:
