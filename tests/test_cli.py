@@ -248,3 +248,19 @@ def test_an_input_that_would_never_end_is_refused(tmp_path):
     _one_line_error(oga("plan", src, "--out", out, "--feed", "1e300"), "--feed:", "1e+300")
     _one_line_error(oga("compare", src, "--tolerance", "0"), "--tolerance:", "(got 0.0)")
     assert not (tmp_path / "o.csv").exists() and not (tmp_path / "b").exists()
+
+
+def test_readme_quickstart_command_runs_in_a_fresh_folder(tmp_path):
+    """The Quickstart's oga command, as written (it makes its output folder first)."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    block = readme.split("## Quickstart", 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
+    command = block.splitlines()[0].split("&& mkdir -p out && ", 1)[1]
+    assert command.startswith("oga optimize ")
+    (tmp_path / "examples").symlink_to(Path(__file__).parents[1] / "examples")
+    r = oga(*command.split()[1:], cwd=tmp_path)
+    assert r.returncode == 2 and "folder out does not exist" in r.stderr  # no silent mkdir
+    (tmp_path / "out").mkdir()
+    r = oga(*command.split()[1:], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines()[-1] == "limits ok, stability ok -> out/table.csv"
+    assert (tmp_path / "out" / "summary.json").exists()

@@ -132,8 +132,9 @@ def output_file(option: str, target: str) -> FilePath:
         raise InputError(f"{option} {target}: not a regular file")
     folder = path.parent
     if not folder.is_dir():
-        what = "is not a folder" if folder.exists() else "does not exist (oga creates no folder)"
-        raise InputError(f"{option} {target}: {folder} {what}")
+        what = (f"{folder} is not a folder" if folder.exists()
+                else f"folder {folder} does not exist (oga creates none)")
+        raise InputError(f"{option} {target}: {what}")
     _probe(option, target, folder)
     return path
 
