@@ -264,3 +264,18 @@ def test_readme_quickstart_command_runs_in_a_fresh_folder(tmp_path):
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines()[-1] == "limits ok, stability ok -> out/table.csv"
     assert (tmp_path / "out" / "summary.json").exists()
+
+
+def test_an_unexpected_error_is_one_line_not_a_traceback(tmp_path, monkeypatch, capsys):
+    """A bug reached by some input still ends with one line (exit 1), naming the exception."""
+    import oga.cli.plan
+
+    def broken(args):
+        raise OverflowError("int too large to convert to float")
+
+    monkeypatch.setattr(oga.cli.plan, "run", broken)
+    assert main(["plan", str(DATA / "short_xz.ngc"), "--out", str(tmp_path / "o.csv")]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        "oga plan: internal error: OverflowError: int too large to convert to float (a bug: "
+        "please report it with the input; python -X dev -m oga ... shows where)"]

@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; returns the exit code (0 ok, 1 failure, 2 bad input)."""
+    """Run the CLI; returns the exit code (0 ok, 1 failure, 2 bad input, 128 + N on signal N)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -60,6 +60,16 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # stdout closed early (`oga batch ... | head`): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 128 + signal.SIGPIPE
+    except MemoryError:
+        print(f"oga {args.command}: failed: out of memory", file=sys.stderr)
+        return 1
+    except Exception as err:  # a bug: one line (python -X dev oga ... shows the traceback)
+        if sys.flags.dev_mode:
+            raise
+        print(f"oga {args.command}: internal error: {type(err).__name__}: {err} (a bug: "
+              "please report it with the input; python -X dev -m oga ... shows where)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover
