@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_batch import _children, _running, _start_batch, _zigzag  # noqa: E402
+from test_batch import _running, _start_batch, _started, _zigzag  # noqa: E402
 
 
 def stop_once(sig: signal.Signals, to_group: bool) -> tuple[int, float, float, list[str]]:
@@ -30,10 +30,9 @@ def stop_once(sig: signal.Signals, to_group: bool) -> tuple[int, float, float, l
         (src / "a.ngc").write_text(_zigzag(400))
         (src / "b.ngc").write_text(_zigzag(401))
         proc = _start_batch(src, out, "--jobs", "2")
-        while len(_children(proc.pid)) < 2:
-            time.sleep(0.01)
+        _started(proc)
         time.sleep(3.0)
-        children = _children(proc.pid)
+        children = _started(proc)
         t0 = time.perf_counter()
         if to_group:
             os.killpg(proc.pid, sig)

@@ -140,6 +140,24 @@ def _running(pid: int) -> bool:
         return False
 
 
+def _started(proc: subprocess.Popen, workers: int = 2) -> set[int]:
+    """The child processes of ``proc`` once its ``workers`` workers have started."""
+    t_end = time.monotonic() + 60
+    while len(_children(proc.pid)) < workers and time.monotonic() < t_end:
+        time.sleep(0.05)
+    children = _children(proc.pid)
+    assert len(children) >= workers  # the workers (and multiprocessing's resource tracker)
+    return children
+
+
+def _assert_ended(pids: set[int]) -> None:
+    """Assert that none of ``pids`` runs any more (waiting up to 10 s for the kernel)."""
+    t_end = time.monotonic() + 10
+    while any(_running(p) for p in pids) and time.monotonic() < t_end:
+        time.sleep(0.05)
+    assert not [p for p in pids if _running(p)]
+
+
 def _lines(stream) -> "queue.Queue[str]":
     """The lines of ``stream`` as they come (read by a thread)."""
     lines: queue.Queue[str] = queue.Queue()
@@ -162,8 +180,7 @@ def test_ctrl_c_ends_the_batch_and_its_workers_keeping_finished_outputs(tmp_path
     line = stdout.get(timeout=240)
     assert line.startswith("ok       p1.ngc: MSE ratio"), line
     assert proc.poll() is None  # printed while p2 and p3 are still being optimised
-    workers = _children(proc.pid)
-    assert len(workers) >= 2  # two workers (and multiprocessing's resource tracker)
+    workers = _started(proc)
     os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C, or timeout -s INT: the whole process group
     # the zigzags need tens of seconds more each: the batch does not wait for them
     # (how fast it stops is measured by bench/bench_batch_signal.py)
@@ -172,10 +189,7 @@ def test_ctrl_c_ends_the_batch_and_its_workers_keeping_finished_outputs(tmp_path
     assert err.splitlines() == [
         "oga batch: stopped by SIGINT: 1 of 3 program(s) finished (p1.ngc), 2 not (p2.ngc, "
         "p3.ngc); outputs written so far are complete: run the same command again to resume"]
-    t_end = time.monotonic() + 10
-    while any(_running(p) for p in workers) and time.monotonic() < t_end:
-        time.sleep(0.05)
-    assert not [p for p in workers if _running(p)]
+    _assert_ended(workers)
     assert sorted(p.name for p in out.iterdir()) == ["p1.csv", "p1.summary.json"]
 
     # resume: p1 is up to date, the others are done
@@ -196,11 +210,7 @@ def test_sigterm_to_the_batch_alone_ends_its_workers(tmp_path):
     (src / "a.ngc").write_text(_zigzag(400))
     (src / "b.ngc").write_text(_zigzag(401))
     proc = _start_batch(src, out, "--jobs", "2")
-    t_end = time.monotonic() + 60
-    while len(_children(proc.pid)) < 2 and time.monotonic() < t_end:
-        time.sleep(0.05)
-    workers = _children(proc.pid)
-    assert len(workers) >= 2
+    workers = _started(proc)
     time.sleep(1.0)  # the workers are computing
     proc.send_signal(signal.SIGTERM)  # to the batch process only (kill PID)
     assert proc.wait(timeout=30) == 143
@@ -208,10 +218,7 @@ def test_sigterm_to_the_batch_alone_ends_its_workers(tmp_path):
     assert err.splitlines() == [
         "oga batch: stopped by SIGTERM: 0 of 2 program(s) finished (none), 2 not (a.ngc, "
         "b.ngc); outputs written so far are complete: run the same command again to resume"]
-    t_end = time.monotonic() + 10
-    while any(_running(p) for p in workers) and time.monotonic() < t_end:
-        time.sleep(0.05)
-    assert not [p for p in workers if _running(p)]
+    _assert_ended(workers)
     assert list(out.iterdir()) == []
 
 
@@ -223,13 +230,7 @@ def test_a_closed_stdout_stops_the_batch_quietly(tmp_path):
     (src / "p2.ngc").write_text(_zigzag(400))
     proc = _start_batch(src, tmp_path / "out", "--jobs", "2")
     proc.stdout.close()
-    t_end = time.monotonic() + 60
-    while len(_children(proc.pid)) < 2 and time.monotonic() < t_end:
-        time.sleep(0.05)
-    workers = _children(proc.pid)
+    workers = _started(proc)
     assert proc.wait(timeout=240) == 128 + signal.SIGPIPE  # at p1's line, long before p2 ends
     assert proc.stderr.read() == ""
-    t_end = time.monotonic() + 10
-    while any(_running(p) for p in workers) and time.monotonic() < t_end:
-        time.sleep(0.05)
-    assert not [p for p in workers if _running(p)]
+    _assert_ended(workers)
