@@ -76,7 +76,7 @@ def _flag(field: str) -> str:
 
 
 def flag_message(err: OptionError) -> OptionError:
-    """``err`` with a leading option field (``kp_range: ...``) named as its flag (``--kp-range``)."""
+    """``err`` with a leading option field (``kp_range: ...``) as its flag (``--kp-range``)."""
     head, sep, rest = str(err).partition(": ")
     if sep and head in _SEARCH_FLAGS:
         return OptionError(f"{_flag(head)}: {rest}")
@@ -140,7 +140,7 @@ def output_file(option: str, target: str) -> FilePath:
 
 
 def output_folder(option: str, target: str) -> FilePath:
-    """Check the output folder ``target`` of ``option``, creating it (not its parents) if missing."""
+    """Check the output folder ``target`` of ``option``; create it (not its parents) if missing."""
     if not target:
         raise InputError(f"{option}: empty folder name")
     path = FilePath(target)
