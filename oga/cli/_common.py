@@ -13,14 +13,14 @@ from oga.errors import GcodeError, InputError, OgaError, OptionError, ToolpathEr
 
 __all__ = [
     "add_search_args",
+    "add_toolpath_args",
     "check_files",
     "flag_message",
-    "add_toolpath_args",
     "load_inputs",
     "options_from_args",
-    "toolpath_message",
     "output_file",
     "output_folder",
+    "toolpath_message",
     "write_json",
     "write_text",
 ]
@@ -187,7 +187,7 @@ def check_files(args: argparse.Namespace, *names: str) -> None:
         value = getattr(args, name)
         if value is None:
             continue
-        option = "--" + name.replace("_", "-")
+        option = _flag(name)
         key = os.path.realpath(output_file(option, value))
         if key in seen:
             raise InputError(f"{option} {value}: the same file as {seen[key]}")

@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from oga.errors import OptionError
 
     if args.dt is not None and not 0 < args.dt < float("inf"):
-        raise OptionError(f"--dt must be a positive number of seconds, got {args.dt}")
+        raise OptionError(f"--dt: must be a positive number of seconds (got {args.dt})")
     check_files(args, "out", "summary")  # before the compiled kernels load
 
     from feedplan.check import check_setpoints
