@@ -234,3 +234,17 @@ def test_a_closed_stdout_stops_the_batch_quietly(tmp_path):
     assert proc.wait(timeout=240) == 128 + signal.SIGPIPE  # at p1's line, long before p2 ends
     assert proc.stderr.read() == ""
     _assert_ended(workers)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_batch_leaves_no_worker_behind(tmp_path):
+    """SIGKILL (or a crash) gives the batch no chance to end its workers: the kernel does."""
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "a.ngc").write_text(_zigzag(400))
+    (src / "b.ngc").write_text(_zigzag(401))
+    proc = _start_batch(src, tmp_path / "out", "--jobs", "2")
+    workers = _started(proc)
+    proc.kill()
+    assert proc.wait(timeout=30) == -signal.SIGKILL
+    _assert_ended(workers)
