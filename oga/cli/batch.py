@@ -52,13 +52,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="optimise many toolpaths in parallel (resumable)",
         description="Optimise every program: one gain table per format and one summary JSON "
         "per program in DIR. Programs already done with the same text, machine and options "
-        "are skipped, so an interrupted batch resumes where it stopped.",
+        "are skipped, so an interrupted batch resumes where it stopped. A line per program is "
+        "printed as it finishes; Ctrl-C or SIGTERM stops the batch and its workers at once "
+        "(exit 130 / 143), keeping the finished programs' outputs.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="toolpath files (.ngc .nc .gcode .tap .csv .json ...) or folders of them")
     p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
                    help="machine preset name or machine file (.toml/.json); default ucp710")
-    p.add_argument("--out", required=True, metavar="DIR", help="folder of the outputs")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="folder of the outputs (created if missing; its parent must exist)")
     p.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="programs optimised at once, each in a process of its own (default: "
                    "one per CPU; at most 4 per CPU)")
