@@ -5,6 +5,12 @@ Per program ``<stem>`` it writes ``<stem>.<suffix>`` for each table format and
 removed first when a program is redone, so a summary always belongs to the
 tables beside it; a program is up to date (skipped) when its summary says
 ``ok`` for the same toolpath text, machine and options and its tables exist.
+
+Programs run in worker processes of the batch's own (spawned; one pipe each for
+the task, its progress and its outcome), which ignore SIGINT and SIGTERM: on
+either signal the batch kills them and returns 128 + the signal's number. A
+program's files are written with the signals deferred, so they are all there or
+all absent.
 """
 
 from __future__ import annotations
