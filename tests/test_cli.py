@@ -139,6 +139,12 @@ def _output_cases(tmp: Path) -> list[tuple[list[str], tuple[str, ...]]]:
         (["batch", src, "--out", str(missing / "out")],
          ("--out", f"parent folder {missing} does not exist")),
         (["batch", src, "--out", src], ("--out", "not a folder")),
+        (["plan", src, "--out", str(tmp / ("a" * 300 + ".csv"))],
+         ("--out", "cannot write in", "File name too long")),
+        (["batch", src, "--out", str(tmp / ("a" * 300))],
+         ("--out", "cannot create the folder (File name too long)")),
+        (["batch", str(tmp / ("a" * 300 + ".ngc")), "--out", str(tmp / "out")],
+         ("a.ngc: no such file or folder",)),
     ]
 
 

@@ -120,22 +120,23 @@ def output_file(option: str, target: str) -> FilePath:
     """Check, before any work, that the file ``target`` of ``option`` can be written.
 
     Its folder must exist (oga creates no folders for a file), the name must not be a
-    folder or a special file, and the folder must accept a new file. InputError naming
-    the option, the path and the problem otherwise.
+    folder or a special file, and the folder must accept the temporary file that
+    :func:`write_text` writes first. InputError naming the option, the path and the
+    problem otherwise.
     """
     if not target:
         raise InputError(f"{option}: empty file name")
     path = FilePath(target)
-    if path.is_dir():
+    if os.path.isdir(path):  # os.path's tests: False, never OSError, on a bad name
         raise InputError(f"{option} {target}: is a folder, give a file name")
-    if path.exists() and not path.is_file():
+    if os.path.lexists(path) and not os.path.isfile(path):
         raise InputError(f"{option} {target}: not a regular file")
     folder = path.parent
-    if not folder.is_dir():
-        what = (f"{folder} is not a folder" if folder.exists()
+    if not os.path.isdir(folder):
+        what = (f"{folder} is not a folder" if os.path.lexists(folder)
                 else f"folder {folder} does not exist (oga creates none)")
         raise InputError(f"{option} {target}: {what}")
-    _probe(option, target, folder)
+    _probe(option, target, folder, f".{path.name}.")
     return path
 
 
@@ -144,11 +145,11 @@ def output_folder(option: str, target: str) -> FilePath:
     if not target:
         raise InputError(f"{option}: empty folder name")
     path = FilePath(target)
-    if path.exists() and not path.is_dir():
+    if os.path.lexists(path) and not os.path.isdir(path):
         raise InputError(f"{option} {target}: not a folder")
-    if not path.exists():
+    if not os.path.isdir(path):
         parent = path.absolute().parent
-        if not parent.is_dir():
+        if not os.path.isdir(parent):
             raise InputError(f"{option} {target}: its parent folder {parent} does not exist "
                              f"(oga creates {path.name} only)")
         try:
@@ -156,14 +157,14 @@ def output_folder(option: str, target: str) -> FilePath:
         except OSError as err:
             raise InputError(f"{option} {target}: cannot create the folder ({err.strerror})"
                              ) from None
-    _probe(option, target, path)
+    _probe(option, target, path, ".oga-probe.")
     return path
 
 
-def _probe(option: str, target: str, folder: FilePath) -> None:
-    """InputError unless a file can be created in ``folder`` (tried, then removed)."""
+def _probe(option: str, target: str, folder: FilePath, prefix: str) -> None:
+    """InputError unless a file named ``prefix...`` can be created in ``folder`` (then removed)."""
     try:
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".oga-probe.", suffix=".part")
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=prefix, suffix=".part")
     except OSError as err:
         raise InputError(f"{option} {target}: cannot write in {folder} ({err.strerror})"
                          ) from None

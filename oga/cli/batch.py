@@ -101,11 +101,11 @@ def _expand(inputs: list[str]) -> list[FilePath]:
     files = []
     for name in inputs:
         p = FilePath(name)
-        if p.is_dir():
+        if os.path.isdir(p):  # os.path's tests: False, never OSError, on a bad name
             files += sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in SUFFIXES)
-        elif p.is_file():
+        elif os.path.isfile(p):
             files.append(p)
-        elif p.exists():  # a FIFO or a device would block or never end
+        elif os.path.lexists(p):  # a FIFO or a device would block or never end
             raise InputError(f"{name}: not a regular file")
         else:
             raise InputError(f"{name}: no such file or folder")
