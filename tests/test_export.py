@@ -157,3 +157,21 @@ def test_readme_library_example_runs_after_import_oga_alone(tmp_path, job):
     assert status.split()[0] == "ok" and 0 < float(status.split()[1]) < 1
     assert header == ",".join(table_columns(job.result)[0])
     assert same == "True" and loaded == "[]"
+
+
+def test_oga_optimize_stays_the_function_whatever_loads_its_module_first():
+    """``oga.optimize``/``oga.simulate`` are functions with submodules of the same name: a
+    submodule loaded first (by ``oga.run_job`` or ``import oga.pipeline``) must not take
+    the function's place."""
+    import sys
+
+    code = ("import oga\n"
+            "oga.run_job\n"
+            "import oga.pipeline, oga.optimize, oga.simulate\n"
+            "print(oga.optimize.__module__, oga.optimize.__name__, oga.simulate.__name__)\n"
+            "from oga import optimize\n"
+            "print(callable(optimize), sorted(set(dir(oga)) & {'export', 'optimize'}))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == ["oga.optimize optimize simulate",
+                                     "True ['export', 'optimize']"]
