@@ -141,13 +141,25 @@ def _running(pid: int) -> bool:
 
 
 def _started(proc: subprocess.Popen, workers: int = 2) -> set[int]:
-    """The child processes of ``proc`` once its ``workers`` workers have started."""
+    """The child processes of ``proc`` (its workers, multiprocessing's resource tracker) once
+    its ``workers`` workers have started."""
+
+    def spawned(pids: set[int]) -> int:
+        return sum(b"spawn_main" in _cmdline(p) for p in pids)
+
     t_end = time.monotonic() + 60
-    while len(_children(proc.pid)) < workers and time.monotonic() < t_end:
+    while spawned(_children(proc.pid)) < workers and time.monotonic() < t_end:
         time.sleep(0.05)
     children = _children(proc.pid)
-    assert len(children) >= workers  # the workers (and multiprocessing's resource tracker)
+    assert spawned(children) >= workers
     return children
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return (Path("/proc") / str(pid) / "cmdline").read_bytes()
+    except OSError:
+        return b""
 
 
 def _assert_ended(pids: set[int]) -> None:
