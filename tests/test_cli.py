@@ -285,3 +285,26 @@ def test_an_unexpected_error_is_one_line_not_a_traceback(tmp_path, monkeypatch, 
     assert err.splitlines() == [
         "oga plan: internal error: OverflowError: int too large to convert to float (a bug: "
         "please report it with the input; python -X dev -m oga ... shows where)"]
+
+
+def test_toolpath_message_names_the_file_once_first_whatever_the_reader_said():
+    """Readers name the file after the line, before the message, first, or not at all."""
+    from oga.cli._common import toolpath_message
+    from oga.errors import GcodeError, InputError, ToolpathError
+
+    given = "dir/part.csv"
+    for err, expected in [
+        (ToolpathError("field y: 'a' is not a number", 3, 2),
+         "dir/part.csv:3:2: field y: 'a' is not a number"),
+        (ToolpathError("part.csv: not UTF-8 text (byte 0xe9)", 2, 13),
+         "dir/part.csv:2:13: not UTF-8 text (byte 0xe9)"),
+        (GcodeError("Q word: has no number", 2, 12, source="part.csv"),
+         "dir/part.csv:2:12: Q word: has no number"),
+        (ToolpathError("row 4: z missing", 4), "dir/part.csv:4: row 4: z missing"),
+        (ToolpathError("part.csv:3:2: field y: bad"), "part.csv:3:2: field y: bad"),
+        (InputError("dir/part.csv: cannot read the file (No such file or directory)"),
+         "dir/part.csv: cannot read the file (No such file or directory)"),
+        (ToolpathError("a JSON polyline is a list of points"),
+         "dir/part.csv: a JSON polyline is a list of points"),
+    ]:
+        assert str(toolpath_message(err, given)) == expected

@@ -9,7 +9,7 @@ import tempfile
 from pathlib import Path as FilePath
 
 from oga.defaults import NP
-from oga.errors import GcodeError, InputError, OgaError, OptionError, ToolpathError
+from oga.errors import InputError, OgaError, OptionError
 
 __all__ = [
     "add_search_args",
@@ -106,14 +106,14 @@ def toolpath_message(err: InputError, path: str) -> InputError:
     """``err``, raised reading the toolpath file ``path``, as one message naming the file once,
     first: ``path:line:column: what`` (the readers name it after the line, or not at all)."""
     name = FilePath(path).name
-    if isinstance(err, (GcodeError, ToolpathError)):
-        message = err.message.removeprefix(f"{path}: ").removeprefix(f"{name}: ")
-        where = f":{err.line}" if err.line else ""
-        where += f":{err.column}" if err.line and err.column else ""
-        return InputError(f"{path}{where}: {message}")
-    if str(err).startswith((f"{path}:", f"{name}:")):
-        return err
-    return InputError(f"{path}: {err}")
+    text = getattr(err, "message", str(err))  # GcodeError, ToolpathError: without the place
+    for prefix in (f"{path}: ", f"{name}: "):
+        text = text.removeprefix(prefix)
+    if text.startswith((f"{path}:", f"{name}:")):  # named first already
+        return InputError(text)
+    line, column = getattr(err, "line", 0), getattr(err, "column", 0)
+    where = (f":{line}" + (f":{column}" if column else "")) if line else ""
+    return InputError(f"{path}{where}: {text}")
 
 
 def output_file(option: str, target: str) -> FilePath:
