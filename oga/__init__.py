@@ -7,6 +7,8 @@ compiled kernels load only when used.
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 
 __version__ = "0.1.0"
 
@@ -33,10 +35,17 @@ _EXPORTS = {
     "TuneError": "oga.errors",
 }
 
+#: Submodules a library user reaches as ``oga.<name>`` without importing them first
+#: (``oga.export.table_csv(result)``); loaded on first use, like the names above.
+_SUBMODULES = ("compare", "defaults", "export", "machine", "options", "pipeline", "ranges",
+               "report", "verify")
+
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 
 def __getattr__(name: str):
+    if name in _SUBMODULES:
+        return importlib.import_module(f"oga.{name}")  # the import binds it here
     try:
         module = _EXPORTS[name]
     except KeyError:
@@ -47,4 +56,18 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return __all__
+    return __all__ + list(_SUBMODULES)
+
+
+class _Package(types.ModuleType):
+    """``oga``: the functions ``optimize`` and ``simulate`` keep their names when their
+    submodules (``oga.optimize``, ``oga.simulate``) are imported, which would otherwise
+    bind the submodule in their place."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in _EXPORTS and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

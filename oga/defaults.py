@@ -28,6 +28,7 @@ __all__ = [
     "API_SYNC_MAX_MOTION_S",
     "API_SYNC_TIMEOUT_S",
     "BATCH_FORMATS",
+    "BATCH_MAX_JOBS_PER_CPU",
     "CCC_DEFAULTS",
     "CCC_TUNE_GRID",
     "ZPETC_CCC_DDOB_DEFAULTS",
@@ -112,6 +113,9 @@ API_SYNC_MAX_MOTION_S = 10.0
 API_SYNC_TIMEOUT_S = 120.0
 #: Table formats written by ``oga batch`` (names of oga.export.TABLE_FORMATS).
 BATCH_FORMATS = ("csv",)
+#: ``oga batch --jobs`` at most this many worker processes per CPU (each holds the compiled
+#: kernels and a program's arrays in memory; the work is CPU-bound).
+BATCH_MAX_JOBS_PER_CPU = 4
 #: Report figures: points per drawn line at most (min/max buckets keep the peaks).
 REPORT_MAX_POINTS = 2000
 

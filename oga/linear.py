@@ -4,7 +4,7 @@ Used by the simulation kernel (its sub-step matrices and its lifted step) and by
 the stability analysis (the linearised loop lifted over Te). An axis is either a
 cascade (below) or an identified ARX velocity loop (:func:`arx_state_space`).
 
-The continuous mechanics of one axis (DESIGN.md), with state ``x = [p, v, F]``
+The continuous mechanics of one axis (:class:`oga.machine.Cascade`), with state ``x = [p, v, F]``
 (position m, velocity m/s, actual force N) and inputs ``[F_cmd, F_n]`` (force
 command N, nonlinear friction force N)::
 

@@ -97,12 +97,15 @@ class OptimizeOptions(BaseModel):
 
     @field_validator("baseline", "kp_range", mode="before")
     @classmethod
-    def _pair(cls, v):
+    def _pair(cls, v, info):
         if isinstance(v, str) and v != "best":
             try:
                 v = tuple(float(p) for p in v.split(","))
             except ValueError:
-                raise ValueError("expected 'best' or two numbers KP,KF") from None
+                v = ()
+            if len(v) != 2:
+                raise ValueError("expected two numbers LO,HI" if info.field_name == "kp_range"
+                                 else "expected 'best' or two numbers KP,KF")
         return v
 
     @model_validator(mode="after")
@@ -168,15 +171,27 @@ class OptimizeOptions(BaseModel):
         return out
 
 
-def options_from_dict(data: dict | None = None, **overrides) -> OptimizeOptions:
-    """Validate options (API body, CLI flags), raising OptionError naming the field."""
+def options_from_dict(data: dict | None = None, *, names: dict[str, str] | None = None,
+                      **overrides) -> OptimizeOptions:
+    """Validate options (API body, CLI flags), raising OptionError naming the field.
+
+    ``names`` maps a field to the name the caller gave it (the CLI: its flag); such a
+    field's message also quotes the value given.
+    """
     merged = {**(data or {}), **{k: v for k, v in overrides.items() if v is not None}}
     try:
         return OptimizeOptions.model_validate(merged)
     except ValidationError as err:
         parts = []
         for e in err.errors():
-            loc = ".".join(str(x) for x in e["loc"]) or "options"
+            loc = [str(x) for x in e["loc"]]
             msg = "unknown option" if e["type"] == "extra_forbidden" else e["msg"]
-            parts.append(f"{loc}: {msg}")
+            msg = msg.removeprefix("Value error, ")
+            head, sep, rest = msg.partition(": ")
+            if not loc and sep and head in OptimizeOptions.model_fields:  # _consistent's
+                loc, msg = [head], rest
+            if names and loc and loc[0] in names:
+                parts.append(f"{names[loc[0]]}: {msg} (got {merged.get(loc[0])!r})")
+            else:
+                parts.append(f"{'.'.join(loc) or 'options'}: {msg}")
         raise OptionError("; ".join(parts)) from None

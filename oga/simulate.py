@@ -3,7 +3,7 @@
 An axis is one of two kinds (:class:`oga.machine.Axis`), told apart by a kind code
 in its packed parameters, so every compiled function below takes either.
 
-**Cascade** (DESIGN.md). Per axis and position-loop sample k (period Te):
+**Cascade** (:class:`oga.machine.Cascade`). Per axis and position-loop sample k (period Te):
 
 1. measure ``p_k``;
 2. velocity command ``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (Kp in 1/s);

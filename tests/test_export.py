@@ -132,3 +132,46 @@ def test_c_header_compiles_and_holds_the_exact_values(job, tmp_path):
     got = np.array([[float(v) for v in line.split()] for line in lines[3:]])
     # C order: t, s, then per axis (pos, vel, kp, kf); the CSV order: per axis the same four
     assert np.array_equal(got, data)
+
+
+def test_readme_library_example_runs_after_import_oga_alone(tmp_path, job):
+    """The README's library section, run as written in a fresh interpreter: ``import oga``
+    is enough for ``oga.export.table_csv(result)``, and no plotting or web module loads."""
+    from pathlib import Path
+    import sys
+
+    root = Path(__file__).parents[1]
+    section = (root / "README.md").read_text().split("## The library", 1)[1]
+    code = section.split("```python\n", 1)[1].split("```", 1)[0]
+    program = tmp_path / "part.ngc"
+    program.write_text(PROGRAM)
+    code += ("import sys\n"
+             "print(oga.export.table_csv(result).splitlines()[0])\n"
+             "print(result.summary()['ratio_mse'] == result.ratio_mse)\n"
+             "print(sorted(m for m in ('matplotlib', 'plotly', 'fastapi', 'uvicorn', 'oga.report')"
+             " if m in sys.modules))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    status, header, same, loaded = r.stdout.splitlines()
+    assert status.split()[0] == "ok" and 0 < float(status.split()[1]) < 1
+    assert header == ",".join(table_columns(job.result)[0])
+    assert same == "True" and loaded == "[]"
+
+
+def test_oga_optimize_stays_the_function_whatever_loads_its_module_first():
+    """``oga.optimize``/``oga.simulate`` are functions with submodules of the same name: a
+    submodule loaded first (by ``oga.run_job`` or ``import oga.pipeline``) must not take
+    the function's place."""
+    import sys
+
+    code = ("import oga\n"
+            "oga.run_job\n"
+            "import oga.pipeline, oga.optimize, oga.simulate\n"
+            "print(oga.optimize.__module__, oga.optimize.__name__, oga.simulate.__name__)\n"
+            "from oga import optimize\n"
+            "print(callable(optimize), sorted(set(dir(oga)) & {'export', 'optimize'}))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == ["oga.optimize optimize simulate",
+                                     "True ['export', 'optimize']"]

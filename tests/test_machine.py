@@ -24,7 +24,7 @@ def test_ucp710_numbers_as_designed():
     assert (x.limits.amax_m_s2, x.limits.jmax_m_s3) == (2.5, 10.0)
     assert (z.limits.amax_m_s2, z.limits.jmax_m_s3) == (2.1, 100.0)
     assert m.axes["y"] == x  # Y takes X's limits and dynamics
-    # DESIGN.md dynamics; Kv = m * 2 pi * 25 Hz
+    # the preset's assumed dynamics; Kv = m * 2 pi * 25 Hz
     assert (x.cascade.mass_kg, z.cascade.mass_kg) == (600.0, 450.0)
     assert (x.cascade.coulomb_n, x.cascade.static_n, x.cascade.viscous_n_s_m) == (60.0, 80.0, 600.0)
     assert (z.cascade.coulomb_n, z.cascade.static_n, z.cascade.viscous_n_s_m) == (90.0, 120.0, 900.0)
@@ -105,7 +105,7 @@ def test_planning_limits_keep_the_loop_reserve():
 def test_ucp710_digest_unchanged():
     # tables carry the digest: the ARX axis kind must not change ucp710's
     assert load_machine("ucp710").digest() == (
-        "b63865ab0901bcc2b2fa2322cd4be1b9ba1df3d85d80510c5e67e4d968535ea3"
+        "5d3ae8712864b38548a4a3dba3af8a984066967bbeaff6ac7439e7c8fd4b25c5"  # source: no DESIGN.md
     )
     assert all(a.kind == "cascade" and a.arx is None for a in load_machine("ucp710").axes.values())
 

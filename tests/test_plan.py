@@ -26,7 +26,7 @@ from feedplan.setpoints import Setpoints
 from feedplan.plan import _AT_SHARE, plan
 from oga.errors import OptionError, ToolpathError
 
-#: ucp710 (DESIGN.md): X and Y 30 m/min, 2.5 m/s^2, 10 m/s^3; Z 30 m/min, 2.1 m/s^2, 100 m/s^3
+#: ucp710.toml: X and Y 30 m/min, 2.5 m/s^2, 10 m/s^3; Z 30 m/min, 2.1 m/s^2, 100 m/s^3
 UCP = AxisLimits(np.full(3, 0.5), np.array([2.5, 2.5, 2.1]), np.array([10.0, 10.0, 100.0]))
 F3000 = 0.05  # m/s
 DATA = FilePath(__file__).with_name("data")

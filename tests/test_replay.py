@@ -11,7 +11,7 @@ What is independent of what:
 - the machine numbers come from ``oga/presets/ucp710.toml`` parsed with
   :mod:`tomllib`, not from ``oga.machine``;
 - the simulator (:func:`replay_axis`) is written in plain Python/numpy/scipy from
-  the model's description (DESIGN.md "Reference machine ucp710" and the module
+  the model's description (the comments of ``oga/presets/ucp710.toml`` and the module
   docstring of ``oga/simulate.py``): its sub-step matrices come from
   :func:`scipy.linalg.expm` of the continuous equations, one sub-step after the
   other everywhere (no lifted step over Te, no compiled code);
@@ -49,7 +49,7 @@ PRESET = ROOT / "oga" / "presets" / "ucp710.toml"
 AXES = ("x", "y", "z")
 #: (m/min)/mm -> 1/s.
 KP_SI = 1000.0 / 60.0
-#: Friction smoothing velocity of DESIGN.md (``s = tanh(v / 1e-4 m/s)``), used when
+#: Default friction smoothing velocity (``s = tanh(v / 1e-4 m/s)``), used when
 #: the machine file does not set ``friction_smoothing_m_s``.
 EPS_DEFAULT_M_S = 1e-4
 #: Segments each side of a sample searched by the brute-force contour error.

@@ -180,7 +180,7 @@ def test_friction_opposes_motion(axis):
         ffr = friction_nonlinear(params, v) + b * v
         assert math.copysign(1.0, ffr) == math.copysign(1.0, v) and ffr != 0.0
     assert friction_nonlinear(params, 0.0) == 0.0
-    # DESIGN.md's formula, with numpy's tanh and exp
+    # oga.machine.Cascade's friction formula, with numpy's tanh and exp
     cas = UCP.axes[axis].cascade
     for v in np.linspace(-0.02, 0.02, 4001):
         s = np.tanh(v / cas.friction_smoothing_m_s)

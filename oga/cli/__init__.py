@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
 
 from oga import __version__
@@ -22,9 +24,16 @@ COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "compare", "batch", "
                              "export")
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (exit code 2)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command registered."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="oga", description="Offline gain-schedule optimizer for CNC machine tools."
     )
     parser.add_argument("--version", action="version", version=f"oga {__version__}")
@@ -35,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; returns the exit code (0 ok, 1 failure, 2 bad input)."""
+    """Run the CLI; returns the exit code (0 ok, 1 failure, 2 bad input, 128 + N on signal N)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -49,6 +58,19 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"oga {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # stdout closed early (`oga batch ... | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
+    except MemoryError:
+        print(f"oga {args.command}: failed: out of memory", file=sys.stderr)
+        return 1
+    except Exception as err:  # a bug: one line (python -X dev oga ... shows the traceback)
+        if sys.flags.dev_mode:
+            raise
+        print(f"oga {args.command}: internal error: {type(err).__name__}: {err} (a bug: "
+              "please report it with the input; python -X dev -m oga ... shows where)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,13 +9,18 @@ import tempfile
 from pathlib import Path as FilePath
 
 from oga.defaults import NP
-from oga.errors import InputError
+from oga.errors import InputError, OgaError, OptionError
 
 __all__ = [
     "add_search_args",
     "add_toolpath_args",
+    "check_files",
+    "flag_message",
     "load_inputs",
     "options_from_args",
+    "output_file",
+    "output_folder",
+    "toolpath_message",
     "write_json",
     "write_text",
 ]
@@ -56,40 +61,152 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                    help="weight pulling the gains back to the baseline (0: the paper's cost)")
 
 
-def options_from_args(args: argparse.Namespace):
-    """OptimizeOptions from the search flags and --feed/--tolerance (OptionError if bad)."""
+def options_from_args(args: argparse.Namespace, fields: tuple[str, ...] = ()):
+    """OptimizeOptions from the flags ``fields`` (default: the search flags and --feed,
+    --tolerance); OptionError naming the flag and the value given if bad."""
     from oga.options import options_from_dict
 
-    return options_from_dict(
-        None, mode=args.mode, baseline=args.baseline, adjust=args.adjust, gains=args.gains,
-        kp_range=args.kp_range, np=args.np, knot=args.knot, lam=args.lam, anchor=args.anchor,
-        feed=args.feed, tolerance=args.tolerance,
-    )
+    fields = fields or _SEARCH_FLAGS
+    given = {name: getattr(args, name) for name in fields}
+    return options_from_dict(None, names={name: _flag(name) for name in fields}, **given)
+
+
+def _flag(field: str) -> str:
+    return "--" + field.replace("_", "-")
+
+
+def flag_message(err: OptionError) -> OptionError:
+    """``err`` with a leading option field (``kp_range: ...``) as its flag (``--kp-range``)."""
+    head, sep, rest = str(err).partition(": ")
+    if sep and head in _SEARCH_FLAGS:
+        return OptionError(f"{_flag(head)}: {rest}")
+    return err
+
+
+#: The flags of add_search_args and add_toolpath_args that are fields of OptimizeOptions.
+_SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot", "lam",
+                 "anchor", "feed", "tolerance")
 
 
 def load_inputs(args: argparse.Namespace):
     """(path, machine, feed_m_s or None, tol_m) from the common flags; InputError if bad."""
     from feedplan.read import load_toolpath
-    from oga.defaults import TOL_M
     from oga.machine import load_machine
 
-    if args.feed is not None and not (0 < args.feed < float("inf")):
-        raise InputError(f"--feed must be a positive number of mm/min, got {args.feed}")
-    if args.tolerance is not None and not (0 < args.tolerance <= 10):
-        raise InputError(f"--tolerance must be in (0, 10] mm, got {args.tolerance}")
+    options = options_from_args(args, ("feed", "tolerance"))  # the bounds of oga optimize's
     machine = load_machine(args.machine)
-    path = load_toolpath(args.toolpath)
-    feed_m_s = None if args.feed is None else args.feed / 60e3
-    tol_m = TOL_M if args.tolerance is None else args.tolerance * 1e-3
-    return path, machine, feed_m_s, tol_m
+    try:
+        path = load_toolpath(args.toolpath)
+    except InputError as err:
+        raise toolpath_message(err, args.toolpath) from None
+    return path, machine, options.feed_m_s, options.tol_m
+
+
+def toolpath_message(err: InputError, path: str) -> InputError:
+    """``err``, raised reading the toolpath file ``path``, as one message naming the file once,
+    first: ``path:line:column: what`` (the readers name it after the line, or not at all)."""
+    name = FilePath(path).name
+    text = getattr(err, "message", str(err))  # GcodeError, ToolpathError: without the place
+    for prefix in (f"{path}: ", f"{name}: "):
+        text = text.removeprefix(prefix)
+    if text.startswith((f"{path}:", f"{name}:")):  # named first already
+        return InputError(text)
+    line, column = getattr(err, "line", 0), getattr(err, "column", 0)
+    where = (f":{line}" + (f":{column}" if column else "")) if line else ""
+    return InputError(f"{path}{where}: {text}")
+
+
+def output_file(option: str, target: str) -> FilePath:
+    """Check, before any work, that the file ``target`` of ``option`` can be written.
+
+    Its folder must exist (oga creates no folders for a file), the name must not be a
+    folder or a special file, and the folder must accept the temporary file that
+    :func:`write_text` writes first. InputError naming the option, the path and the
+    problem otherwise.
+    """
+    if not target:
+        raise InputError(f"{option}: empty file name")
+    path = FilePath(target)
+    if os.path.isdir(path):  # os.path's tests: False, never OSError, on a bad name
+        raise InputError(f"{option} {target}: is a folder, give a file name")
+    if os.path.lexists(path) and not os.path.isfile(path):
+        raise InputError(f"{option} {target}: not a regular file")
+    folder = path.parent
+    if not os.path.isdir(folder):
+        what = (f"{folder} is not a folder" if os.path.lexists(folder)
+                else f"folder {folder} does not exist (oga creates none)")
+        raise InputError(f"{option} {target}: {what}")
+    _probe(option, target, folder, f".{path.name}.")
+    return path
+
+
+def output_folder(option: str, target: str) -> FilePath:
+    """Check the output folder ``target`` of ``option``; create it (not its parents) if missing."""
+    if not target:
+        raise InputError(f"{option}: empty folder name")
+    path = FilePath(target)
+    if os.path.lexists(path) and not os.path.isdir(path):
+        raise InputError(f"{option} {target}: not a folder")
+    if not os.path.isdir(path):
+        parent = path.absolute().parent
+        if not os.path.isdir(parent):
+            raise InputError(f"{option} {target}: its parent folder {parent} does not exist "
+                             f"(oga creates {path.name} only)")
+        try:
+            path.mkdir()
+        except OSError as err:
+            raise InputError(f"{option} {target}: cannot create the folder ({err.strerror})"
+                             ) from None
+    _probe(option, target, path, ".oga-probe.")
+    return path
+
+
+def _probe(option: str, target: str, folder: FilePath, prefix: str) -> None:
+    """InputError unless a file named ``prefix...`` can be created in ``folder`` (then removed)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=prefix, suffix=".part")
+    except OSError as err:
+        raise InputError(f"{option} {target}: cannot write in {folder} ({err.strerror})"
+                         ) from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def check_files(args: argparse.Namespace, *names: str) -> None:
+    """Before any work: the input files given (TOOLPATH, a --machine file) are regular files
+    (a FIFO or a device would block or never end), and each output option given
+    (``args.<name>``, flag ``--<name>``) can be written and names a file of its own,
+    neither another output nor an input."""
+    seen = {}
+    for name, label in (("toolpath", "TOOLPATH"), ("machine", "--machine")):
+        value = getattr(args, name, None)
+        if value and os.path.exists(value):
+            if not os.path.isfile(value):
+                raise InputError(f"{label} {value}: not a regular file")
+            seen[os.path.realpath(value)] = f"the {label} file"
+    for name in names:
+        value = getattr(args, name)
+        if value is None:
+            continue
+        option = _flag(name)
+        key = os.path.realpath(output_file(option, value))
+        if key in seen:
+            raise InputError(f"{option} {value}: the same file as {seen[key]}")
+        seen[key] = option
 
 
 def write_text(target: str | os.PathLike, text: str) -> None:
-    """Write ``text`` atomically (temporary file in the same folder, then rename)."""
+    """Write ``text`` atomically (temporary file in the same folder, then rename).
+
+    The folder must exist (checked beforehand by :func:`output_file`); a failure to write
+    (disk full, folder removed meanwhile) is an OgaError naming the file, and leaves no
+    temporary file behind.
+    """
     target = FilePath(target)
-    if target.parent and not target.parent.exists():
-        target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".part")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".part")
+    except OSError as err:
+        raise OgaError(f"cannot write {target}: {err.strerror}") from None
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
@@ -97,11 +214,13 @@ def write_text(target: str | os.PathLike, text: str) -> None:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as err:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(err, OSError):
+            raise OgaError(f"cannot write {target}: {err.strerror}") from None
         raise
 
 

@@ -27,6 +27,12 @@ class ProgressBar:
                          f"{fraction * 100:5.1f}% {el:6.1f} s")
         sys.stderr.flush()
 
+    def clear(self) -> None:
+        """Erase the bar's line (before a line is printed; the next update redraws it)."""
+        if self.enabled:
+            sys.stderr.write("\r\033[K")
+            sys.stderr.flush()
+
     def __enter__(self) -> "ProgressBar":
         return self
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import add_toolpath_args, load_inputs, write_json, write_text
+from oga.cli._common import add_toolpath_args, check_files, load_inputs, write_json, write_text
 
 __all__ = ["register", "run", "format_table"]
 
@@ -57,6 +57,8 @@ def format_table(cmp) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_files(args, "json", "report")  # before the compiled kernels load
+
     from oga.compare import compare, parse_controllers
     from oga.pipeline import plan_toolpath
 

@@ -10,7 +10,10 @@ from pathlib import Path as FilePath
 from oga.cli._common import (
     add_search_args,
     add_toolpath_args,
+    check_files,
+    flag_message,
     options_from_args,
+    toolpath_message,
     write_json,
     write_text,
 )
@@ -36,18 +39,26 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    options = options_from_args(args)
+    check_files(args, "out", "summary", "report")  # before the compiled kernels load
+
+    from feedplan.read import read_file
+    from feedplan.setpoints import AXES
+    from oga.errors import GcodeError, OptionError, ToolpathError
     from oga.export import table_csv
     from oga.machine import load_machine
     from oga.pipeline import run_job
-    from feedplan.read import read_file
-    from feedplan.setpoints import AXES
 
     machine = load_machine(args.machine)
-    options = options_from_args(args)
-    text, fmt = read_file(args.toolpath)
-    with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
-        job = run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
-                      progress=bar.update)
+    try:
+        text, fmt = read_file(args.toolpath)
+        with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
+            job = run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
+                          progress=bar.update)
+    except (GcodeError, ToolpathError) as err:
+        raise toolpath_message(err, args.toolpath) from None
+    except OptionError as err:
+        raise flag_message(err) from None
     res = job.result
     summary = job.summary()
     if args.summary:

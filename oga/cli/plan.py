@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from oga.cli._common import add_toolpath_args, load_inputs, write_json, write_text
+from oga.cli._common import add_toolpath_args, check_files, load_inputs, write_json, write_text
 
 __all__ = ["register", "run"]
 
@@ -25,9 +25,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from oga.errors import OptionError
+
+    if args.dt is not None and not 0 < args.dt < float("inf"):
+        raise OptionError(f"--dt: must be a positive number of seconds (got {args.dt})")
+    check_files(args, "out", "summary")  # before the compiled kernels load
+
     from feedplan.check import check_setpoints
-    from oga.pipeline import plan_toolpath
     from oga.export import setpoints_csv
+    from oga.pipeline import plan_toolpath
 
     path, machine, feed_m_s, tol_m = load_inputs(args)
     dt = machine.te if args.dt is None else args.dt

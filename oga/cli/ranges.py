@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import add_toolpath_args, load_inputs, write_json
+from oga.cli._common import add_toolpath_args, check_files, load_inputs, write_json
 
 __all__ = ["register", "run"]
 
@@ -83,6 +83,8 @@ def _ranges_table(ranges, setpoints) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_files(args, "json")  # before the compiled kernels load
+
     from oga.errors import OptionError
     from oga.machine import load_machine
     from oga.ranges import gain_ranges, stability_to_dict
