@@ -62,6 +62,8 @@ def _number(value, what: str, line: int = 0, column: int = 0, positive: bool = F
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):
             raise ValueError
         x = float(value)
+    except OverflowError:  # an int beyond float64
+        raise ToolpathError(f"{what}: {str(value)[:20]}... is out of range", line, column) from None
     except ValueError:
         raise ToolpathError(f"{what}: {value!r} is not a number", line, column) from None
     if not math.isfinite(x) or (positive and x <= 0):
@@ -232,6 +234,10 @@ def parse_json(text: str, source: str = "") -> Path:
         doc = json.loads(text)
     except json.JSONDecodeError as err:
         raise ToolpathError(f"invalid JSON: {err.msg}", err.lineno, err.colno) from None
+    except RecursionError:
+        raise ToolpathError("invalid JSON: nested too deeply") from None
+    except ValueError:  # an integer beyond Python's 4300 digits
+        raise ToolpathError("invalid JSON: a number has too many digits") from None
     first_feed = None
     if isinstance(doc, dict):
         unknown = set(doc) - {"points", "feed_mm_per_min"}

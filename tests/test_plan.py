@@ -394,14 +394,38 @@ def test_feed_above_axis_speed_on_arcs_and_diagonals_is_capped_at_the_axes():
 
 
 @pytest.mark.parametrize("feed_mm_min", [10.0, 100.0])
-def test_slow_feed_takes_the_time_of_its_ramps(feed_mm_min):
-    """1 mm at F10 / F100: within 2 % of ruckig's rest-to-rest optimum at the same v, a, j
-    (no per-cell overhead of the speed profile's grid)."""
-    path = x_move(1 * MM, feed_mm_min / 60e3)
+@pytest.mark.parametrize("pieces", [1, 2])
+def test_slow_feed_takes_the_time_of_its_ramps(feed_mm_min, pieces):
+    """1 mm at F10 / F100, as one line (planned by ruckig) and as two collinear halves (a
+    chain: profile and filter): within 2 % of ruckig's rest-to-rest optimum at the same
+    v, a, j (no per-cell overhead of the speed profile's grid)."""
+    f = feed_mm_min / 60e3
+    ends = np.linspace(0.0, 1 * MM, pieces + 1)
+    segs = tuple(Line([a, 0, 0], [b, 0, 0], f, line=k + 2)
+                 for k, (a, b) in enumerate(zip(ends, ends[1:])))
+    path = Path(segs[0].start, segs, "xy")
     sp = plan(path, UCP)
     assert_plan_ok(sp, path, UCP)
-    best = rest_to_rest(1 * MM, feed_mm_min / 60e3, 2.5, 10.0)
+    best = rest_to_rest(1 * MM, f, 2.5, 10.0)
     assert best - 1e-9 <= sp.duration <= 1.02 * best, (sp.duration, best)
+
+
+@pytest.mark.parametrize("axis, length_mm, feed_mm_min", [
+    (0, 0.04, 100000), (0, 0.04, 3000), (0, 11, 30000), (2, 200, 30000), (1, 14.5, 50),
+    (0, 1, 1000), (2, 3, 600)])
+def test_straight_blocks_within_2_percent_of_ruckig(axis, length_mm, feed_mm_min):
+    """Issue 21: a lone feed line is ruckig's time-optimal profile (limits projected on it,
+    speed capped at the feed and at the axis), within 2 % (its 1e-3 margin) and the sample
+    grid: the motion ends at the next whole sample and 2 samples at rest follow (+ 3 dt)."""
+    end = np.zeros(3)
+    end[axis] = length_mm * MM
+    seg = Line([0, 0, 0], end, feed_mm_min / 60e3, line=2)
+    path = Path(seg.start, (seg,), "xy")
+    sp = plan(path, UCP)
+    capped = Line(seg.start, seg.end, min(seg.feed_m_s, 0.5), line=2)
+    assert_plan_ok(sp, Path(seg.start, (capped,)), UCP)
+    best = rest_to_rest(seg.length, capped.feed_m_s, UCP.amax_m_s2[axis], UCP.jmax_m_s3[axis])
+    assert best - 1e-9 <= sp.duration <= 1.02 * best + 3 * sp.dt, (sp.duration, best)
 
 
 def test_absurd_feeds_end_quickly_at_the_axis_speed():

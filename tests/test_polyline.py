@@ -214,3 +214,15 @@ def test_shipped_programs_load(tmp_path):
         path = load_toolpath(f)
         direct = parse_gcode(f.read_text(), str(f))
         assert len(path.segments) == len(direct.segments) > 0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[[" + "9" * 400 + ", 0, 0], [0, 0, 1]]", "p.json: points[0].x: 999999"),
+    ("[[" + "9" * 5000 + ", 0, 0], [0, 0, 1]]", "p.json: invalid JSON: a number has too many"),
+    ("[" * 100000 + "]" * 100000, "p.json: invalid JSON: nested too deeply"),
+    ("[[1e400, 0, 0], [0, 0, 1]]", "p.json: points[0].x: inf must be finite"),
+])
+def test_json_numbers_beyond_float64_and_deep_nesting(text, message):
+    with pytest.raises(ToolpathError) as err:
+        parse_json(text, source="p.json")
+    assert str(err.value).startswith(message)
