@@ -525,7 +525,12 @@ def _plan_feed(
         T = m * dt
         rounding_m = (tol_m - block.fit_deviation_m) * share
         with np.errstate(divide="ignore"):
-            ceil = np.minimum(ceil0, np.sqrt(24.0 * rounding_m / (kappa * T * T)))
+            v_round = np.sqrt(24.0 * rounding_m / (kappa * T * T))
+        if (share, compensate) != _VARIANTS[0] and np.all(
+            v_round >= ceil0 * math.sqrt(share / _VARIANTS[0][0])
+        ):
+            continue  # the filter's rounding bounds no speed even at the least share: as tried
+        ceil = np.minimum(ceil0, v_round)
         acc_node = np.minimum(_AT_SHARE * j_path * T, a_path)
         reach = v_top * T  # the filter window around a jump
         for ub, d in zip(u_jump, d_kappa):

@@ -11,6 +11,7 @@ message. Any other exception, a memory error, a crash or an overrun fails the te
 from __future__ import annotations
 
 import json
+import math
 import os
 import select
 import subprocess
@@ -31,6 +32,9 @@ MEMORY_BYTES = 3 * 1024**3
 CASE_S = 30.0
 #: Wall time of the worker's start (imports, and kernels compiled on a cold cache).
 START_S = 600.0
+#: The workers' plan limits (oga.defaults.MAX_MOTION_S, MAX_SAMPLES: 3600 s, 4e6 samples):
+#: the same checks at a size whose planning fits the per-case time on a busy host.
+MOTION_S, SAMPLES = 200.0, 200_000
 
 WORKER = textwrap.dedent(
     """
@@ -44,6 +48,10 @@ WORKER = textwrap.dedent(
     from feedplan.read import read_toolpath
     from oga.errors import OgaError
     from oga.machine import load_machine, machine_from_dict
+
+    # smaller plans than a service allows (the same checks, at a size the per-case time fits)
+    planner = sys.modules["feedplan.plan"]
+    planner.MAX_MOTION_S, planner.MAX_SAMPLES = float(sys.argv[2]), int(sys.argv[3])
 
     def fd_ratio(pos, dt, lim):
         p = np.concatenate([np.repeat(pos[:1], 3, axis=0), pos, np.repeat(pos[-1:], 3, axis=0)])
@@ -99,7 +107,8 @@ class Worker:
     def _start(self) -> None:
         env = {**os.environ, "PYTHONPATH": str(FilePath(__file__).parents[1])}
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", WORKER, str(MEMORY_BYTES)], stdin=subprocess.PIPE,
+            [sys.executable, "-c", WORKER, str(MEMORY_BYTES), str(MOTION_S), str(SAMPLES)],
+            stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
         assert self._read(START_S) == {"ready": True}
 
@@ -174,6 +183,29 @@ def micro_program(draw):
     return "\n".join(lines) + "\n"
 
 
+@st.composite
+def valid_program(draw):
+    """Lines and arcs that read (ends on their circles), at hostile and normal feeds."""
+    f = draw(st.sampled_from(["0.5", "10", "3000", "30000", "10000000000", "9" * 40]))
+    lines = ["G21 G90 G17", "G0 X0 Y0 Z0", f"G1 F{f}"]
+    x = y = z = 0.0
+    for _ in range(draw(st.integers(1, 6))):
+        if draw(st.booleans()):
+            x, y = float(draw(sane)), float(draw(sane))
+            z += draw(st.sampled_from([0.0, 1.0]))
+            lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f}")
+            continue
+        r = draw(st.floats(0.01, 40.0))
+        th0, sweep = draw(st.floats(0.0, 6.28)), draw(st.floats(0.01, 6.0))
+        cx, cy = x - r * math.cos(th0), y - r * math.sin(th0)
+        g = draw(st.sampled_from(["G2", "G3"]))
+        th1 = th0 + (sweep if g == "G3" else -sweep)
+        i, j = cx - x, cy - y
+        x, y = cx + r * math.cos(th1), cy + r * math.sin(th1)
+        lines.append(f"{g} X{x:.4f} Y{y:.4f} I{i:.4f} J{j:.4f}")
+    return "\n".join(lines) + "\n"
+
+
 polyline_csv = st.lists(st.tuples(number, number, number, st.one_of(st.just(""), feed)),
                         min_size=0, max_size=8).map(
     lambda rows: "x,y,z,feed\n" + "\n".join(",".join(r) for r in rows) + "\n")
@@ -182,7 +214,8 @@ polyline_json = st.lists(st.tuples(number, number, number), max_size=6).map(
 
 toolpath = st.one_of(
     gcode_program.map(lambda t: ("gcode", t)),
-    gcode_program.map(lambda t: ("gcode", t)),
+    valid_program().map(lambda t: ("gcode", t)),
+    valid_program().map(lambda t: ("gcode", t)),
     micro_program().map(lambda t: ("gcode", t)),
     polyline_csv.map(lambda t: ("csv", t)),
     polyline_json.map(lambda t: ("json", t)),
@@ -209,8 +242,9 @@ def machine(draw):
     for path in draw(st.lists(st.sampled_from(MACHINE_FIELDS), max_size=2)):
         node = data
         for key in path[:-1]:
-            node = node[key]
-        node[path[-1]] = draw(machine_value)
+            node = node[key] if isinstance(node, dict) else None
+        if isinstance(node, dict):  # (not under a table already made hostile)
+            node[path[-1]] = draw(machine_value)
     return data
 
 
@@ -256,6 +290,7 @@ def test_hostile_inputs_are_planned_within_the_limits_or_refused(worker, tp, mac
 @pytest.mark.parametrize("text, message", [
     ("G21 G90\nG1 X0 Y0 F10000000000\nG1 X10 Y5\nM2\n", None),  # row 1: capped, planned
     ("G21 G90\nG1 X0 Y0 F0.001\nG1 X1 Y0\n", "program would take 6e+04 s"),  # row 2
+    ("G21 G90\nG1 X0 Y0 F10\nG2 X-60 Y0 I-30 J0\n", "(limits 200 s, 200000 samples)"),
     ("G21 G90\nG1 X0 Y0 F100\nG1 X100000000\n", "coordinate out of range"),
     ("G21\nG1 X" + "9" * 320 + " F100\n", "number out of range"),  # row 5
     ("(nothing)\n", "no motion in hostile"),  # row 9
