@@ -23,7 +23,10 @@ plus FIR filter" of industrial interpolators:
    centripetal acceleration, the arc rounding of stage 2, and jerk-derived
    ceilings where the curvature jumps or the tangent kinks between pieces), then
    compiled forward/backward passes with a tangential acceleration limit ``A_t``
-   (a share of ``J T``, small near curvature jumps). The positions ``r(u(t))`` are
+   (a share of ``J T``, small near curvature jumps; up to the whole acceleration
+   limit on straight stretches, half of it on curves). Cells are crossed at
+   constant acceleration, those starting or ending at rest time-optimally (so a
+   slow feed pays no cell's worth of time per block). The positions ``r(u(t))`` are
    sampled every ``dt``;
 2. a moving average of ``M`` samples (``T = M dt``) over these positions, the same
    on every axis so the axes stay synchronised. In finite differences the filtered
@@ -229,7 +232,8 @@ def _sample(u, v, ceil, acc, dt, budget):
             continue
         while t >= tn[c + 1]:
             c += 1
-        v0, a1, t1, vp, t2, a3 = cells[c, 0], cells[c, 1], cells[c, 2], cells[c, 3], cells[c, 4], cells[c, 5]
+        v0, a1, t1 = cells[c, 0], cells[c, 1], cells[c, 2]
+        vp, t2, a3 = cells[c, 3], cells[c, 4], cells[c, 5]
         tau = t - tn[c]
         if tau < t1:
             x, rate = v0 * tau + 0.5 * a1 * tau * tau, v0 + a1 * tau
