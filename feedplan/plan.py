@@ -74,7 +74,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import DT_RANGE_S, DT_S, MAX_MOTION_S, MAX_SAMPLES, TOL_M, TOL_RANGE_M
 from oga.errors import OptionError, PlanError, ToolpathError
 
-__all__ = ["plan", "GRID_M", "FIT_TOL_FRACTION"]
+__all__ = ["plan", "least_motion_s", "GRID_M", "FIT_TOL_FRACTION"]
 
 #: Spacing of the speed-profile grid along the path, metres.
 GRID_M = 0.25e-3
@@ -632,15 +632,38 @@ def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
     return out, allowed, warnings
 
 
+def _move_times(path: Path, feeds: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """Least motion time of each move, s: at its feed or the axis speed, no ramps."""
+    length = np.array([s.length for s in path.segments])
+    with np.errstate(over="ignore"):
+        return length / np.minimum(feeds, allowed)
+
+
+def least_motion_s(path: Path, limits: AxisLimits, feed_m_s: float | None = None) -> float:
+    """Least motion time of a path, seconds: a lower bound of its plan's duration.
+
+    Every move at its feed (or ``feed_m_s``) capped at what the axes allow along it,
+    rapids at the axis speed, no ramps: what :func:`plan` checks against
+    :data:`~oga.defaults.MAX_MOTION_S` before planning. Cheap (no allocation per sample).
+
+    Raises
+    ------
+    OptionError
+        A feed move without a feed and no ``feed_m_s``.
+    """
+    feeds, allowed, _ = _feeds(path, limits, feed_m_s)
+    with np.errstate(over="ignore"):
+        return float(np.sum(_move_times(path, feeds, allowed)))
+
+
 def _estimate(path: Path, feeds: np.ndarray, allowed: np.ndarray, dt: float) -> np.ndarray:
-    """Least motion time of each move, s (at its feed or axis speed, no ramps); checked.
+    """:func:`_move_times`, checked.
 
     Raises ToolpathError naming the slowest move when the sum exceeds
     :data:`~oga.defaults.MAX_MOTION_S` or :data:`~oga.defaults.MAX_SAMPLES` samples.
     """
-    length = np.array([s.length for s in path.segments])
+    t = _move_times(path, feeds, allowed)
     with np.errstate(over="ignore"):
-        t = length / np.minimum(feeds, allowed)
         total = float(np.sum(t))
     if total > MAX_MOTION_S or total / dt > MAX_SAMPLES:
         k = int(np.argmax(t))

@@ -456,6 +456,19 @@ def test_too_long_programs_are_refused_before_planning():
         plan(path, UCP, dt=1e-5)
 
 
+def test_least_motion_time_is_a_lower_bound_of_the_plan():
+    """At the feeds (capped at the axes; the diagonal rapid at 0.5 / 0.8 m/s) without ramps:
+    L / F exactly, below the plan."""
+    from feedplan.plan import least_motion_s
+
+    path = parse_gcode("G21 G90\nG0 X0 Y0\nG1 X30 F600\nG1 Y40 F1000000000\nG0 X0 Y0\n")
+    t = least_motion_s(path, UCP)
+    assert t == pytest.approx(30e-3 / 0.01 + 40e-3 / 0.5 + 50e-3 / 0.625, rel=1e-12)
+    assert t < plan(path, UCP).duration
+    assert least_motion_s(path, UCP, feed_m_s=0.02) == pytest.approx(
+        30e-3 / 0.02 + 40e-3 / 0.02 + 50e-3 / 0.625, rel=1e-12)
+
+
 def test_sample_limit_is_enforced_while_planning(monkeypatch):
     """Stops at corners cost more than the estimate (no ramps): the limit still holds."""
     planner = importlib.import_module("feedplan.plan")  # the module, not feedplan.plan()
