@@ -224,10 +224,10 @@ MACHINE_FIELD_RANGES = {
     "static_n": (0.0, 1e6),
     "stribeck_m_s": (1e-7, 10.0),
     "viscous_n_s_m": (0.0, 1e8),
-    "kv_n_s_m": (1e-3, 1e10),
+    "kv_n_s_m": (1e-12, 1e10),
     "tn_s": (1e-5, 100.0),
     "force_lag_s": (1e-7, 1.0),
-    "force_limit_n": (1e-3, 1e9),
+    "force_limit_n": (1e-3, 1e15),
     "friction_smoothing_m_s": (1e-9, 1.0),
     # arx
     "arx_coefficient": (-1e6, 1e6),

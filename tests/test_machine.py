@@ -145,7 +145,7 @@ def test_mcv_op_preset_loads_and_round_trips(tmp_path):
         (("axes", "z", "limits", "amax_m_s2"), 1e-9, "axes.z.limits.amax_m_s2", "0.001"),
         (("axes", "z", "limits", "ferror_max_m"), 5.0, "axes.z.limits.ferror_max_m", "1"),
         (("axes", "x", "cascade", "mass_kg"), 1e300, "axes.x.cascade.mass_kg", "1000000"),
-        (("axes", "x", "cascade", "kv_n_s_m"), 1e-300, "axes.x.cascade.kv_n_s_m", "0.001"),
+        (("axes", "x", "cascade", "kv_n_s_m"), 1e-300, "axes.x.cascade.kv_n_s_m", "0.000000000001"),
         (("axes", "x", "cascade", "tn_s"), 1e9, "axes.x.cascade.tn_s", "100"),
         (("axes", "x", "cascade", "force_lag_s"), 1e-12, "axes.x.cascade.force_lag_s", "0.0000001"),
         (("timing", "te_s"), 1e-9, "timing.te_s", "0.00001"),
