@@ -71,7 +71,15 @@ from feedplan.fit import Block, blocks_of
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
 from feedplan.setpoints import AXES, Setpoints
-from oga.defaults import DT_RANGE_S, DT_S, MAX_MOTION_S, MAX_SAMPLES, TOL_M, TOL_RANGE_M
+from oga.defaults import (
+    DT_RANGE_S,
+    DT_S,
+    MAX_COORD_M,
+    MAX_MOTION_S,
+    MAX_SAMPLES,
+    TOL_M,
+    TOL_RANGE_M,
+)
 from oga.errors import OptionError, PlanError, ToolpathError
 
 __all__ = ["plan", "least_motion_s", "GRID_M", "FIT_TOL_FRACTION"]
@@ -103,6 +111,8 @@ _GENTLE_ROUNDS = 10
 _ROUNDS = 60
 #: Most speed-profile grid nodes of one block (a longer block gets a coarser grid).
 _MAX_NODES = 1_000_000
+#: Most turns of one arc (a helix of hand-built paths; G-code arcs turn once at most).
+_MAX_TURNS = 1000
 #: Moving averages costing more additions than this are running sums (O(n), not O(n m)).
 _EXACT_SUM_OPS = 200_000_000
 
@@ -686,9 +696,13 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
                           f"got {tol_m!r}")
     if not (DT_RANGE_S[0] <= dt <= DT_RANGE_S[1]):
         raise OptionError(f"dt must be in [{DT_RANGE_S[0]:g}, {DT_RANGE_S[1]:g}] s, got {dt!r}")
-    if not any(s.length > 1e-12 for s in path.segments):
-        raise ToolpathError(f"no motion in {path.source or 'the toolpath'}")
     for s in path.segments:
+        pts = np.concatenate([s.start, s.end, s.center if isinstance(s, Arc) else ()])
+        if not np.all(np.abs(pts) <= MAX_COORD_M):  # also nan (paths built by hand)
+            raise ToolpathError(f"a point beyond {MAX_COORD_M:g} m or not finite", line=s.line)
+        if isinstance(s, Arc) and not abs(s.sweep_rad) <= 2.0 * math.pi * _MAX_TURNS:
+            raise ToolpathError(f"arc sweep {s.sweep_rad:.6g} rad: more than {_MAX_TURNS} turns",
+                                line=s.line)
         span = np.abs(s.end - s.start)
         if isinstance(s, Arc) and s.length > 1e-12:
             i, j, _ = PLANES[s.plane]
@@ -698,6 +712,8 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
                 f"moves axis {AXES[k]}, which the machine lacks (0 limits: it must not move)",
                 line=s.line,
             )
+    if not any(s.length > 1e-12 for s in path.segments):
+        raise ToolpathError(f"no motion in {path.source or 'the toolpath'}")
 
 
 def _plane_of(pos: np.ndarray, rapid: np.ndarray, preferred: str):

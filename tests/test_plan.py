@@ -485,6 +485,18 @@ def test_sample_limit_is_enforced_while_planning(monkeypatch):
         plan(rapid, UCP)
 
 
+def test_hand_built_paths_beyond_the_bounds_are_refused():
+    """Paths not from a reader: non-finite or far points, arcs of endless turns."""
+    far = Line([0, 0, 0], [2e3, 0, 0], F3000, line=4)
+    nan = Line([0, 0, 0], [math.nan, 0, 0], F3000, line=5)
+    for seg, what in ((far, "line 4: a point beyond 1000 m"), (nan, "line 5: a point beyond")):
+        with pytest.raises(ToolpathError, match=what):
+            plan(Path(seg.start, (seg,)), UCP)
+    arc = Arc([1e-3, 0, 0], [1e-3, 0, 0], [0, 0, 0], "xy", 1e300, F3000, line=6)
+    with pytest.raises(ToolpathError, match="line 6: arc sweep 1e\\+300 rad: more than 1000 turns"):
+        plan(Path(arc.start, (arc,)), UCP)
+
+
 def test_no_motion_is_a_toolpath_error():
     for text in ("", "(only a comment)\n", "G21 G0 X1 Y2\nM2\n"):
         with pytest.raises(ToolpathError, match="^no motion in p.ngc$"):
