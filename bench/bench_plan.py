@@ -37,7 +37,7 @@ from ruckig import InputParameter, Ruckig, Trajectory
 from feedplan.check import check_setpoints
 from feedplan.gcode import parse_gcode
 from feedplan.limits import AxisLimits
-from feedplan.path import Path
+from feedplan.path import Line, Path
 from feedplan.plan import plan
 from oga.machine import load_machine
 
@@ -127,7 +127,7 @@ def table(programs: list[tuple[str, str]], limits: AxisLimits, check_limits: Axi
 def main() -> int:
     names = ("reference_xz", "circle_r50_f3000", "helix_r20", "freeform_xz")
     programs = [(name, (DATA / f"{name}.ngc").read_text()) for name in names]
-    programs.append(("synthetic_20000", synthetic_program()))
+    programs += [(f"synthetic_{n}", synthetic_program(n)) for n in (2000, 20000, 100000)]
     full, planning = MACHINE.axis_limits(), MACHINE.planning_limits()
     plan(parse_gcode(programs[0][1]), full)  # compile numba kernels before timing
     print("ucp710 axis limits (bound and ratios at these limits):")
@@ -139,7 +139,26 @@ def main() -> int:
         "bound at the planning limits, ratios to the axis limits):"
     )
     table(programs, planning, full)
+    print()
+    straight(planning)
     return 0
+
+
+def straight(limits: AxisLimits) -> None:
+    """Lone feed lines (planned by ruckig) against ruckig's rest-to-rest time, one row each."""
+    print("lone feed lines at the planning limits: planned vs ruckig (ratio; +3 samples of the "
+          "sample grid and the 1e-3 margin)")
+    for axis, length_mm, feed in ((0, 0.04, 3000), (0, 1, 10), (0, 1, 1000), (0, 11, 30000),
+                                  (0, 11, 1e8), (2, 200, 30000)):
+        end = np.zeros(3)
+        end[axis] = length_mm * 1e-3
+        path = Path(np.zeros(3), (Line(np.zeros(3), end, feed / 60e3, line=1),))
+        sp = plan(path, limits)
+        v = min(feed / 60e3, float(limits.vmax_m_s[axis]))
+        best = rest_to_rest_s(length_mm * 1e-3, v, float(limits.amax_m_s2[axis]),
+                              float(limits.jmax_m_s3[axis]))
+        print(f"  {'xyz'[axis]} {length_mm:7.2f} mm at F{feed:<10.6g} {sp.duration:8.3f} s "
+              f"{best:8.3f} s  {sp.duration / best:6.3f}")
 
 
 if __name__ == "__main__":

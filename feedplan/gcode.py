@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from feedplan.path import PLANES, Arc, Line, Path
+from oga.defaults import MAX_COORD_M, MAX_SEGMENTS
 from oga.errors import GcodeError, OptionError
 
 __all__ = ["parse_gcode", "MM_M", "INCH_M", "ARC_END_TOL_MM", "ARC_END_TOL_IN"]
@@ -146,13 +147,22 @@ def _words(text: str, line: int, source: str) -> list[_Word]:
         elif m.group("rest") is not None:
             break
     words = []
-    for letter, number, column in raw:
+    for k, (letter, number, column) in enumerate(raw):
         digits = number.replace(" ", "").replace("\t", "")
         if not _NUMBER.fullmatch(digits):
             what = f"number {digits!r} does not parse" if digits else "has no number"
             raise GcodeError(f"{letter} word: {what}", line, column, source)
+        after = raw[k + 1] if k + 1 < len(raw) else None
+        if after and after[0] == "E" and number and after[2] == column + 1 + len(number):
+            raise GcodeError(f"{letter} word: {digits}E{after[1].strip()} has an exponent, which "
+                             "G-code numbers do not have (coordinate out of range? write plain "
+                             "digits)", line, column, source)
+        value = float(digits)
+        if not math.isfinite(value):
+            raise GcodeError(f"{letter} word: number out of range ({len(digits)} digits)",
+                             line, column, source)
         if letter != "N":
-            words.append(_Word(letter, float(digits), column))
+            words.append(_Word(letter, value, column))
     return words
 
 
@@ -339,6 +349,8 @@ class _Reader:
             if self.feed_m_s is None:
                 raise self.error("feed move before any F word (feed rate)", n, column)
         unit = self._unit(n)
+        for w in (*axis.values(), *arc.values()):
+            self._in_range(w, n)
         end = np.zeros(3) if self.pos is None else self.pos.copy()
         for w in axis.values():
             end["XYZ".index(w.letter)] = w.value * unit
@@ -351,6 +363,9 @@ class _Reader:
         if self.machine_move is not None:  # rapids after G28/G30/G53 are not planned
             return
         start, self.pos = self.pos, end
+        if len(self.segments) >= MAX_SEGMENTS:
+            raise self.error(f"more than {MAX_SEGMENTS} moves (the limit of one program)",
+                             n, column)
         if is_arc:
             self.segments.append(self._arc(start, end, axis, arc, n, column))
         elif (start != end).any():
@@ -359,6 +374,13 @@ class _Reader:
                                       rapid=rapid, line=n))
         if self.motion != 0:
             self.feed_plane = self.plane
+
+    def _in_range(self, w: _Word, n: int) -> None:
+        """Refuses a coordinate, arc offset or radius beyond :data:`MAX_COORD_M`."""
+        if abs(w.value) * self.unit_m > MAX_COORD_M:
+            unit = "in" if self.unit_m == INCH_M else "mm"
+            raise self.error(f"{w.letter} {w.value:.6g}: coordinate out of range (|{w.letter}| "
+                             f"<= {MAX_COORD_M / self.unit_m:.6g} {unit})", n, w.column)
 
     def _arc(self, start, end, axis, arc, n: int, column: int) -> Arc:
         """The G2/G3 arc from ``start`` to ``end`` (metres) of one block."""

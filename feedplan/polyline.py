@@ -38,12 +38,14 @@ points. A point is ``[x, y, z]``, ``[x, y, z, feed]`` or an object with keys
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import math
 
 import numpy as np
 
 from feedplan.path import Line, Path
+from oga.defaults import MAX_COORD_M, MAX_SEGMENTS
 from oga.errors import ToolpathError
 
 __all__ = ["parse_csv", "parse_json"]
@@ -60,6 +62,8 @@ def _number(value, what: str, line: int = 0, column: int = 0, positive: bool = F
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):
             raise ValueError
         x = float(value)
+    except OverflowError:  # an int beyond float64
+        raise ToolpathError(f"{what}: {str(value)[:20]}... is out of range", line, column) from None
     except ValueError:
         raise ToolpathError(f"{what}: {value!r} is not a number", line, column) from None
     if not math.isfinite(x) or (positive and x <= 0):
@@ -88,6 +92,11 @@ def _polyline(points_mm: list, feeds: list, lines: list[int], where: list[str],
     if len(points_mm) < 2:
         raise ToolpathError(f"a polyline needs at least 2 points, got {len(points_mm)}")
     p = np.asarray(points_mm, dtype=np.float64) * 1e-3
+    far = np.flatnonzero(np.any(np.abs(p) > MAX_COORD_M, axis=1))
+    if far.size:
+        k = int(far[0])
+        raise ToolpathError(f"{where[k]}: coordinate out of range (|x|, |y|, |z| <= "
+                            f"{MAX_COORD_M * 1e3:g} mm)", lines[k])
     feed = first_feed
     seg_feed = []
     for k, f in enumerate(feeds):
@@ -105,6 +114,28 @@ def _polyline(points_mm: list, feeds: list, lines: list[int], where: list[str],
     return Path(start=p[0], segments=segments, source=source)
 
 
+def _too_many(points: int) -> None:
+    if points > MAX_SEGMENTS + 1:
+        raise ToolpathError(f"{points} points: more than {MAX_SEGMENTS} moves (the limit of one "
+                            "toolpath)")
+
+
+def _named(reader):
+    """Puts the input's name (``source``) first in the reader's ToolpathErrors."""
+
+    @functools.wraps(reader)
+    def wrapper(text: str, source: str = "") -> Path:
+        try:
+            return reader(text, source)
+        except ToolpathError as err:
+            if not source or err.source:
+                raise
+            raise ToolpathError(err.message, err.line, err.column, source) from None
+
+    return wrapper
+
+
+@_named
 def parse_csv(text: str, source: str = "") -> Path:
     """Read a CSV polyline (header ``x,y,z[,feed]``; mm and mm/min; see the module notes).
 
@@ -133,6 +164,7 @@ def parse_csv(text: str, source: str = "") -> Path:
         raise ToolpathError(f"CSV not readable: {err}") from None
     if not rows:
         raise ToolpathError("empty CSV: expected a header x,y,z[,feed] and rows of points")
+    _too_many(len(rows) - 1)
     n0, header = rows[0]
     names = [_FIELDS.get(cell.strip().lower()) for cell in header]
     if names not in (["x", "y", "z"], ["x", "y", "z", "feed"]):
@@ -177,6 +209,7 @@ def _json_point(item, k: int) -> tuple[list[float], float | None]:
     return xyz, None if feed is None else _number(feed, f"{what}.feed", positive=True)
 
 
+@_named
 def parse_json(text: str, source: str = "") -> Path:
     """Read a JSON polyline (points in mm, optional feeds in mm/min; see the module notes).
 
@@ -201,6 +234,10 @@ def parse_json(text: str, source: str = "") -> Path:
         doc = json.loads(text)
     except json.JSONDecodeError as err:
         raise ToolpathError(f"invalid JSON: {err.msg}", err.lineno, err.colno) from None
+    except RecursionError:
+        raise ToolpathError("invalid JSON: nested too deeply") from None
+    except ValueError:  # an integer beyond Python's 4300 digits
+        raise ToolpathError("invalid JSON: a number has too many digits") from None
     first_feed = None
     if isinstance(doc, dict):
         unknown = set(doc) - {"points", "feed_mm_per_min"}
@@ -212,6 +249,7 @@ def parse_json(text: str, source: str = "") -> Path:
         doc = doc["points"]
     if not isinstance(doc, list):
         raise ToolpathError("a JSON polyline is a list of points or an object with 'points'")
+    _too_many(len(doc))
     parsed = [_json_point(item, k) for k, item in enumerate(doc)]
     return _polyline([p for p, _ in parsed], [f for _, f in parsed],
                      list(range(1, len(parsed) + 1)),

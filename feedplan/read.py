@@ -82,8 +82,8 @@ def read_file(path: str | os.PathLike) -> tuple[str, str]:
     except UnicodeDecodeError as err:
         line = data.count(b"\n", 0, err.start) + 1
         column = err.start - (data.rfind(b"\n", 0, err.start) + 1) + 1
-        raise ToolpathError(f"{name}: not UTF-8 text (byte 0x{data[err.start]:02x})",
-                            line, column) from None
+        raise ToolpathError(f"not UTF-8 text (byte 0x{data[err.start]:02x})",
+                            line, column, source=name) from None
     return text, SUFFIXES[suffix]
 
 

@@ -43,6 +43,8 @@ class Setpoints:
         coordinate constant), else None (a non-planar path: contour error unsigned).
     source : str
         Name of the program.
+    warnings : tuple of str
+        Non-fatal remarks of the planner (e.g. a feed above what the axes allow).
     """
 
     dt: float
@@ -55,12 +57,14 @@ class Setpoints:
     rapid: np.ndarray
     plane: Plane | None = None
     source: str = ""
+    warnings: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("s", "pos", "vel", "acc", "jerk"):
             object.__setattr__(self, name, _frozen(getattr(self, name)))
         object.__setattr__(self, "block", _frozen(self.block, np.int64))
         object.__setattr__(self, "rapid", _frozen(self.rapid, np.bool_))
+        object.__setattr__(self, "warnings", tuple(self.warnings))
         n = self.s.shape[0]
         for name in ("pos", "vel", "acc", "jerk"):
             if getattr(self, name).shape != (n, 3):

@@ -217,3 +217,52 @@ API_JOB_CPU_S = 1800.0
 API_JOB_MEMORY_BYTES = 4 * 1024**3
 #: A running job whose progress has not moved for this long marks /healthz "degraded", s.
 API_STALL_S = 120.0
+
+
+# --- input bounds ------------------------------------------------------------------------------
+# What a user may submit: programs, options and machine files beyond these are refused with an
+# error naming the limit and the value, before anything is allocated from them.
+#: Largest |coordinate|, arc offset or radius of a program, metres (1 km).
+MAX_COORD_M = 1e3
+#: Most moves (segments) of one toolpath.
+MAX_SEGMENTS = 500_000
+#: Longest motion of one plan, seconds (estimated before planning, enforced while planning).
+MAX_MOTION_S = 3600.0
+#: Most samples of one plan (the memory of the setpoints and of every replay grows with it).
+MAX_SAMPLES = 4_000_000
+#: Sample period (and machine Te) range, seconds.
+DT_RANGE_S = (1e-5, 0.1)
+#: Interpolation tolerance range, metres.
+TOL_RANGE_M = (1e-7, 10e-3)
+#: Plausible range (inclusive) of each numeric machine field, SI (the field's unit in its name;
+#: gains in (m/min)/mm). A machine file outside them is refused naming the field.
+MACHINE_FIELD_RANGES = {
+    # limits
+    "vmax_m_s": (1e-3, 20.0),
+    "amax_m_s2": (1e-3, 1e3),
+    "jmax_m_s3": (1e-2, 1e6),
+    "ferror_max_m": (1e-7, 1.0),
+    # cascade
+    "mass_kg": (1e-2, 1e6),
+    "coulomb_n": (0.0, 1e6),
+    "static_n": (0.0, 1e6),
+    "stribeck_m_s": (1e-7, 10.0),
+    "viscous_n_s_m": (0.0, 1e8),
+    "kv_n_s_m": (1e-12, 1e10),
+    "tn_s": (1e-5, 100.0),
+    "force_lag_s": (1e-7, 1.0),
+    "force_limit_n": (1e-3, 1e15),
+    "friction_smoothing_m_s": (1e-9, 1.0),
+    # arx
+    "arx_coefficient": (-1e6, 1e6),
+    "arx_order": (1, 64),
+    "coulomb_m_s": (0.0, 10.0),
+    "viscous_ratio": (0.0, 100.0),
+    "load_m_s_per_n": (0.0, 1.0),
+    # gains
+    "kp_m_min_per_mm": (1e-3, 50.0),
+    "kp_step_m_min_per_mm": (1e-2, 10.0),
+    "kf": (0.0, 2.0),
+    "kf_step": (1e-3, 1.0),
+    "gm_min_db": (0.0, 60.0),
+}

@@ -62,14 +62,21 @@ class ToolpathError(InputError):
         1-based row or line of the input where it is wrong (0 when not applicable).
     column : int, optional
         1-based column, or 0.
+    source : str, optional
+        Name of the input (file name), put first in the message.
     """
 
-    def __init__(self, message: str, line: int = 0, column: int = 0) -> None:
+    def __init__(self, message: str, line: int = 0, column: int = 0, source: str = "") -> None:
         self.message = message
         self.line = int(line)
         self.column = int(column)
-        where = f"line {line}:{column}: " if column else f"line {line}: "
-        super().__init__(f"{where}{message}" if line else message)
+        self.source = source
+        at = (f"{line}:{column}" if column else f"{line}") if line else ""
+        if source:
+            where = f"{source}:{at}: " if at else f"{source}: "
+        else:
+            where = f"line {at}: " if at else ""
+        super().__init__(f"{where}{message}")
 
 
 class MachineError(InputError):

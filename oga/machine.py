@@ -32,6 +32,7 @@ from pydantic import (
 if TYPE_CHECKING:
     from feedplan.limits import AxisLimits
 
+from oga.defaults import DT_RANGE_S, MACHINE_FIELD_RANGES
 from oga.errors import MachineError
 
 __all__ = [
@@ -57,8 +58,12 @@ _PRESET_DIR = FilePath(__file__).with_name("presets")
 #: Names of the shipped presets.
 PRESETS: tuple[str, ...] = tuple(sorted(p.stem for p in _PRESET_DIR.glob("*.toml")))
 
-Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+def _in(name: str):
+    """A float within ``MACHINE_FIELD_RANGES[name]`` (the plausible range, inclusive)."""
+    lo, hi = MACHINE_FIELD_RANGES[name]
+    return Annotated[float, Field(ge=lo, le=hi, allow_inf_nan=False)]
 
 
 class _Frozen(BaseModel):
@@ -76,10 +81,10 @@ class Limits(_Frozen):
     included) within it; when unset, nothing bounds the following error (it is reported).
     """
 
-    vmax_m_s: Pos
-    amax_m_s2: Pos
-    jmax_m_s3: Pos
-    ferror_max_m: Pos | None = None
+    vmax_m_s: _in("vmax_m_s")
+    amax_m_s2: _in("amax_m_s2")
+    jmax_m_s3: _in("jmax_m_s3")
+    ferror_max_m: _in("ferror_max_m") | None = None
 
 
 class Cascade(_Frozen):
@@ -89,16 +94,16 @@ class Cascade(_Frozen):
     ``s = tanh(v / friction_smoothing_m_s)``.
     """
 
-    mass_kg: Pos
-    coulomb_n: NonNeg
-    static_n: NonNeg
-    stribeck_m_s: Pos
-    viscous_n_s_m: NonNeg
-    kv_n_s_m: Pos
-    tn_s: Pos
-    force_lag_s: Pos
-    force_limit_n: Pos
-    friction_smoothing_m_s: Pos = 1e-4
+    mass_kg: _in("mass_kg")
+    coulomb_n: _in("coulomb_n")
+    static_n: _in("static_n")
+    stribeck_m_s: _in("stribeck_m_s")
+    viscous_n_s_m: _in("viscous_n_s_m")
+    kv_n_s_m: _in("kv_n_s_m")
+    tn_s: _in("tn_s")
+    force_lag_s: _in("force_lag_s")
+    force_limit_n: _in("force_limit_n")
+    friction_smoothing_m_s: _in("friction_smoothing_m_s") = 1e-4
 
     @model_validator(mode="after")
     def _static_above_coulomb(self) -> "Cascade":
@@ -107,7 +112,8 @@ class Cascade(_Frozen):
         return self
 
 
-Coef = Annotated[float, Field(allow_inf_nan=False)]
+Coef = _in("arx_coefficient")
+_ORDER = MACHINE_FIELD_RANGES["arx_order"]
 
 
 class Arx(_Frozen):
@@ -128,12 +134,12 @@ class Arx(_Frozen):
     opposing positive motion).
     """
 
-    num: Annotated[tuple[Coef, ...], Field(min_length=1)]
-    den: Annotated[tuple[Coef, ...], Field(min_length=1)]
-    coulomb_m_s: NonNeg = 0.0
-    viscous_ratio: NonNeg = 0.0
-    friction_smoothing_m_s: Pos = 1e-4
-    load_m_s_per_n: NonNeg = 0.0
+    num: Annotated[tuple[Coef, ...], Field(min_length=_ORDER[0], max_length=_ORDER[1])]
+    den: Annotated[tuple[Coef, ...], Field(min_length=_ORDER[0], max_length=_ORDER[1])]
+    coulomb_m_s: _in("coulomb_m_s") = 0.0
+    viscous_ratio: _in("viscous_ratio") = 0.0
+    friction_smoothing_m_s: _in("friction_smoothing_m_s") = 1e-4
+    load_m_s_per_n: _in("load_m_s_per_n") = 0.0
 
     @field_validator("den")
     @classmethod
@@ -177,7 +183,7 @@ class Axis(_Frozen):
 class Timing(_Frozen):
     """Loop timing: position-loop period, inner sub-steps, dead time."""
 
-    te_s: Pos = 0.001
+    te_s: Annotated[float, Field(ge=DT_RANGE_S[0], le=DT_RANGE_S[1], allow_inf_nan=False)] = 0.001
     substeps: Annotated[int, Field(ge=1, le=1000)] = 8
     dead_time_samples: Annotated[int, Field(ge=0, le=100)] = 2
 
@@ -185,13 +191,13 @@ class Timing(_Frozen):
 class GainSettings(_Frozen):
     """Where gains may go: the Kp grid, its configured bounds, Kf grid, margins."""
 
-    kp_span_m_min_per_mm: tuple[Pos, Pos] = (0.5, 5.0)
-    kp_bounds_m_min_per_mm: tuple[Pos, Pos] = (1.0, 5.0)
-    kp_step_m_min_per_mm: Pos = 0.1
-    kf_range: tuple[NonNeg, NonNeg] = (0.0, 1.0)
-    kf_step: Pos = 0.1
+    kp_span_m_min_per_mm: tuple[_in("kp_m_min_per_mm"), _in("kp_m_min_per_mm")] = (0.5, 5.0)
+    kp_bounds_m_min_per_mm: tuple[_in("kp_m_min_per_mm"), _in("kp_m_min_per_mm")] = (1.0, 5.0)
+    kp_step_m_min_per_mm: _in("kp_step_m_min_per_mm") = 0.1
+    kf_range: tuple[_in("kf"), _in("kf")] = (0.0, 1.0)
+    kf_step: _in("kf_step") = 0.1
     pm_min_deg: Annotated[float, Field(gt=0, lt=180)] = 70.0
-    gm_min_db: NonNeg = 10.0
+    gm_min_db: _in("gm_min_db") = 10.0
 
     @model_validator(mode="after")
     def _ordered(self) -> "GainSettings":

@@ -384,6 +384,17 @@ def test_machine_move_before_a_feed_move_is_refused(stop, column):
     ("G21 G0 X0 Y0\nG2 X10 Y0 R4.9 F60\n", 2, 11, "R 4.9 is too small"),
     ("G21 G0 X0 Y0\nG2 X10 Y0 I0 J0 F60\n", 2, 11, "arc radius is zero"),
     ("G21 G0 X0 Y0\nG53 G1 X10 F60\n", 2, 1, "G53"),
+    # numbers beyond float64 and coordinates beyond MAX_COORD_M (issue 18 rows 5 and 12)
+    ("G21 G0 X0\nG1 X" + "9" * 320 + " F60\n", 2, 4, "X word: number out of range"),
+    ("G21 G0 X0\nG1 X1 F" + "9" * 400 + "\n", 2, 7, "F word: number out of range"),
+    ("G21 G" + "9" * 330 + "\n", 1, 5, "G word: number out of range"),
+    ("G21 G0 X0\nG1 X1e308 F60\n", 2, 4, "1E308 has an exponent"),
+    ("G21 G0 X0\nG1 Y2.5E-3 F60\n", 2, 4, "(coordinate out of range?"),
+    ("G21 G0 X0\nG1 X" + "9" * 300 + " F60\n", 2, 4, "coordinate out of range (|X| <= 1e+06 mm)"),
+    ("G21 G0 X0\nG1 Z-1000001 F60\n", 2, 4, "Z -1e+06: coordinate out of range"),
+    ("G20 G0 X0\nG1 Y40000 F60\n", 2, 4, "coordinate out of range (|Y| <= 39370.1 in)"),
+    ("G21 G0 X0 Y0\nG2 X1 Y0 I2000000 J0 F60\n", 2, 10, "I 2e+06: coordinate out of range"),
+    ("G21 G0 X0 Y0\nG2 X1 Y0 R-2e9 F60\n", 2, 10, "R word: -2E9 has an exponent"),
 ])
 def test_refusals_name_line_column_and_feature(text, line, column, words):
     with pytest.raises(GcodeError) as err:
@@ -459,3 +470,21 @@ def test_number_formats_round_trip(value, style, lower):
     text = f"G21 G0 X{value + 1:.6f}\nG1 {word.lower() if lower else word} F60\n"
     (seg,) = parse(text).segments
     assert seg.end[0] == pytest.approx(value / 1000, rel=1e-15, abs=1e-21)
+
+
+def test_coordinates_at_the_range_limit_are_read():
+    """1e6 mm (MAX_COORD_M) is the last coordinate accepted; the next digit is refused."""
+    path = parse("G21 G0 X0\nG1 X1000000 F60\nG1 X-1000000\n")
+    assert path.segments[-1].end[0] == -1e3
+
+
+def test_segment_count_is_bounded(monkeypatch):
+    """More moves than MAX_SEGMENTS: refused at the first move beyond it (line, column)."""
+    import feedplan.gcode as gcode
+
+    monkeypatch.setattr(gcode, "MAX_SEGMENTS", 3)
+    parse("G21 G0 X0\nG1 X1 F60\nX2\nX3\n")
+    with pytest.raises(GcodeError) as err:
+        parse("G21 G0 X0\nG1 X1 F60\nX2\nX3\nX4\n")
+    assert (err.value.line, err.value.column) == (5, 1)
+    assert "more than 3 moves" in err.value.message

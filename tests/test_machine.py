@@ -134,3 +134,74 @@ def test_mcv_op_preset_loads_and_round_trips(tmp_path):
     (tmp_path / "m.json").write_text(json.dumps(data))
     again = load_machine(tmp_path / "m.json")
     assert again == m and again.digest() == m.digest()
+
+
+@pytest.mark.parametrize(
+    "path, value, field, bound",
+    [
+        (("axes", "x", "limits", "jmax_m_s3"), 1e308, "axes.x.limits.jmax_m_s3", "1000000"),
+        (("axes", "x", "limits", "jmax_m_s3"), 1e-300, "axes.x.limits.jmax_m_s3", "0.01"),
+        (("axes", "y", "limits", "vmax_m_s"), 1e6, "axes.y.limits.vmax_m_s", "20"),
+        (("axes", "z", "limits", "amax_m_s2"), 1e-9, "axes.z.limits.amax_m_s2", "0.001"),
+        (("axes", "z", "limits", "ferror_max_m"), 5.0, "axes.z.limits.ferror_max_m", "1"),
+        (("axes", "x", "cascade", "mass_kg"), 1e300, "axes.x.cascade.mass_kg", "1000000"),
+        (("axes", "x", "cascade", "kv_n_s_m"), 1e-300, "axes.x.cascade.kv_n_s_m", "0.000000000001"),
+        (("axes", "x", "cascade", "tn_s"), 1e9, "axes.x.cascade.tn_s", "100"),
+        (("axes", "x", "cascade", "force_lag_s"), 1e-12, "axes.x.cascade.force_lag_s", "0.0000001"),
+        (("timing", "te_s"), 1e-9, "timing.te_s", "0.00001"),
+        (("timing", "te_s"), 5.0, "timing.te_s", "0.1"),
+        (("gains", "kp_step_m_min_per_mm"), 1e-300, "gains.kp_step_m_min_per_mm", "0.01"),
+        (("gains", "kp_span_m_min_per_mm"), [0.5, 1e300], "gains.kp_span_m_min_per_mm.1", "50"),
+        (("gains", "kf_range"), [0.0, 50.0], "gains.kf_range.1", "2"),
+        (("gains", "kf_step"), 1e-9, "gains.kf_step", "0.001"),
+        (("gains", "gm_min_db"), 1e300, "gains.gm_min_db", "60"),
+    ],
+)
+def test_implausible_values_refused_naming_the_field_and_the_range(path, value, field, bound):
+    """Issue 18 row 17: values that would overflow (1e308) or allocate without end are refused."""
+    data = tomllib.loads(PRESET.read_text())
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    with pytest.raises(MachineError) as err:
+        machine_from_dict(data, where="m.toml")
+    msg = str(err.value)
+    assert msg.startswith(f"m.toml: {field}: Input should be ") and msg.endswith(bound), msg
+
+
+def test_arx_coefficients_and_order_are_bounded():
+    data = tomllib.loads((PRESET.parent / "mcv-op.toml").read_text())
+    data["axes"]["x"]["arx"]["num"] = [0.0, 1e300]
+    with pytest.raises(MachineError, match=r"axes\.x\.arx\.num\.1: Input should be less than"):
+        machine_from_dict(data)
+    data = tomllib.loads((PRESET.parent / "mcv-op.toml").read_text())
+    data["axes"]["x"]["arx"]["den"] = [1.0] + [0.0] * 100
+    with pytest.raises(MachineError, match=r"axes\.x\.arx\.den: .*at most 64"):
+        machine_from_dict(data)
+
+
+def test_machine_at_the_edges_of_the_ranges_plans_without_overflow():
+    """The extreme plausible limits still plan a move within them, without float warnings."""
+    import warnings
+
+    import numpy as np
+
+    from feedplan.gcode import parse_gcode
+    from feedplan.plan import plan
+
+    data = tomllib.loads(PRESET.read_text())
+    for a in "xyz":
+        data["axes"][a]["limits"].update(vmax_m_s=20.0, amax_m_s2=1e3, jmax_m_s3=1e6)
+    fast = machine_from_dict(data)
+    for a in "xyz":
+        data["axes"][a]["limits"].update(vmax_m_s=1e-3, amax_m_s2=1e-3, jmax_m_s3=1e-2)
+    slow = machine_from_dict(data)
+    path = parse_gcode("G21 G0 X0 Y0\nG1 X1 Y0.5 F1000000000\nG2 X2 Y0 R2\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for m in (fast, slow):
+            sp = plan(path, m.planning_limits())
+            v = np.diff(sp.pos, axis=0) / sp.dt
+            assert np.all(np.abs(v) <= m.planning_limits().vmax_m_s + 1e-12)
+            assert sp.warnings

@@ -8,6 +8,7 @@ distance overestimates the true distance by well under 0.1 um at 20 um).
 
 from __future__ import annotations
 
+import importlib
 import math
 from pathlib import Path as FilePath
 
@@ -349,3 +350,169 @@ def chains(draw):
 def test_random_chains_plan_within_limits_and_tolerance(path):
     sp = plan(path, UCP)
     assert_plan_ok(sp, path, UCP)
+
+
+# ----------------------------------------------------------------------------- issue 18: bounded
+
+
+def x_move(length_m, feed_m_s, line=2) -> Path:
+    seg = Line([0, 0, 0], [length_m, 0, 0], feed_m_s, line=line)
+    return Path(seg.start, (seg,), "xy")
+
+
+def test_higher_programmed_feed_is_never_slower():
+    """11 mm on X, F3000 .. F1e10 (vmax 30000 mm/min): durations non-increasing, all within
+    the limits, a warning where F is above the axis speed; above it, the plan is F30000's."""
+    feeds_mm_min = [3000, 10000, 30000, 30001, 1e6, 1e7, 1e8, 1e10]
+    out = []
+    for f in feeds_mm_min:
+        path = x_move(11 * MM, f / 60e3)
+        sp = plan(path, UCP)
+        capped = Path(path.start, (Line(path.start, path.segments[0].end, min(f, 30000) / 60e3),))
+        assert_plan_ok(sp, capped, UCP)
+        assert bool(sp.warnings) == (f > 30000), sp.warnings
+        out.append(sp)
+    durations = [sp.duration for sp in out]
+    assert all(b <= a + 1e-12 for a, b in zip(durations, durations[1:])), durations
+    assert durations[-1] == durations[2]
+    assert np.array_equal(out[-1].pos, out[2].pos)
+    assert "feed 1e+10 mm/min is above what the axes allow (30000 mm/min)" in out[-1].warnings[0]
+
+
+def test_feed_above_axis_speed_on_arcs_and_diagonals_is_capped_at_the_axes():
+    """A diagonal's axis speed is vmax / max|direction|; an arc's is its largest along the sweep
+    (vmax_x = vmax_y: sqrt(2) vmax at 45 deg) and the planned plan is F30000*sqrt(2)'s."""
+    diag = Line([0, 0, 0], [10 * MM, 5 * MM, 0], 1e8 / 60e3, line=2)
+    sp = plan(Path(diag.start, (diag,)), UCP)
+    assert f"({0.5 / (10 / math.hypot(10, 5)) * 60e3:.6g} mm/min)" in sp.warnings[0]
+    arc = arc_between([10 * MM, 0, 0], [0, 0, 0], "xy", math.pi / 2, 1e9, line=3)
+    sp = plan(Path(arc.start, (arc,)), UCP)
+    assert f"({0.5 * math.sqrt(2) * 60e3:.6g} mm/min)" in sp.warnings[0]
+    capped = arc_between(arc.start, [0, 0, 0], "xy", math.pi / 2, 0.5 * math.sqrt(2), line=3)
+    path = Path(arc.start, (capped,))
+    assert_plan_ok(sp, path, UCP)
+    assert sp.duration == plan(path, UCP).duration
+
+
+@pytest.mark.parametrize("feed_mm_min", [10.0, 100.0])
+@pytest.mark.parametrize("pieces", [1, 2])
+def test_slow_feed_takes_the_time_of_its_ramps(feed_mm_min, pieces):
+    """1 mm at F10 / F100, as one line (planned by ruckig) and as two collinear halves (a
+    chain: profile and filter): within 2 % of ruckig's rest-to-rest optimum at the same
+    v, a, j (no per-cell overhead of the speed profile's grid)."""
+    f = feed_mm_min / 60e3
+    ends = np.linspace(0.0, 1 * MM, pieces + 1)
+    segs = tuple(Line([a, 0, 0], [b, 0, 0], f, line=k + 2)
+                 for k, (a, b) in enumerate(zip(ends, ends[1:])))
+    path = Path(segs[0].start, segs, "xy")
+    sp = plan(path, UCP)
+    assert_plan_ok(sp, path, UCP)
+    best = rest_to_rest(1 * MM, f, 2.5, 10.0)
+    assert best - 1e-9 <= sp.duration <= 1.02 * best, (sp.duration, best)
+
+
+@pytest.mark.parametrize("axis, length_mm, feed_mm_min", [
+    (0, 0.04, 100000), (0, 0.04, 3000), (0, 11, 30000), (2, 200, 30000), (1, 14.5, 50),
+    (0, 1, 1000), (2, 3, 600)])
+def test_straight_blocks_within_2_percent_of_ruckig(axis, length_mm, feed_mm_min):
+    """Issue 21: a lone feed line is ruckig's time-optimal profile (limits projected on it,
+    speed capped at the feed and at the axis), within 2 % (its 1e-3 margin) and the sample
+    grid: the motion ends at the next whole sample and 2 samples at rest follow (+ 3 dt)."""
+    end = np.zeros(3)
+    end[axis] = length_mm * MM
+    seg = Line([0, 0, 0], end, feed_mm_min / 60e3, line=2)
+    path = Path(seg.start, (seg,), "xy")
+    sp = plan(path, UCP)
+    capped = Line(seg.start, seg.end, min(seg.feed_m_s, 0.5), line=2)
+    assert_plan_ok(sp, Path(seg.start, (capped,)), UCP)
+    best = rest_to_rest(seg.length, capped.feed_m_s, UCP.amax_m_s2[axis], UCP.jmax_m_s3[axis])
+    assert best - 1e-9 <= sp.duration <= 1.02 * best + 3 * sp.dt, (sp.duration, best)
+
+
+def test_absurd_feeds_end_quickly_at_the_axis_speed():
+    """Issue 18 row 1: F1e10 (and an override of 1e14 mm/min) used to loop for ever."""
+    text = "G21 G90\nG1 X0 Y0 F10000000000\nG1 X10 Y5\nM2\n"
+    path = parse_gcode(text, source="f.ngc")
+    a = plan(path, UCP)
+    b = plan(path, UCP, feed_m_s=1e14 / 60e3)
+    assert a.duration == b.duration < 0.5
+    assert a.warnings[0].startswith("line 3: feed 1e+10 mm/min")
+    assert b.warnings[0].startswith("line 3: feed 1e+14 mm/min")
+
+
+def test_too_long_programs_are_refused_before_planning():
+    """Issue 18 row 2: the least motion time is estimated first, naming the slowest move."""
+    path = parse_gcode("G21 G90\nG1 X0 Y0 F0.001\nG1 X1 Y0\n", source="slow.ngc")
+    with pytest.raises(ToolpathError) as err:
+        plan(path, UCP)
+    assert str(err.value) == (
+        "slow.ngc: program would take 6e+04 s of motion, 6e+07 samples of 0.001 s (limits "
+        "3600 s, 4000000 samples): line 3 moves 1 mm at F0.001 mm/min")
+    path = parse_gcode("G21 G90\nG0 X0 Y0\nG0 X1000000\nG0 X-1000000\n", source="r.ngc")
+    with pytest.raises(ToolpathError, match="program would take 6e\\+03 s .* line 4 moves a "
+                       "rapid of 2e\\+06 mm"):
+        plan(path, UCP)
+    path = x_move(0.5, 0.01)  # 50 s: fine at 1 ms, too many samples at 10 us
+    with pytest.raises(ToolpathError, match="5e\\+06 samples of 1e-05 s"):
+        plan(path, UCP, dt=1e-5)
+
+
+def test_least_motion_time_is_a_lower_bound_of_the_plan():
+    """At the feeds (capped at the axes; the diagonal rapid at 0.5 / 0.8 m/s) without ramps:
+    L / F exactly, below the plan."""
+    from feedplan.plan import least_motion_s
+
+    path = parse_gcode("G21 G90\nG0 X0 Y0\nG1 X30 F600\nG1 Y40 F1000000000\nG0 X0 Y0\n")
+    t = least_motion_s(path, UCP)
+    assert t == pytest.approx(30e-3 / 0.01 + 40e-3 / 0.5 + 50e-3 / 0.625, rel=1e-12)
+    assert t < plan(path, UCP).duration
+    assert least_motion_s(path, UCP, feed_m_s=0.02) == pytest.approx(
+        30e-3 / 0.02 + 40e-3 / 0.02 + 50e-3 / 0.625, rel=1e-12)
+
+
+def test_sample_limit_is_enforced_while_planning(monkeypatch):
+    """Stops at corners cost more than the estimate (no ramps): the limit still holds."""
+    planner = importlib.import_module("feedplan.plan")  # the module, not feedplan.plan()
+    pts = [[k * 0.1 * MM, (k % 2) * 0.1 * MM, 0] for k in range(11)]
+    segs = tuple(Line(a, b, F3000, line=k + 2) for k, (a, b) in enumerate(zip(pts, pts[1:])))
+    path = Path(segs[0].start, segs)
+    full = len(plan(path, UCP))
+    monkeypatch.setattr(planner, "MAX_SAMPLES", full // 2)
+    with pytest.raises(ToolpathError, match="the plan exceeds the limits of one plan"):
+        plan(path, UCP)
+    rapid = Path(np.zeros(3), (Line([0, 0, 0], [0.1, 0, 0], math.inf, rapid=True, line=1),))
+    monkeypatch.setattr(planner, "MAX_SAMPLES", 300)  # 0.1 m at 0.5 m/s: 0.2 s + ramps
+    with pytest.raises(ToolpathError, match="line 1: the plan exceeds"):
+        plan(rapid, UCP)
+
+
+def test_hand_built_paths_beyond_the_bounds_are_refused():
+    """Paths not from a reader: non-finite or far points, arcs of endless turns."""
+    far = Line([0, 0, 0], [2e3, 0, 0], F3000, line=4)
+    nan = Line([0, 0, 0], [math.nan, 0, 0], F3000, line=5)
+    for seg, what in ((far, "line 4: a point beyond 1000 m"), (nan, "line 5: a point beyond")):
+        with pytest.raises(ToolpathError, match=what):
+            plan(Path(seg.start, (seg,)), UCP)
+    arc = Arc([1e-3, 0, 0], [1e-3, 0, 0], [0, 0, 0], "xy", 1e300, F3000, line=6)
+    with pytest.raises(ToolpathError, match="line 6: arc sweep 1e\\+300 rad: more than 1000 turns"):
+        plan(Path(arc.start, (arc,)), UCP)
+
+
+def test_no_motion_is_a_toolpath_error():
+    for text in ("", "(only a comment)\n", "G21 G0 X1 Y2\nM2\n"):
+        with pytest.raises(ToolpathError, match="^no motion in p.ngc$"):
+            plan(parse_gcode(text, source="p.ngc"), UCP)
+
+
+@pytest.mark.parametrize("kw", [{"dt": 1e-9}, {"dt": 0.5}, {"tol_m": 1e-12}, {"tol_m": 0.5}])
+def test_dt_and_tolerance_ranges(kw):
+    with pytest.raises(OptionError, match=next(iter(kw)) + " must be in"):
+        plan(x_move(1 * MM, F3000), UCP, **kw)
+
+
+def test_progress_reaches_one_and_never_goes_back():
+    seen = []
+    path = parse_gcode((DATA / "reference_xz.ngc").read_text())
+    plan(path, UCP, progress=seen.append)
+    assert len(seen) > 10 and seen[-1] == 1.0
+    assert all(0.0 <= a <= b <= 1.0 for a, b in zip(seen, seen[1:]))

@@ -174,6 +174,38 @@ def test_load_errors(tmp_path):
     with pytest.raises(ToolpathError, match="not UTF-8 text") as err:
         load_toolpath(tmp_path / "latin.ngc")
     assert (err.value.line, err.value.column) == (2, 5)
+    assert str(err.value) == f"{tmp_path / 'latin.ngc'}:2:5: not UTF-8 text (byte 0xe9)"
+
+
+def test_polyline_errors_name_the_file_first(tmp_path):
+    (tmp_path / "p.csv").write_text("x,y,z\n0,0,0\n1,a,0\n")
+    with pytest.raises(ToolpathError) as err:
+        load_toolpath(tmp_path / "p.csv")
+    assert str(err.value) == f"{tmp_path / 'p.csv'}:3:2: field y: 'a' is not a number"
+    (tmp_path / "p.json").write_text('{"points": [[0, 0, 0], [1, 2]]}')
+    with pytest.raises(ToolpathError) as err:
+        load_toolpath(tmp_path / "p.json")
+    assert str(err.value).startswith(f"{tmp_path / 'p.json'}: points[1]: expected [x, y, z]")
+    with pytest.raises(ToolpathError) as err:  # without a name: as before
+        parse_csv("x,y,z\n0,0,0\n1,a,0\n")
+    assert str(err.value) == "line 3:2: field y: 'a' is not a number"
+
+
+def test_polyline_coordinates_and_size_are_bounded(monkeypatch):
+    with pytest.raises(ToolpathError, match=r"point 2: coordinate out of range \(\|x\|, \|y\|, "
+                       r"\|z\| <= 1e\+06 mm\)") as err:
+        parse_csv("x,y,z\n0,0,0\n0,1e7,0\n", source="f.csv")
+    assert str(err.value).startswith("f.csv:3: ")
+    with pytest.raises(ToolpathError, match="points\\[1\\]: coordinate out of range"):
+        parse_json("[[0, 0, 0], [0, 0, -1e300]]")
+    import feedplan.polyline as polyline
+
+    monkeypatch.setattr(polyline, "MAX_SEGMENTS", 2)
+    assert len(parse_csv("x,y,z\n0,0,0\n1,0,0\n2,0,0\n").segments) == 2
+    with pytest.raises(ToolpathError, match="4 points: more than 2 moves"):
+        parse_csv("x,y,z\n0,0,0\n1,0,0\n2,0,0\n3,0,0\n")
+    with pytest.raises(ToolpathError, match="4 points: more than 2 moves"):
+        parse_json("[[0,0,0],[1,0,0],[2,0,0],[3,0,0]]")
 
 
 def test_shipped_programs_load(tmp_path):
@@ -182,3 +214,15 @@ def test_shipped_programs_load(tmp_path):
         path = load_toolpath(f)
         direct = parse_gcode(f.read_text(), str(f))
         assert len(path.segments) == len(direct.segments) > 0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[[" + "9" * 400 + ", 0, 0], [0, 0, 1]]", "p.json: points[0].x: 999999"),
+    ("[[" + "9" * 5000 + ", 0, 0], [0, 0, 1]]", "p.json: invalid JSON: a number has too many"),
+    ("[" * 100000 + "]" * 100000, "p.json: invalid JSON: nested too deeply"),
+    ("[[1e400, 0, 0], [0, 0, 1]]", "p.json: points[0].x: inf must be finite"),
+])
+def test_json_numbers_beyond_float64_and_deep_nesting(text, message):
+    with pytest.raises(ToolpathError) as err:
+        parse_json(text, source="p.json")
+    assert str(err.value).startswith(message)

@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         from oga.report import render_report
 
         write_text(args.report, render_report(job))
-    for w in job.path.warnings:
+    for w in (*job.path.warnings, *job.setpoints.warnings):
         print(f"warning: {w}")
     b, o = summary["baseline"], summary["optimized"]
     kp_b = {a: v for a, v in b["kp"].items() if a in machine.axes}

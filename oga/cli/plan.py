@@ -55,9 +55,9 @@ def run(args: argparse.Namespace) -> int:
             "limits_ok": check.ok,
             "violations": list(check.violations),
             "planning_time_s": planning_time,
-            "warnings": list(path.warnings),
+            "warnings": [*path.warnings, *sp.warnings],
         })
-    for w in path.warnings:
+    for w in (*path.warnings, *sp.warnings):
         print(f"warning: {w}")
     print(f"{len(sp)} samples, {sp.duration:.3f} s, max deviation "
           f"{check.max_deviation_m * 1e6:.2f} um, limits {'ok' if check.ok else 'VIOLATED'}, "
