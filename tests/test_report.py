@@ -224,6 +224,7 @@ def test_drawn_command_derivatives_are_the_eq2_peaks(paper_job):
 
 def test_cli_optimize_writes_the_report(tmp_path):
     out, report = tmp_path / "t.csv", tmp_path / "sub" / "r.html"
+    report.parent.mkdir()  # oga creates no folder for an output file
     code = main(["optimize", str(DATA / "short_xz.ngc"), "--baseline", "1.6,0.9", "--adjust", "z",
                  "--gains", "kp", "--kp-range", "1.0,2.7", "--mode", "paper",
                  "--out", str(out), "--report", str(report)])
@@ -255,8 +256,10 @@ def test_api_report_is_rebuilt_from_the_stored_job(tmp_path, monkeypatch):
         run_claimed(store, store.claim(Owner(socket.gethostname(), 12345, "t", 12345)))
         assert client.get(f"/v1/jobs/{job_id}").json()["status"] == "succeeded"
         # the request replays the stored table; it never searches
-        for name in ("oga.optimize.optimize", "oga.pipeline.optimize", "oga.pipeline.run_job"):
-            monkeypatch.setattr(name, lambda *a, **k: pytest.fail("searched"))
+        # (the module by sys.modules: the attribute oga.optimize is the function)
+        for module, name in (("oga.optimize", "optimize"), ("oga.pipeline", "optimize"),
+                             ("oga.pipeline", "run_job")):
+            monkeypatch.setattr(sys.modules[module], name, lambda *a, **k: pytest.fail("searched"))
         r = client.get(f"/v1/jobs/{job_id}/report")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
         assert r.headers["x-oga-job-id"] == job_id

@@ -16,7 +16,7 @@ from pathlib import Path as FilePath
 
 import numpy as np
 
-from oga.cli._common import write_text
+from oga.cli._common import output_folder, write_text
 from oga.errors import InputError
 
 __all__ = ["register", "run", "read_table"]
@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
         else args.error_previous_target == "true",
         axes=args.axes.split(",") if args.axes else None,
         joints=_joints(args.joints) if args.joints else None)
-    out = FilePath(args.out)
+    out = output_folder("--out", args.out)  # DIR is created (not its parents) once all is read
     for name, text in export.files.items():
         write_text(out / name, text)
     loops = ", ".join(f"{a} -> pid.{export.joints[a]}" for a in export.axes)
