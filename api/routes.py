@@ -81,32 +81,20 @@ def _duration(seconds: float) -> str:
 
 def _check_motion(path, machine, feed_m_s: float | None, limit_s: float, *, where: str = "",
                   advice: str = "") -> None:
-    """Refuse a toolpath whose motion would take longer than ``limit_s`` (413) or that holds
-    a coordinate beyond floating point (422 naming its line), before anything is planned.
-
-    The estimate is a lower bound: each move at its feed (or the override), capped at the
-    machine's slowest axis speed (rapids at that speed; a move without feed too: the planner
-    names it). ``where`` and ``advice`` complete the message.
+    """Refuse a toolpath whose motion would take longer than ``limit_s`` (413), before
+    anything is planned: the planner's own lower bound
+    (:func:`feedplan.plan.move_times_s`). ``where`` and ``advice`` complete the message.
     """
-    cap = min(a.limits.vmax_m_s for a in machine.axes.values())
-    total, longest, line = 0.0, 0.0, 0
-    for seg in path.segments:
-        points = (seg.start, seg.end, getattr(seg, "center", seg.end))
-        with np.errstate(over="ignore"):
-            finite = all(np.isfinite(p).all() for p in points) and math.isfinite(seg.length)
-        if not finite:
-            raise ToolpathError("the coordinates of this move are too large to compute with "
-                                "(its length overflows floating point)", line=seg.line)
-        feed = seg.feed_m_s if seg.rapid or feed_m_s is None else feed_m_s
-        seconds = seg.length / (min(feed, cap) if feed > 0 else cap)
-        total += seconds
-        if seconds > longest:
-            longest, line = seconds, seg.line
+    from feedplan.plan import move_times_s
+
+    seconds = move_times_s(path, machine.planning_limits(), feed_m_s)
+    total = float(np.sum(seconds))
     if total > limit_s:
+        k = int(np.argmax(seconds))
         raise HTTPException(
             413, f"toolpath too long{where}: about {_duration(total)} of motion at the "
-            f"programmed feeds (the longest move, line {line}, {_duration(longest)}); the "
-            f"limit is {limit_s:g} s{advice}")
+            f"programmed feeds (the longest move, line {path.segments[k].line}, "
+            f"{_duration(float(seconds[k]))}); the limit is {limit_s:g} s{advice}")
 
 
 def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:

@@ -82,7 +82,7 @@ from oga.defaults import (
 )
 from oga.errors import OptionError, PlanError, ToolpathError
 
-__all__ = ["plan", "least_motion_s", "GRID_M", "FIT_TOL_FRACTION"]
+__all__ = ["plan", "least_motion_s", "move_times_s", "GRID_M", "FIT_TOL_FRACTION"]
 
 #: Spacing of the speed-profile grid along the path, metres.
 GRID_M = 0.25e-3
@@ -652,12 +652,12 @@ def _move_times(path: Path, feeds: np.ndarray, allowed: np.ndarray) -> np.ndarra
         return length / np.minimum(feeds, allowed)
 
 
-def least_motion_s(path: Path, limits: AxisLimits, feed_m_s: float | None = None) -> float:
-    """Least motion time of a path, seconds: a lower bound of its plan's duration.
-
-    Every move at its feed (or ``feed_m_s``) capped at what the axes allow along it,
-    rapids at the axis speed, no ramps: what :func:`plan` checks against
-    :data:`~oga.defaults.MAX_MOTION_S` before planning. Cheap (no allocation per sample).
+def move_times_s(path: Path, limits: AxisLimits, feed_m_s: float | None = None) -> np.ndarray:
+    """Least motion time of each move, seconds, shape (n_segments,): every move at its feed
+    (or ``feed_m_s``) capped at what the axes allow along it, rapids at the axis speed, no
+    ramps. Their sum is a lower bound of the plan's duration, what :func:`plan` checks
+    against :data:`~oga.defaults.MAX_MOTION_S` before planning. Cheap (no allocation per
+    sample).
 
     Raises
     ------
@@ -666,7 +666,13 @@ def least_motion_s(path: Path, limits: AxisLimits, feed_m_s: float | None = None
     """
     feeds, allowed, _ = _feeds(path, limits, feed_m_s)
     with np.errstate(over="ignore"):
-        return float(np.sum(_move_times(path, feeds, allowed)))
+        return _move_times(path, feeds, allowed)
+
+
+def least_motion_s(path: Path, limits: AxisLimits, feed_m_s: float | None = None) -> float:
+    """Least motion time of a path, seconds: the sum of :func:`move_times_s`."""
+    with np.errstate(over="ignore"):
+        return float(np.sum(move_times_s(path, limits, feed_m_s)))
 
 
 def _estimate(path: Path, feeds: np.ndarray, allowed: np.ndarray, dt: float) -> np.ndarray:

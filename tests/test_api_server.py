@@ -20,9 +20,11 @@ import pytest
 DATA = Path(__file__).parent / "data"
 REFERENCE = (DATA / "reference_xz.ngc").read_text()
 SHORT = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nG2 X13 Z5 I0 K5\nG1 X25 Z5\nM2\n"
-#: One 1 m move at F600: 100 s of motion, about 10 s of work (several seconds of it planning
-#: its single block, without a progress report).
+#: One 1 m move at F600: 100 s of motion, a few seconds of work.
 LONG = "G21 G90\nG1 X0 Y0 F600\nG1 X1000\nM2\n"
+#: Three circles twice at F600 (150 s of motion): several seconds of CPU, most of it in the
+#: best-fixed-gains grid and the search (a lone line is planned by ruckig in no time).
+HOG = "G21 G90\nG1 X0 Y0 F600\n" + "G2 X0 Y0 I50 J0\nG2 X0 Y0 I40 J0\nG2 X0 Y0 I30 J0\n" * 2 + "M2\n"
 #: 600 s of motion: its worker's resident memory passes 300 MiB (about 220 MiB for SHORT).
 BIG = "G21 G90\nG1 X0 Y0 F600\nG1 X6000\nM2\n"
 FINISHED = ("succeeded", "failed", "cancelled")
@@ -230,7 +232,7 @@ def test_a_stalled_worker_shows_in_healthz_and_delete_ends_it_at_once(tmp_path):
 
 
 @pytest.mark.parametrize("flags, program, words, kind", [
-    (("--job-cpu-s", "2"), LONG, "job exceeded its CPU-time limit of 2 s", "CpuTimeLimit"),
+    (("--job-cpu-s", "2"), HOG, "job exceeded its CPU-time limit of 2 s", "CpuTimeLimit"),
     (("--job-memory-mb", "300"), BIG, "job exceeded its memory limit of 300 MiB", "MemoryLimit"),
 ], ids=["cpu", "memory"])
 def test_a_job_over_its_cap_fails_once_and_the_next_job_runs(tmp_path, flags, program, words,
