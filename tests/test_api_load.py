@@ -21,7 +21,7 @@ from test_api_server import FINISHED, LONG, SHORT, Server
 FLAGS = ("--job-cpu-s", "5", "--job-memory-mb", "1024")
 #: Requests bounded in time: the whole test ends within this, s.
 DEADLINE_S = 80.0
-HEALTH_EVERY_S = 0.2
+HEALTH_EVERY_S = 0.05  # the jobs now plan in seconds: poll often enough to see the load
 HEALTH_MAX_S = 0.1
 
 
@@ -35,11 +35,11 @@ NORMAL = [_gcode(SHORT.replace("F3000", f"F{feed}"), f"short_f{feed}.ngc")
 REFUSED = [
     (_gcode("G21 G90\nG1 X0 Y0 F0.001\nG1 X1 Y0\nM2\n", "tiny_feed.ngc"), (413, 422), "line 3"),
     (_gcode("G21 G90\nG1 X0 Y0 F0.0001\nG1 X0 Y2\nM2\n", "tinier_feed.ngc"), (413, 422), "line 3"),
-    (_gcode("G21 G90\nG1 X0 Y0 F3000\nG1 X100000000\nM2\n", "100km.ngc"), (413, 422), "line 3"),
+    (_gcode("G21 G90\nG1 X0 Y0 F3000\nG1 X100000000\nM2\n", "100km.ngc"), (413, 422), "100km.ngc:3:4"),
     (_gcode("G21 G90\nG1 X0 Y0 F1000\nG1 X" + "9" * 320 + " Y5\nM2\n", "nines.ngc"), (422,),
-     "line 3"),
+     "nines.ngc:3:4"),
     (_gcode("G21 G90\nG1 X0 Y0 F1000\nG1 Y" + "9" * 400 + "\nM2\n", "more_nines.ngc"), (422,),
-     "line 3"),
+     "more_nines.ngc:3:4"),
     (_gcode("G21 G90\nG1 X0 Y0 F1000\nG1 X10 Q\nM2\n", "bad_word.ngc"), (422,), "3:"),
     (_gcode("", "empty.ngc"), (422,), "toolpath.content"),
 ]
