@@ -148,3 +148,15 @@ def test_two_servers_share_the_queue_and_survive_kill_9(db_url, tmp_path):
                 s.stop()
             except (httpx.HTTPError, OSError):
                 pass
+
+
+def test_serve_with_an_unusable_database_url_exits_2(cluster):
+    import subprocess
+    import sys
+
+    url = cluster.url.replace("oga@", "oga:s3cret@").rsplit("/", 1)[0] + "/no_such_db"
+    r = subprocess.run([sys.executable, "-m", "oga", "serve", "--db", url, "--port", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "s3cret" not in r.stderr
+    assert "--db postgresql://oga:***@127.0.0.1:" in r.stderr and "no_such_db" in r.stderr
