@@ -210,14 +210,15 @@ class Store:
         db = self._db()
         total = db.execute(f"SELECT COUNT(*) AS n FROM jobs {where}", args).fetchone()["n"]
         rows = db.execute(
-            f"SELECT {_LIST_COLUMNS} FROM jobs {where} ORDER BY created_at DESC, {self._SEQ} DESC "
-            "LIMIT ? OFFSET ?", (*args, limit, offset),
+            f"SELECT {_LIST_COLUMNS} FROM jobs {where} "
+            f"ORDER BY created_at DESC, {self._SEQ} DESC LIMIT ? OFFSET ?", (*args, limit, offset),
         ).fetchall()
         return [JobRow._from(r) for r in rows], total
 
     def counts(self) -> dict[str, int]:
         """Number of jobs per status."""
-        rows = self._db().execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
+        rows = self._db().execute(
+            "SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
         return {s: 0 for s in STATUSES} | {r["status"]: r["n"] for r in rows}
 
     def table(self, job_id: str) -> bytes | None:

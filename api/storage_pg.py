@@ -15,6 +15,7 @@ import psycopg
 from psycopg.rows import dict_row
 
 from api.storage import SCHEMA, Store
+from oga.defaults import PG_CONNECT_S
 
 __all__ = ["PgStore"]
 
@@ -23,7 +24,8 @@ _SCHEMA_LOCK = 0x6F6761  # "oga"
 
 
 class _Connection:
-    """A psycopg connection taking the store's ``?`` parameters."""
+    """A psycopg connection taking the store's ``?`` parameters (the store's SQL has no
+    literal ``?`` nor ``%``)."""
 
     def __init__(self, conn: psycopg.Connection) -> None:
         self.conn = conn
@@ -60,7 +62,7 @@ class PgStore(Store):
 
     def _connect(self) -> _Connection:
         return _Connection(psycopg.connect(self.url, autocommit=True, row_factory=dict_row,
-                                           connect_timeout=10))
+                                           connect_timeout=int(PG_CONNECT_S)))
 
     def _is_open(self, db: _Connection) -> bool:
         return not (db.conn.closed or db.conn.broken)

@@ -7,10 +7,11 @@ from __future__ import annotations
 import glob
 import os
 import shutil
-import socket
 import subprocess
 import tempfile
 from pathlib import Path
+
+from test_api_server import _free_port
 
 
 def _bin(name: str) -> str:
@@ -20,12 +21,6 @@ def _bin(name: str) -> str:
         raise AssertionError(f"PostgreSQL's {name} is missing: install Debian's postgresql package "
                              "(.ci/run does)")
     return found
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class PgCluster:

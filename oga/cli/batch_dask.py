@@ -61,24 +61,24 @@ def execute_on(client, out: FilePath, todo: list, outcomes: dict[int, dict], *, 
     run = uuid.uuid4().hex[:8]
     futures = {}
     with bar:
-        for task in todo:
-            try:
-                text, fmt = read_file(task.file)
-            except Exception as err:
-                finish(out, task, _failed(task, err), outcomes, bar)
-                continue
-            future = client.submit(_run_remote, replace(task, text=text, fmt=fmt), pure=False,
-                                   key=f"oga-batch-{run}-{task.index}-{task.stem}")
-            futures[future] = task
         try:
+            for task in todo:
+                try:
+                    text, fmt = read_file(task.file)
+                except Exception as err:
+                    finish(out, task, _failed(task, err), outcomes, bar)
+                    continue
+                future = client.submit(_run_remote, replace(task, text=text, fmt=fmt),
+                                       pure=False, key=f"oga-batch-{run}-{task.index}-{task.stem}")
+                futures[future] = task
             for future in as_completed(list(futures), loop=client.loop):
                 task = futures.pop(future)
                 try:
                     outcome = future.result()
                 except KilledWorker:
                     outcome = {"status": "failed", "time_s": 0.0,
-                               "reason": f"{task.file}: every Dask worker that ran it died "
-                               "(out of memory?)"}
+                               "reason": f"{task.file}: the Dask workers running it died "
+                               "too often (KilledWorker; out of memory?)"}
                 except Exception as err:  # cancelled on the cluster, a worker without oga...
                     outcome = {"status": "failed", "time_s": 0.0,
                                "reason": f"{task.file}: the Dask cluster failed it: "

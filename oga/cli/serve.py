@@ -79,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
                         max_upload_bytes=int(args.max_upload_mb * 2**20),
                         job_max_motion_s=args.job_max_motion_s, job_cpu_s=args.job_cpu_s,
                         job_memory_bytes=int(args.job_memory_mb * 2**20), stall_s=args.stall_s)
-    print(f"oga serve: http://{args.host}:{args.port} (docs /docs), database {without_password(db)}, "
+    print(f"oga serve: http://{args.host}:{args.port} (docs /docs), database "
+          f"{without_password(db)}, "
           f"{workers} worker(s){', API key required' if api_key else ''}", flush=True)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     return 0
