@@ -149,3 +149,8 @@ def test_an_unreachable_scheduler_is_a_one_line_error(tmp_path):
     r = batch(str(DATA / "short_xz.ngc"), "--out", str(tmp_path / "out"), "--scheduler",
               "tcp://127.0.0.1:1", "--jobs", "2")
     assert r.returncode == 2 and "--jobs is for a local run" in r.stderr
+    for bad in ("foo", ""):
+        r = batch(str(DATA / "short_xz.ngc"), "--out", str(tmp_path / "out"), "--scheduler", bad,
+                  timeout=60)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+        assert f"--scheduler {bad!r}: expected tcp://HOST:PORT" in r.stderr

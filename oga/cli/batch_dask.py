@@ -23,10 +23,17 @@ __all__ = ["connect", "execute_on"]
 def connect(address: str):
     """A client of the scheduler at ``address``; an unreachable one is the user's error."""
     from distributed import Client
+    from distributed.comm.addressing import parse_address, parse_host_port
 
     from oga.defaults import DASK_CONNECT_S
     from oga.errors import InputError
 
+    try:  # a malformed address is refused before a Client exists (it would linger)
+        scheme, where = parse_address(address)
+        if scheme in ("tcp", "tls"):
+            parse_host_port(where)
+    except ValueError as err:
+        raise InputError(f"--scheduler {address!r}: expected tcp://HOST:PORT ({err})") from None
     try:
         return Client(address, timeout=DASK_CONNECT_S, set_as_default=False)
     except (OSError, TimeoutError, ValueError, TypeError) as err:
