@@ -111,6 +111,11 @@ def test_a_worker_killed_mid_batch_costs_a_retry_only(cluster, programs, local_r
         victim = next(n for n, a in workers.items() if a == holder[0])
         cluster.kill_worker(int(victim[1:]))
         stdout, stderr = proc.communicate(timeout=600)
+        # the long program was retried on the surviving worker
+        survivor = next(a for a in workers.values() if a != holder[0])
+        log = client.run(lambda dask_worker: [str(entry) for entry in dask_worker.state.log],
+                         workers=[survivor])[survivor]
+        assert any("long_move" in entry and "executing" in entry for entry in log)
     assert proc.returncode == 0, stdout + stderr
     assert "6 program(s): 6 optimised, 0 skipped, 0 failed" in stdout
     _same_as(out, local_run)
