@@ -30,7 +30,7 @@ from starlette.routing import Match, Route
 
 from api import routes
 from api.schemas import Health, error_body
-from api.storage import Store
+from api.storage import open_store
 from api.workers import JobLimits, WorkerPool
 from oga import __version__, defaults
 from oga.errors import InputError
@@ -61,7 +61,7 @@ class Settings:
     Attributes
     ----------
     db_path : str
-        SQLite database of jobs and results.
+        The jobs and results: an SQLite file, or a PostgreSQL URL (``postgresql://...``).
     workers : int
         Worker processes (jobs optimised at once); 0 starts none (the API only queues).
     api_key : str or None
@@ -233,7 +233,7 @@ def create_app(settings: Settings) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings = settings
-    app.state.store = Store(settings.db_path)
+    app.state.store = open_store(settings.db_path)
     app.state.pool = None
     app.include_router(routes.router)
     json_paths = frozenset(r.path for r in routes.router.routes

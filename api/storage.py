@@ -7,6 +7,11 @@ the job was cancelled or handed to another worker, so a stale worker can never
 overwrite a newer state. A result (status, summary and table) is written in a
 single transaction, so a job is either succeeded with its table or not at all.
 
+Two backends share this logic and its SQL: :class:`SqliteStore` (one file, one
+host; the default) and :class:`api.storage_pg.PgStore` (PostgreSQL: several
+servers on several hosts share one queue; a claim takes its row ``FOR UPDATE
+SKIP LOCKED``). :func:`open_store` picks one from the ``--db`` value.
+
 Owners: a running job records the server that runs it (host, pid, instance id)
 and the worker's pid; :meth:`Store.running` lets the server find jobs whose
 owner is gone and requeue them (see :mod:`api.workers`).
@@ -16,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sqlite3
 import threading
 import time
@@ -25,19 +31,24 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path as FilePath
 
-__all__ = ["STATUSES", "FINISHED", "Owner", "JobRow", "Store", "default_db_path"]
+from oga.errors import OgaError
+
+__all__ = ["STATUSES", "FINISHED", "Owner", "JobRow", "Store", "SqliteStore", "open_store",
+           "is_postgres_url", "without_password", "default_db_path", "StoreError"]
 
 #: Every job status.
 STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 #: Statuses a job never leaves.
 FINISHED = ("succeeded", "failed", "cancelled")
 
-_SCHEMA = """
+#: The tables; ``{seq}``, ``{real}`` and ``{blob}`` are the backend's spellings of an
+#: insertion-order column, a double and a byte string.
+SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
-    id TEXT PRIMARY KEY,
+    id TEXT PRIMARY KEY,{seq}
     status TEXT NOT NULL CHECK (status IN ('queued','running','succeeded','failed','cancelled')),
     priority INTEGER NOT NULL DEFAULT 0,
-    progress REAL NOT NULL DEFAULT 0,
+    progress {real} NOT NULL DEFAULT 0,
     created_at TEXT NOT NULL,
     started_at TEXT,
     finished_at TEXT,
@@ -51,14 +62,14 @@ CREATE TABLE IF NOT EXISTS jobs (
     owner_pid INTEGER,
     owner_instance TEXT,
     worker_pid INTEGER,
-    heartbeat REAL,
+    heartbeat {real},
     error TEXT,
     summary TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_queue ON jobs (status, priority DESC, created_at);
 CREATE TABLE IF NOT EXISTS results (
     job_id TEXT PRIMARY KEY REFERENCES jobs (id) ON DELETE CASCADE,
-    table_npz BLOB NOT NULL
+    table_npz {blob} NOT NULL
 );
 """
 
@@ -106,7 +117,7 @@ class JobRow:
     summary: dict | None
 
     @classmethod
-    def _from(cls, r: sqlite3.Row) -> "JobRow":
+    def _from(cls, r) -> "JobRow":
         keys = r.keys()
         owner = None
         if r["owner_instance"] is not None:
@@ -131,40 +142,39 @@ _LIST_COLUMNS = ("id, status, priority, progress, created_at, started_at, finish
 class Store:
     """The job database; safe to share between threads (one connection per thread).
 
-    Parameters
-    ----------
-    path : path-like
-        SQLite file; created with its folder if missing.
+    The queries of both backends live here (written with ``?`` parameters); a backend
+    gives its connection, its transaction, its schema spellings and its claim lock.
+    Open one with :func:`open_store`.
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
-        self.path = FilePath(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._local = threading.local()
-        self._db().executescript(_SCHEMA)
+    #: The column that orders jobs created in the same millisecond (insertion order).
+    _SEQ = "rowid"
+    #: Appended to the claim's choice of a queued job (PostgreSQL: ``FOR UPDATE SKIP LOCKED``).
+    _CLAIM_LOCK = ""
+    #: Exceptions of the backend (an unusable ``--db`` raises one of them).
+    errors: tuple[type[BaseException], ...] = ()
 
-    def _db(self) -> sqlite3.Connection:
+    def __init__(self) -> None:
+        self._local = threading.local()
+
+    def _connect(self):
+        """A new connection of this thread (with ``execute(sql, args)`` taking ``?``)."""
+        raise NotImplementedError
+
+    def _is_open(self, db) -> bool:
+        return True
+
+    def _db(self):
         db = getattr(self._local, "db", None)
-        if db is None:
-            db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
-            db.row_factory = sqlite3.Row
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute("PRAGMA synchronous=FULL")
-            db.execute("PRAGMA foreign_keys=ON")
-            self._local.db = db
+        if db is None or not self._is_open(db):
+            db = self._local.db = self._connect()
         return db
 
     @contextmanager
     def _tx(self):
-        """A write transaction: BEGIN IMMEDIATE, COMMIT, or ROLLBACK on any exception."""
-        db = self._db()
-        db.execute("BEGIN IMMEDIATE")
-        try:
-            yield db
-        except BaseException:
-            db.execute("ROLLBACK")
-            raise
-        db.execute("COMMIT")
+        """A write transaction; rolled back on any exception."""
+        raise NotImplementedError
+        yield
 
     def close(self) -> None:
         """Close this thread's connection."""
@@ -198,22 +208,23 @@ class Store:
         """A page of jobs, newest first, and the total count (of that status)."""
         where, args = ("WHERE status = ?", (status,)) if status else ("", ())
         db = self._db()
-        total = db.execute(f"SELECT COUNT(*) FROM jobs {where}", args).fetchone()[0]
+        total = db.execute(f"SELECT COUNT(*) AS n FROM jobs {where}", args).fetchone()["n"]
         rows = db.execute(
-            f"SELECT {_LIST_COLUMNS} FROM jobs {where} ORDER BY created_at DESC, rowid DESC "
-            "LIMIT ? OFFSET ?", (*args, limit, offset),
+            f"SELECT {_LIST_COLUMNS} FROM jobs {where} "
+            f"ORDER BY created_at DESC, {self._SEQ} DESC LIMIT ? OFFSET ?", (*args, limit, offset),
         ).fetchall()
         return [JobRow._from(r) for r in rows], total
 
     def counts(self) -> dict[str, int]:
         """Number of jobs per status."""
-        rows = self._db().execute("SELECT status, COUNT(*) FROM jobs GROUP BY status").fetchall()
-        return {s: 0 for s in STATUSES} | {r[0]: r[1] for r in rows}
+        rows = self._db().execute(
+            "SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
+        return {s: 0 for s in STATUSES} | {r["status"]: r["n"] for r in rows}
 
     def table(self, job_id: str) -> bytes | None:
         """The stored table (``oga.export.table_npz`` bytes) of a succeeded job."""
         r = self._db().execute("SELECT table_npz FROM results WHERE job_id = ?", (job_id,)).fetchone()
-        return None if r is None else bytes(r[0])
+        return None if r is None else bytes(r["table_npz"])
 
     def cancel(self, job_id: str) -> JobRow | None:
         """Cancel a queued or running job; returns it (with the owner that ran it, if it
@@ -235,9 +246,9 @@ class Store:
             r = db.execute(
                 "UPDATE jobs SET status = 'running', attempts = attempts + 1, progress = 0, "
                 "started_at = ?, owner_host = ?, owner_pid = ?, owner_instance = ?, "
-                "worker_pid = ?, heartbeat = ? WHERE id = (SELECT id FROM jobs "
-                "WHERE status = 'queued' ORDER BY priority DESC, created_at, rowid LIMIT 1) "
-                "RETURNING *",
+                "worker_pid = ?, heartbeat = ? WHERE status = 'queued' AND id = (SELECT id "
+                f"FROM jobs WHERE status = 'queued' ORDER BY priority DESC, created_at, "
+                f"{self._SEQ} LIMIT 1{self._CLAIM_LOCK}) RETURNING *",
                 (_now(), owner.host, owner.pid, owner.instance, owner.worker_pid, time.time()),
             ).fetchone()
         return None if r is None else JobRow._from(r)
@@ -259,7 +270,8 @@ class Store:
                 "WHERE id = ? AND attempts = ? AND status = 'running'",
                 (_now(), json.dumps(summary), job_id, attempt))
             if cur.rowcount == 1:
-                db.execute("INSERT OR REPLACE INTO results (job_id, table_npz) VALUES (?, ?)",
+                db.execute("INSERT INTO results (job_id, table_npz) VALUES (?, ?) ON CONFLICT "
+                           "(job_id) DO UPDATE SET table_npz = excluded.table_npz",
                            (job_id, table_npz))
         return cur.rowcount == 1
 
@@ -310,3 +322,76 @@ class Store:
                     "WHERE id = ? AND attempts = ? AND status = 'running'", (job_id, attempt))
                 new = "queued"
         return new if cur.rowcount == 1 else None
+
+
+class SqliteStore(Store):
+    """The jobs in one SQLite file (WAL): one host, zero setup.
+
+    Parameters
+    ----------
+    path : path-like
+        SQLite file; created with its folder if missing.
+    """
+
+    errors = (OSError, sqlite3.Error)
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        super().__init__()
+        self.path = FilePath(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db().executescript(SCHEMA.format(seq="", real="REAL", blob="BLOB"))
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+        db.row_factory = sqlite3.Row
+        db.execute("PRAGMA journal_mode=WAL")
+        db.execute("PRAGMA synchronous=FULL")
+        db.execute("PRAGMA foreign_keys=ON")
+        return db
+
+    @contextmanager
+    def _tx(self):
+        """BEGIN IMMEDIATE (the one writer), COMMIT, or ROLLBACK on any exception."""
+        db = self._db()
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+        db.execute("COMMIT")
+
+
+def without_password(db: str | os.PathLike) -> str:
+    """``db`` as it may be printed: a URL's password replaced by ``***``."""
+    return re.sub(r"(://[^:/@]*):[^@]*@", r"\1:***@", str(db))
+
+
+def is_postgres_url(db: str) -> bool:
+    """Whether ``--db`` names a PostgreSQL database (``postgresql://`` or ``postgres://``)."""
+    return db.startswith(("postgresql://", "postgres://"))
+
+
+class StoreError(OgaError, RuntimeError):
+    """The job database cannot be opened (the backend's reason in one line)."""
+
+
+def open_store(db: str | os.PathLike) -> Store:
+    """The store at ``db``: a PostgreSQL URL, else an SQLite file.
+
+    Raises
+    ------
+    StoreError
+        When it cannot be opened or created (the URL's password is never in the message).
+    """
+    if is_postgres_url(str(db)):
+        from api.storage_pg import PgStore
+
+        kind = PgStore
+    else:
+        kind = SqliteStore
+    try:
+        return kind(db)
+    except kind.errors as err:
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise StoreError(f"{without_password(db)}: cannot open the database: {reason}") from None

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import wait as wait_ready
 
 from api.schemas import error_body, json_safe
-from api.storage import JobRow, Owner, Store
+from api.storage import JobRow, Owner, Store, open_store
 from oga import defaults
 
 __all__ = ["MAX_ATTEMPTS", "HEARTBEAT_S", "LEASE_S", "JobLimits", "WorkerPool", "run_claimed"]
@@ -229,7 +229,7 @@ def _worker_main(db_path: str, server_pid: int, instance: str, limits: JobLimits
     os.nice(WORKER_NICE)
     import oga.pipeline  # noqa: F401  (load the engine before the first job)
 
-    store = Store(db_path)
+    store = open_store(db_path)
     owner = Owner(socket.gethostname(), server_pid, instance, os.getpid())
     while os.getppid() == server_pid:
         job = store.claim(owner)
@@ -277,7 +277,7 @@ class WorkerPool:
         self._killed: set[int] = set()
         self._moved: dict[tuple[str, int], tuple[float, float, int]] = {}
         self._lock = threading.Lock()
-        self._store = Store(db_path)
+        self._store = open_store(db_path)
         self._thread = threading.Thread(target=self._supervise, name="oga-supervisor", daemon=True)
 
     def start(self) -> None:

@@ -29,6 +29,8 @@ __all__ = [
     "API_SYNC_TIMEOUT_S",
     "BATCH_FORMATS",
     "BATCH_MAX_JOBS_PER_CPU",
+    "DASK_CONNECT_S",
+    "PG_CONNECT_S",
     "CCC_DEFAULTS",
     "CCC_TUNE_GRID",
     "ZPETC_CCC_DDOB_DEFAULTS",
@@ -116,6 +118,10 @@ BATCH_FORMATS = ("csv",)
 #: ``oga batch --jobs`` at most this many worker processes per CPU (each holds the compiled
 #: kernels and a program's arrays in memory; the work is CPU-bound).
 BATCH_MAX_JOBS_PER_CPU = 4
+#: ``oga batch --scheduler``: how long to wait for the Dask scheduler's answer, s.
+DASK_CONNECT_S = 10.0
+#: ``oga serve --db postgresql://...``: how long to wait for the database's answer, s.
+PG_CONNECT_S = 10.0
 #: Report figures: points per drawn line at most (min/max buckets keep the peaks).
 REPORT_MAX_POINTS = 2000
 

@@ -11,6 +11,11 @@ the task, its progress and its outcome), which ignore SIGINT and SIGTERM: on
 either signal the batch kills them and returns 128 + the signal's number. A
 program's files are written with the signals deferred, so they are all there or
 all absent.
+
+With ``--scheduler tcp://HOST:8786`` the programs run on an existing Dask
+cluster instead (:mod:`oga.cli.batch_dask`): the batch reads each program and
+sends its text, a worker returns the rendered tables, and the batch writes them
+here exactly as a local run does.
 """
 
 from __future__ import annotations
@@ -71,6 +76,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="programs optimised at once, each in a process of its own (default: "
                    "one per CPU; at most 4 per CPU)")
+    p.add_argument("--scheduler", default="local", metavar="ADDRESS",
+                   help="run the programs on the Dask cluster of this scheduler "
+                   "(tcp://HOST:8786), the outputs still written here; default local "
+                   "(this machine's processes, --jobs)")
     p.add_argument("--format", default=",".join(BATCH_FORMATS), metavar="LIST",
                    help=f"table formats, comma-separated from {','.join(BATCH_TABLE_FORMATS)} "
                    f"(default {','.join(BATCH_FORMATS)})")
@@ -92,6 +101,10 @@ class _Task:
     formats: tuple[str, ...]
     machine: dict
     options: dict
+    #: The program's text and format, read by the batch (a cluster's worker may not see the
+    #: file); None: the worker reads ``file``.
+    text: str | None = None
+    fmt: str | None = None
 
 
 def _expand(inputs: list[str]) -> list[FilePath]:
@@ -134,7 +147,6 @@ def _run_one(task: _Task, progress) -> dict:
     """In a worker process: optimise one program; returns its outputs or its failure (the
     reason names the file first)."""
     from feedplan.read import read_file
-    from oga.errors import GcodeError, OgaError, OptionError, ToolpathError
     from oga.export import table_c_header, table_csv, table_json
     from oga.machine import machine_from_dict
     from oga.options import options_from_dict
@@ -142,7 +154,7 @@ def _run_one(task: _Task, progress) -> dict:
 
     t0 = time.perf_counter()
     try:
-        text, fmt = read_file(task.file)
+        text, fmt = read_file(task.file) if task.text is None else (task.text, task.fmt)
         job = run_job(text, fmt, machine_from_dict(task.machine), options_from_dict(task.options),
                       source=FilePath(task.file).name, progress=progress)
         res = job.result
@@ -161,15 +173,23 @@ def _run_one(task: _Task, progress) -> dict:
                           (render[f]() for f in task.formats)))
         return {"status": "ok", "summary": summary, "tables": tables,
                 "time_s": time.perf_counter() - t0}
-    except (GcodeError, ToolpathError) as err:
-        reason = str(toolpath_message(err, task.file))
-    except OptionError as err:
-        reason = f"{task.file}: {flag_message(err)}"
-    except OgaError as err:
-        reason = f"{task.file}: {err}"
     except Exception as err:  # a bug must not stop the other programs
+        return _failed(task, err, time.perf_counter() - t0)
+
+
+def _failed(task: _Task, err: Exception, time_s: float = 0.0) -> dict:
+    """The outcome of a program that failed with ``err`` (the reason names the file first)."""
+    from oga.errors import GcodeError, OgaError, OptionError, ToolpathError
+
+    if isinstance(err, (GcodeError, ToolpathError)):
+        reason = str(toolpath_message(err, task.file))
+    elif isinstance(err, OptionError):
+        reason = f"{task.file}: {flag_message(err)}"
+    elif isinstance(err, OgaError):
+        reason = f"{task.file}: {err}"
+    else:
         reason = f"{task.file}: internal error: {type(err).__name__}: {err}"
-    return {"status": "failed", "reason": reason, "time_s": time.perf_counter() - t0}
+    return {"status": "failed", "reason": reason, "time_s": time_s}
 
 
 def _worker(conn, parent_pid: int) -> None:
@@ -247,6 +267,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--format: expected names from {','.join(BATCH_TABLE_FORMATS)}, "
                          f"each once; got {args.format!r}")
     cpus = os.cpu_count() or 1
+    cluster = args.scheduler != "local"
+    if cluster and args.jobs is not None:
+        raise InputError("--jobs is for a local run: a Dask cluster runs as many programs at "
+                         "once as its workers have threads")
     jobs = cpus if args.jobs is None else args.jobs
     if not 1 <= jobs <= BATCH_MAX_JOBS_PER_CPU * cpus:
         raise InputError(f"--jobs must be in 1..{BATCH_MAX_JOBS_PER_CPU * cpus} "
@@ -282,9 +306,18 @@ def run(args: argparse.Namespace) -> int:
     todo = [t for t in tasks if t.index not in skipped]
     outcomes: dict[int, dict] = {}
     t0 = time.perf_counter()
+    client = None
+    if cluster and todo:
+        from oga.cli.batch_dask import connect
+
+        client = connect(args.scheduler)
     try:
         with _stop_on_signals():
-            if todo:
+            if client is not None:
+                from oga.cli.batch_dask import execute_on
+
+                execute_on(client, out, todo, outcomes, finish=_finish)
+            elif todo:
                 _execute(out, todo, min(jobs, len(todo)), outcomes)
     except _Stopped as stop:
         undone = [FilePath(t.file).name for t in todo if t.index not in outcomes]
@@ -294,6 +327,9 @@ def run(args: argparse.Namespace) -> int:
               f"({_names(undone)}); outputs written so far are complete: run the same command "
               "again to resume", file=sys.stderr, flush=True)
         return 128 + stop.signum
+    finally:
+        if client is not None:
+            client.close()
     _report(tasks, skipped, outcomes, out, time.perf_counter() - t0)
     return 1 if any(o["status"] != "ok" for o in outcomes.values()) else 0
 
@@ -384,12 +420,8 @@ def _execute(out: FilePath, todo: list[_Task], workers: int, outcomes: dict[int,
     bar = ProgressBar(label, enabled=sys.stderr.isatty())
 
     def finish(task: _Task, outcome: dict) -> None:
-        with _signals_deferred():
-            outcomes[task.index] = outcome
-            _store(out, task, outcome)
+        _finish(out, task, outcome, outcomes, bar)
         partial[task.index] = 1.0
-        bar.clear()
-        print(_line(task, outcome), flush=True)
 
     try:
         with bar:
@@ -426,6 +458,17 @@ def _execute(out: FilePath, todo: list[_Task], workers: int, outcomes: dict[int,
         with _signals_deferred():  # a second Ctrl-C must not leave a worker behind
             for slot in slots:
                 _end_worker(slot, kill=True)
+
+
+def _finish(out: FilePath, task: _Task, outcome: dict, outcomes: dict[int, dict],
+            bar: ProgressBar) -> None:
+    """A program is finished: its outputs written (signals deferred, so all or none), its
+    outcome noted and its line printed."""
+    with _signals_deferred():
+        outcomes[task.index] = outcome
+        _store(out, task, outcome)
+    bar.clear()
+    print(_line(task, outcome), flush=True)
 
 
 def _receive(conn: Connection) -> tuple[list, bool]:

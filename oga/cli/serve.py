@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sqlite3
 
 __all__ = ["register", "run"]
 
@@ -17,16 +16,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         "serve",
         help="run the REST API (durable optimisation jobs)",
         description="Serve the REST API: POST /v1/jobs, GET /v1/jobs/{id}/table, ... "
-        "(OpenAPI docs at /docs). Jobs and results live in an SQLite database and "
-        "survive a restart.",
+        "(OpenAPI docs at /docs). Jobs and results live in an SQLite database (or a "
+        "PostgreSQL one shared by several servers) and survive a restart.",
     )
     p.add_argument("--host", default=defaults.API_HOST,
                    help=f"interface to bind (default {defaults.API_HOST}, loopback only; "
                    "0.0.0.0 for all)")
     p.add_argument("--port", type=int, default=defaults.API_PORT,
                    help=f"TCP port (default {defaults.API_PORT})")
-    p.add_argument("--db", default=None, metavar="PATH",
-                   help=f"SQLite database of jobs and results (default {default_db_path()})")
+    p.add_argument("--db", default=None, metavar="PATH|URL",
+                   help="jobs and results: an SQLite file (default "
+                   f"{default_db_path()}), or a PostgreSQL database postgresql://USER@HOST/DB "
+                   "that several servers share")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes, jobs optimised at once (default: one per CPU)")
     p.add_argument("--api-key", default=None, metavar="KEY",
@@ -56,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from api.app import Settings, create_app, default_workers
-    from api.storage import Store, default_db_path
+    from api.storage import StoreError, default_db_path, open_store, without_password
     from oga.errors import InputError
 
     if not 0 <= args.port <= 65535:
@@ -70,15 +71,16 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--{flag.replace('_', '-')} must be a positive number, got {value}")
     api_key = args.api_key or os.environ.get("OGA_API_KEY") or None
     db = args.db or str(default_db_path())
-    try:
-        Store(db).close()  # create or open it now: a bad path is the user's error, said once
-    except (OSError, sqlite3.Error) as err:
-        raise InputError(f"--db {db}: cannot open the database: {err}") from None
+    try:  # create or open it now: a bad path or URL is the user's error, said once
+        open_store(db).close()
+    except StoreError as err:
+        raise InputError(f"--db {err}") from None
     settings = Settings(db_path=db, workers=workers, api_key=api_key,
                         max_upload_bytes=int(args.max_upload_mb * 2**20),
                         job_max_motion_s=args.job_max_motion_s, job_cpu_s=args.job_cpu_s,
                         job_memory_bytes=int(args.job_memory_mb * 2**20), stall_s=args.stall_s)
-    print(f"oga serve: http://{args.host}:{args.port} (docs /docs), database {db}, "
+    print(f"oga serve: http://{args.host}:{args.port} (docs /docs), database "
+          f"{without_password(db)}, "
           f"{workers} worker(s){', API key required' if api_key else ''}", flush=True)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     return 0

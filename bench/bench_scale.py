@@ -1,0 +1,90 @@
+"""Programs per minute of ``oga batch`` on a Dask cluster with 1 and 2 workers, and the overhead
+the cluster adds per task (a benchmark, not a test).
+
+Run: ``python bench/bench_scale.py [N]`` from the repository root (N programs, default 12:
+the programs of tests/data, copied with a distinct comment each). For 1 and 2 workers
+(``dask worker --nthreads 1`` each, on loopback, started here) it runs ``oga batch
+--scheduler`` and prints the wall time and programs per minute. Overheads: the cluster's per
+task is the wall time of 400 empty tasks through a client, / 400; the fixed cost of a batch is
+the same command run again (every program skipped: start, connect, checks); "beyond
+optimize" is ((wall - fixed) x workers - sum of the summaries' ``optimize_time_s``) / N, the
+time of a program outside the gain search (planning, verification, rendering, transfer,
+writing).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+from dask_cluster import DaskCluster  # noqa: E402
+
+NAMES = ["short_xz", "circle_r50_f3000", "reference_xz", "helix_r20", "corner_steps",
+         "sharp_corners_xy"]
+
+
+def _programs(folder: Path, n: int) -> list[str]:
+    files = []
+    for k in range(n):
+        name = NAMES[k % len(NAMES)]
+        text = (ROOT / "tests" / "data" / f"{name}.ngc").read_text()
+        path = folder / f"{name}_{k}.ngc"
+        path.write_text(text + f"\n(copy {k})\n")
+        files.append(str(path))
+    return files
+
+
+def _noop(x):
+    return x
+
+
+def main(n: int) -> None:
+    from distributed import Client
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        programs = _programs(tmp, n)
+        for workers in (1, 2):
+            cluster = DaskCluster(tmp, workers)
+            try:
+                with Client(cluster.address, set_as_default=False) as client:
+                    client.gather(client.map(_noop, range(400)))  # connections warm
+                    t0 = time.perf_counter()
+                    client.gather(client.map(_noop, range(400), pure=False))
+                    empty_ms = (time.perf_counter() - t0) / 400 * 1e3
+                    # warm the kernels' cache and the workers' imports on one program each
+                    warm = tmp / f"warm{workers}"
+                    subprocess.run([sys.executable, "-m", "oga", "batch", *programs[:workers],
+                                    "--out", str(warm), "--scheduler", cluster.address],
+                                   check=True, capture_output=True)
+                out = tmp / f"out{workers}"
+                t0 = time.perf_counter()
+                subprocess.run([sys.executable, "-m", "oga", "batch", *programs, "--out",
+                                str(out), "--scheduler", cluster.address], check=True,
+                               capture_output=True)
+                wall = time.perf_counter() - t0
+                t0 = time.perf_counter()  # again: every program skipped, the fixed cost
+                subprocess.run([sys.executable, "-m", "oga", "batch", *programs, "--out",
+                                str(out), "--scheduler", cluster.address], check=True,
+                               capture_output=True)
+                fixed = time.perf_counter() - t0
+            finally:
+                cluster.stop()
+            compute = sum(json.loads(p.read_text())["optimize_time_s"]
+                          for p in out.glob("*.summary.json"))
+            print(f"{workers} worker(s): {n} programs in {wall:.1f} s = "
+                  f"{n / wall * 60:.1f} programs/min; optimize {compute:.1f} s in all; "
+                  f"fixed cost {fixed:.1f} s; "
+                  f"{((wall - fixed) * workers - compute) / n * 1e3:.0f} ms/program beyond "
+                  f"optimize; empty task {empty_ms:.2f} ms",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 12)
