@@ -18,7 +18,8 @@ from oga.errors import InputError, OgaError
 __all__ = ["main"]
 
 #: Sub-commands, each a module ``oga.cli.<name>``.
-COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "compare", "batch", "serve")
+COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "compare", "batch", "serve",
+                             "excite", "identify")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,7 +15,7 @@ __all__ = ["identify", "excite_program", "read_trace", "load_trace", "Identifica
 def __getattr__(name: str):
     import importlib
 
-    where = {"identify": "oga.identify.write", "Identification": "oga.identify.write",
+    where = {"identify": "oga.identify.workflow", "Identification": "oga.identify.workflow",
              "excite_program": "oga.identify.excite", "read_trace": "oga.identify.trace",
              "load_trace": "oga.identify.trace"}
     if name not in where:

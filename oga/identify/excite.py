@@ -111,8 +111,10 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
             out.append(f"(circle test in the {pair[0]}{pair[1]} plane, R {r:g} mm)")
             c1, c2 = (AXES.index(p) for p in pair)
             vmax = min(float(lim.vmax_m_s[c1]), float(lim.vmax_m_s[c2]))
+            a1, a2 = pair[0].upper(), pair[1].upper()
+            out.append(f"G1 {a1}0 {a2}{r:.4f} {_feed(0.05 * vmax)}")  # the centre at (r, r)
             for v in (0.05 * vmax, 0.2 * vmax):
-                out.append(f"{g} G2 {pair[0].upper()}0 {pair[1].upper()}0 {i1}{r:.4f} {i2}0 "
-                           f"{_feed(v)}")
+                out.append(f"{g} G2 {a1}0 {a2}{r:.4f} {i1}{r:.4f} {i2}0 {_feed(v)}")
+            out.append(f"G1 {a1}0 {a2}0")
     out += ["G17", "M2"]
     return "\n".join(out) + "\n"

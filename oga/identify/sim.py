@@ -15,7 +15,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.simulate import axis_params, drive, rest_state
 
-__all__ = ["simulate_forces", "synthetic_trace"]
+__all__ = ["simulate_forces", "synthetic_trace", "random_cascade"]
 
 _P, _F = 0, 2  # position and force in the cascade state (oga.simulate's layout)
 
@@ -102,3 +102,33 @@ def synthetic_trace(sp: Setpoints, machine: Machine, axes, kp_m_min_per_mm: floa
         if force_noise_n is not None:
             out[f"{a}_force_n"] = f + rng.normal(0.0, force_noise_n, n) if force_noise_n else f
     return out
+
+
+def random_cascade(base: Machine, axis: str, rng: np.random.Generator) -> tuple[Machine, float]:
+    """``base`` with the cascade of ``axis`` drawn over wide ranges, and a Kp to record with.
+
+    Mass 100-2000 kg, Coulomb friction 0-500 N (static 1-1.5 times it), Stribeck velocity
+    0.5-3 mm/s, viscous 0-2000 N s/m, velocity-loop bandwidth 10-80 Hz (``Kv = m 2 pi f``),
+    Tn 5-30 ms, force lag 0.2-1 ms (uniform; the Stribeck velocity log-uniform), dead time
+    0-4 samples. The Kp, (m/min)/mm, is a quarter of the velocity loop's bandwidth in 1/s,
+    within 0.5-3 (inside the plant's stable range).
+
+    Returns
+    -------
+    machine : Machine
+    kp_m_min_per_mm : float
+    """
+    mass = rng.uniform(100.0, 2000.0)
+    bw = rng.uniform(10.0, 80.0)
+    fc = rng.uniform(0.0, 500.0)
+    cas = base.axis(axis).cascade.model_copy(update={
+        "mass_kg": mass, "kv_n_s_m": mass * 2 * np.pi * bw, "tn_s": rng.uniform(5e-3, 30e-3),
+        "coulomb_n": fc, "static_n": fc * rng.uniform(1.0, 1.5),
+        "stribeck_m_s": float(np.exp(rng.uniform(np.log(5e-4), np.log(3e-3)))),
+        "viscous_n_s_m": rng.uniform(0.0, 2000.0), "force_lag_s": rng.uniform(2e-4, 1e-3),
+    })
+    axis_model = base.axis(axis).model_copy(update={"cascade": cas})
+    timing = base.timing.model_copy(update={"dead_time_samples": int(rng.integers(0, 5))})
+    machine = base.model_copy(update={"axes": {**base.axes, axis: axis_model}, "timing": timing})
+    kp = float(np.clip(2 * np.pi * bw / 4 / KP_SI_PER_M_MIN_PER_MM, 0.5, 3.0))
+    return machine, kp

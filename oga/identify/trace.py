@@ -200,8 +200,8 @@ def _read_twincat(text: str, columns: list[str] | None) -> tuple[list[str], np.n
     keep = [j for j in range(1, width) if not np.array_equal(raw[:, j], raw[:, 0])]
     if columns:
         names = columns
-    elif header_names is not None and len(header_names) == width:
-        names = [header_names[j] for j in keep]
+    elif header_names is not None and len(header_names) - 1 == width:  # key, then one per column
+        names = [header_names[1 + j] for j in keep]
     else:
         raise TraceError("name the TwinCAT channels with --columns (no Name row matches them)")
     if len(names) != len(keep):
@@ -340,8 +340,9 @@ def _check_times(t: np.ndarray, name: str, row0: int) -> float:
 
 def _check_speed(x: np.ndarray, dt: float, name: str, row0: int, units: str) -> None:
     v = np.abs(np.diff(x)) / dt
-    k = int(np.argmax(v))
-    if v[k] > TRACE_MAX_SPEED_M_S:
+    over = np.flatnonzero(v > TRACE_MAX_SPEED_M_S)
+    if over.size:
+        k = int(over[0])
         hint = "" if units == "mm" else " (a trace in mm? give --units mm)"
         raise TraceError(
             f"column {name!r}, row {row0 + k + 1}: speed {v[k]:.3g} m/s is absurd{hint}")
