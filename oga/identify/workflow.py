@@ -33,6 +33,8 @@ class Identification:
         Per axis, where a held-out check ran: ``fraction`` of the trace held out (its
         end), ``rms_fit_m`` on the part fitted, ``rms_heldout_m`` predicted on the rest.
     trace : Trace
+    base : Machine
+        The base machine the fit started from.
     time_s : float
     """
 
@@ -42,6 +44,7 @@ class Identification:
     fits: dict
     holdout: dict
     trace: Trace
+    base: Machine
     time_s: float
 
     def summary(self) -> dict:
@@ -124,4 +127,4 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
     ident = identified_machine(machine, fits, name)
     status = "ok" if all(f.status == "ok" for f in fits.values()) else "poor"
     return Identification(status=status, machine=ident, toml=machine_toml(ident, fits), fits=fits,
-                          holdout=holdout, trace=trace, time_s=time.process_time() - t0)
+                          holdout=holdout, trace=trace, base=machine, time_s=time.process_time() - t0)
