@@ -20,7 +20,7 @@ rescaled with it.
 
 The integers ``d`` and ``l`` are searched by the nonlinear fit itself (a linear ARX fit
 of the velocity, tried first, picks the wrong delay under encoder quantisation): ``d``
-upwards from 0, each fit warm-started from the last, until the residual clearly rises,
+upwards from 0, each fit from the base values, until the residual clearly rises,
 then ``l`` (a late log looks like one more sample of dead time); the least residual
 wins. Multi-start over the Stribeck velocity (the fit is not convex in it). Confidence intervals from the Jacobian at the optimum,
 ``cov = (J'J)^-1 s^2`` with ``s^2`` the residual variance.
@@ -237,18 +237,14 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
         except (ValueError, np.linalg.LinAlgError) as err:
             raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
 
-    # dead time: upwards from 0, each fit warm-started from the last, until the residual
-    # clearly rises; then a measurement lag (a late log looks like one more sample of dead
+    # dead time: upwards from 0, each fit from the base values (a warm start carries a force
+    # lag that stands in for dead time), until the residual clearly rises twice; then a measurement lag (a late log looks like one more sample of dead
     # time); then multi-start over the Stribeck velocity on the best pair
     tried = {}
-    x = x_base
     for dead in range(max_dead + 1):
-        r = solve(x, dead, 0, _SEARCH_NFEV)
-        tried[(dead, 0)] = r
-        best_cost = min(t.cost for t in tried.values())
-        if r.cost <= best_cost:
-            x = r.x
-        elif r.cost > 1.5 * best_cost:
+        tried[(dead, 0)] = solve(x_base, dead, 0, _SEARCH_NFEV)
+        (d_best, _), r_best = min(tried.items(), key=lambda kv: kv[1].cost)
+        if dead > d_best + 1 and tried[(dead, 0)].cost > 1.5 * r_best.cost:
             break
     (dead, lag), r = min(tried.items(), key=lambda kv: kv[1].cost)
     for extra in range(1, _MAX_LAG + 1):
@@ -258,8 +254,14 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
         tried[(dead - extra, extra)] = r_l
         if r_l.cost >= tried[(dead - extra + 1, extra - 1)].cost:
             break
-    (dead, lag), r = min(tried.items(), key=lambda kv: kv[1].cost)
-    best = (solve(r.x, dead, lag, _FINAL_NFEV), dead, lag)
+    # the two best pairs fitted to convergence (a short search fit may stop early)
+    best = None
+    for (dead, lag), r in sorted(tried.items(), key=lambda kv: kv[1].cost)[:2]:
+        r_f = solve(r.x, dead, lag, _FINAL_NFEV)
+        tried[(dead, lag)] = r_f
+        if best is None or r_f.cost < best[0].cost:
+            best = (r_f, dead, lag)
+    r, dead, lag = best
     for k in range(1, max(1, starts)):
         x0 = r.x.copy()
         x0[5] += math.log(3.0) * (1 if k % 2 else -1) * ((k + 1) // 2)
