@@ -18,11 +18,11 @@ table can tell. Where the trace records the drive force, the force is linear in 
 factor, and the mass is its least-squares solution; every force-like parameter is
 rescaled with it.
 
-The integers ``d`` and ``l`` are searched by the nonlinear fit itself (a linear ARX fit
-of the velocity, tried first, picks the wrong delay under encoder quantisation): ``d``
-upwards from 0, each fit from the base values, until the residual clearly rises,
-then ``l`` (a late log looks like one more sample of dead time); the least residual
-wins. Multi-start over the Stribeck velocity (the fit is not convex in it). Confidence intervals from the Jacobian at the optimum,
+The logging lag ``l`` comes from the steady following error at constant speed
+(:func:`logging_lag`: there the loop's error does not depend on the plant). The dead time
+``d`` is searched by the nonlinear fit itself (a linear ARX fit of the velocity, tried
+first, picks the wrong delay under encoder quantisation): upwards from 0, each fit from the
+base values, until the residual clearly rises; the least residual wins. Multi-start over the Stribeck velocity (the fit is not convex in it). Confidence intervals from the Jacobian at the optimum,
 ``cov = (J'J)^-1 s^2`` with ``s^2`` the residual variance.
 """
 
@@ -70,8 +70,8 @@ class AxisFit:
         Fitted dead time and measurement lag.
     values, ci_low, ci_high : dict[str, float]
         Each fitted parameter (:data:`PARAMETERS`) with its confidence interval
-        (``IDENT_CONFIDENCE``); the mass's is None-free: without a force channel it
-        is the base's, interval equal to it (``mass_identified`` False).
+        (``IDENT_CONFIDENCE``). Without a force channel the mass is the base's and its
+        interval that value (``mass_identified`` False).
     mass_identified : bool
         True when a force channel fixed the mass.
     residual_rms_m : float
@@ -175,6 +175,24 @@ def _bounds(cas: Cascade, mass: float) -> tuple[np.ndarray, np.ndarray]:
     return np.array(lo), np.array(hi)
 
 
+def logging_lag(cmd, ff, kp_si, kf, meas, dt: float) -> int:
+    """Samples by which the log's measured position lags the loop's, from the steady
+    following error: at a constant speed ``v`` the velocity PI has no error, so the loop's
+    ``pd - p = (v - Kf ff) / Kp`` whatever the plant, and a log ``l`` samples late adds
+    ``l v Te``. Median over the samples whose commanded speed (above 1 mm/s) has not changed
+    for 300 samples; 0 if there are none. Clipped to 0 .. :data:`_MAX_LAG`."""
+    v = np.gradient(cmd, dt)
+    changed = np.abs(np.diff(v, prepend=v[0])) > 1e-9
+    window = 300
+    recent = np.convolve(changed.astype(np.float64), np.ones(window))[: v.size]
+    steady = (recent == 0) & (np.abs(v) > 1e-3)
+    steady[:window] = False
+    if steady.sum() < 10:
+        return 0
+    extra = (cmd - meas - (v - kf * ff) / kp_si)[steady] / (v[steady] * dt)
+    return int(np.clip(np.round(np.median(extra)), 0, _MAX_LAG))
+
+
 def _noise_rms(meas: np.ndarray) -> float:
     """Noise RMS from the second differences where the axis stands (white noise: their
     variance is 6 sigma^2); 0 if the axis never stands."""
@@ -237,22 +255,15 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
         except (ValueError, np.linalg.LinAlgError) as err:
             raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
 
-    # dead time: upwards from 0, each fit from the base values (a warm start carries a force
-    # lag that stands in for dead time), until the residual clearly rises twice; then a measurement lag (a late log looks like one more sample of dead
-    # time); then multi-start over the Stribeck velocity on the best pair
+    # the logging lag from the steady following error; the dead time upwards from 0, each fit
+    # from the base values (a warm start carries a force lag that stands in for dead time),
+    # until the residual clearly rises twice; then multi-start over the Stribeck velocity
+    lag = logging_lag(model.cmd, model.ff, model.kp, model.kf, model.meas, dt)
     tried = {}
     for dead in range(max_dead + 1):
-        tried[(dead, 0)] = solve(x_base, dead, 0, _SEARCH_NFEV)
+        tried[(dead, lag)] = solve(x_base, dead, lag, _SEARCH_NFEV)
         (d_best, _), r_best = min(tried.items(), key=lambda kv: kv[1].cost)
-        if dead > d_best + 1 and tried[(dead, 0)].cost > 1.5 * r_best.cost:
-            break
-    (dead, lag), r = min(tried.items(), key=lambda kv: kv[1].cost)
-    for extra in range(1, _MAX_LAG + 1):
-        if dead - extra < 0:
-            break
-        r_l = solve(r.x, dead - extra, extra, _SEARCH_NFEV)
-        tried[(dead - extra, extra)] = r_l
-        if r_l.cost >= tried[(dead - extra + 1, extra - 1)].cost:
+        if dead > d_best + 1 and tried[(dead, lag)].cost > 1.5 * r_best.cost:
             break
     # the two best pairs fitted to convergence (a short search fit may stop early)
     best = None

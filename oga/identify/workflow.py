@@ -82,7 +82,7 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
     machine : Machine
         The base machine: limits, gains settings and the starting values.
     axes : iterable of str, optional
-        Axes to fit (default every axis in the trace).
+        Axes to fit (default every axis the trace moves).
     name : str, optional
         Name of the identified machine (default ``<base>-identified``).
     holdout_fraction : float
@@ -99,7 +99,10 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
         An axis not in the trace or the machine, or not a cascade; a bad trace.
     """
     t0 = time.process_time()
-    names = list(trace.axes) if axes is None else list(axes)
+    names = ([a for a, tr in trace.axes.items() if np.ptp(tr.cmd_m) >= 1e-5] if axes is None
+             else list(axes))
+    if not names:
+        raise InputError("no axis moves in the trace (by 10 um or more)")
     for a in names:
         if a not in trace.axes:
             raise InputError(f"axis {a}: not in the trace (it has {', '.join(trace.axes)})")
