@@ -213,3 +213,20 @@ def test_recovery_of_random_plants(ucp, excite_x, seed):
     for name in ("kv_n_s_m", "tn_s"):
         half = fit.ci_high[name] - fit.values[name]
         assert abs(fit.values[name] - getattr(true, name)) < 5 * half + 1e-3 * getattr(true, name)
+
+
+@pytest.mark.parametrize("delay", [0, 1, 2])
+def test_logging_lag_from_the_steady_following_error(ucp, excite_x, delay):
+    from oga.identify.fit import axis_inputs, logging_lag
+
+    # a plant unlike the base (the steady error does not depend on it), backward-difference
+    # feed-forward recorded, the log `delay` samples late
+    rng = np.random.default_rng(delay)
+    true_machine, kp = random_cascade(ucp, "x", rng)
+    ch = synthetic_trace(excite_x, true_machine, ["x"], kp, 0.8, noise_m=1e-7, quantum_m=1e-7,
+                         act_delay=delay, ff="backward")
+    n = len(excite_x)
+    tr = AxisTrace(cmd_m=ch["x_cmd_m"], act_m=ch["x_act_m"], kp_m_min_per_mm=np.full(n, kp),
+                   kf=np.full(n, 0.8), ff_vel_m_s=ch["x_ff_vel_m_s"])
+    cmd, ff, kp_si, kf = axis_inputs(tr, excite_x.dt)
+    assert logging_lag(cmd, ff, kp_si, kf, tr.act_m, excite_x.dt) == delay
