@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     text = excite_program(machine, axes, args.travel_mm)
     path = read_toolpath(text, "gcode", source=args.out)
     write_text(args.out, text)
-    msg = f"{len(text.splitlines())} lines, path {path.length * 1e3:.0f} mm"
+    msg = f"{args.out}: {len(text.splitlines())} lines, path {path.length * 1e3:.0f} mm"
     if args.setpoints:
         from oga.defaults import TOL_M
         from oga.export import setpoints_csv
@@ -45,6 +45,6 @@ def run(args: argparse.Namespace) -> int:
 
         sp = plan_toolpath(path, machine, feed_m_s=None, tol_m=TOL_M)
         write_text(args.setpoints, setpoints_csv(sp))
-        msg += f", {sp.duration:.1f} s of motion -> {args.setpoints}"
-    print(f"{msg} -> {args.out}")
+        msg += f"; {sp.duration:.1f} s of motion planned -> {args.setpoints}"
+    print(msg)
     return 0
