@@ -33,10 +33,16 @@ _EXPORTS = {
     "TuneError": "oga.errors",
 }
 
-__all__ = sorted(_EXPORTS) + ["__version__"]
+__all__ = sorted(_EXPORTS) + ["identify", "__version__"]
+
+
+#: Subpackages reached as attributes (``oga.identify(...)``: the package is callable).
+_SUBPACKAGES = ("identify",)
 
 
 def __getattr__(name: str):
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"oga.{name}")
     try:
         module = _EXPORTS[name]
     except KeyError:

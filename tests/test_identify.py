@@ -230,3 +230,14 @@ def test_logging_lag_from_the_steady_following_error(ucp, excite_x, delay):
                    kf=np.full(n, 0.8), ff_vel_m_s=ch["x_ff_vel_m_s"])
     cmd, ff, kp_si, kf = axis_inputs(tr, excite_x.dt)
     assert logging_lag(cmd, ff, kp_si, kf, tr.act_m, excite_x.dt) == delay
+
+
+def test_library_entry_is_the_callable_package(ucp):
+    import oga
+
+    trace = oga.identify.read_trace(_csv(n=300), kp=3.0, kf=0.8)
+    with pytest.raises(oga.InputError, match="axis z: not in the trace"):
+        oga.identify(trace, ucp, axes=["z"])
+    idle = oga.identify.read_trace("t_s,x_cmd_m,x_act_m\n0,0,0\n0.001,0,0\n", kp=3.0, kf=0.8)
+    with pytest.raises(oga.InputError, match="no axis moves in the trace"):
+        oga.identify(idle, ucp)
