@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import write_text
+from oga.cli._common import add_base_machine_arg, write_text
 from oga.defaults import EXCITE_TRAVEL_MM
 
 __all__ = ["register", "run"]
@@ -16,8 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Write a G-code program whose moves make every cascade parameter of the "
                     "given axes visible (friction passes, velocity steps, swept frequency, "
                     "circles); run it on the machine and record a trace for oga identify.")
-    p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
-                   help="base machine preset or file (limits and Stribeck band); default ucp710")
+    add_base_machine_arg(p, "limits and Stribeck band")
     p.add_argument("--axes", required=True, metavar="AXES", help="axes to identify, e.g. x,z")
     p.add_argument("--travel-mm", type=float, default=EXCITE_TRAVEL_MM, metavar="MM",
                    help=f"free travel per axis from the start point, + direction (default "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import write_json, write_text
+from oga.cli._common import add_base_machine_arg, write_json, write_text
 
 __all__ = ["register", "run"]
 
@@ -16,8 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "time) of the traced axes through the optimizer's simulator; write the "
                     "machine file with confidence intervals and an uncertainty section.")
     p.add_argument("trace", metavar="TRACE", help="recorded trace (CSV, halsampler, TwinCAT)")
-    p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
-                   help="base machine preset or file; default ucp710")
+    add_base_machine_arg(p, "starting values, limits, gain settings")
     p.add_argument("--out", required=True, metavar="MINE.toml", help="machine file to write")
     p.add_argument("--format", default=None, choices=("csv", "halsampler", "twincat"),
                    help="trace format (default csv; halsampler when --columns is given and the "
