@@ -49,6 +49,8 @@ _MAX_LAG = 2
 #: Function evaluations of the solver per dead-time candidate, and for the final fits.
 _SEARCH_NFEV = 15
 _FINAL_NFEV = 40
+#: Second starting point of the dead-time search: the base's friction forces times this.
+_FRICTION_START = 4.0
 
 
 class IdentifyError(OgaError, RuntimeError):
@@ -259,9 +261,15 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
     # from the base values (a warm start carries a force lag that stands in for dead time),
     # until the residual clearly rises twice; then multi-start over the Stribeck velocity
     lag = logging_lag(model.cmd, model.ff, model.kp, model.kf, model.meas, dt)
+    # two starts per dead time: the base's friction and 4 times it (the fit is not convex in
+    # the friction level, and a real axis may have much more than its base)
+    x_high = x_base.copy()
+    x_high[[3, 4, 6]] *= _FRICTION_START
+    x_high = np.clip(x_high, lo, hi)
     tried = {}
     for dead in range(max_dead + 1):
-        tried[(dead, lag)] = solve(x_base, dead, lag, _SEARCH_NFEV)
+        tried[(dead, lag)] = min((solve(x0, dead, lag, _SEARCH_NFEV) for x0 in (x_base, x_high)),
+                                 key=lambda r: r.cost)
         (d_best, _), r_best = min(tried.items(), key=lambda kv: kv[1].cost)
         if dead > d_best + 1 and tried[(dead, lag)].cost > 1.5 * r_best.cost:
             break
