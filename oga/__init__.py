@@ -37,10 +37,10 @@ _EXPORTS = {
 
 #: Submodules a library user reaches as ``oga.<name>`` without importing them first
 #: (``oga.export.table_csv(result)``); loaded on first use, like the names above.
-_SUBMODULES = ("compare", "defaults", "export", "machine", "options", "pipeline", "ranges",
-               "report", "verify")
+_SUBMODULES = ("compare", "defaults", "export", "identify", "machine", "options", "pipeline",
+               "ranges", "report", "verify")
 
-__all__ = sorted(_EXPORTS) + ["__version__"]
+__all__ = sorted(_EXPORTS) + ["identify", "__version__"]
 
 
 def __getattr__(name: str):

@@ -272,3 +272,36 @@ MACHINE_FIELD_RANGES = {
     "kf_step": (1e-3, 1.0),
     "gm_min_db": (0.0, 60.0),
 }
+
+
+# identification ------------------------------------------------------------------------------
+#: Longest trace read, rows (about 33 min at 1 kHz; a row costs about 100 bytes per channel).
+TRACE_MAX_ROWS = 2_000_000
+#: Largest file a trace reader opens, bytes.
+TRACE_MAX_BYTES = 1 << 30
+#: A sample period differing from the trace's median period by more than this share is
+#: refused (non-uniform sampling); a step of over 1.5 periods is a gap, a step of 0 a duplicate.
+TRACE_DT_REL_TOL = 1e-3
+#: Speed above which a trace's positions are refused as absurd (a trace in mm read as metres),
+#: m/s: no machine-tool axis moves at 20 m/s.
+TRACE_MAX_SPEED_M_S = 20.0
+#: Dead times searched by the fit, samples (0 .. this).
+IDENT_MAX_DEAD_SAMPLES = 6
+#: Multi-start: starting points of the friction parameters per dead time (Stribeck velocity
+#: and static friction spread over their range).
+IDENT_STARTS = 3
+#: Confidence level of the intervals written beside the fitted values.
+IDENT_CONFIDENCE = 0.95
+#: Uncertainty section written by ``oga identify``: each factor range covers this many
+#: confidence half-widths, and at least the floor below (the fit never pins a real machine
+#: closer than that: the machine drifts with temperature, load and wear).
+IDENT_UNCERTAINTY_WIDTHS = 2.0
+IDENT_UNCERTAINTY_FLOOR = 0.05
+#: ``oga excite``: feeds of the constant-speed passes as multiples of the base machine's
+#: Stribeck velocity (inside and well above the band) and fractions of the axis speed limit.
+EXCITE_STRIBECK_MULTIPLES = (0.3, 1.0, 3.0)
+EXCITE_VMAX_FRACTIONS = (0.02, 0.1, 0.3, 0.6)
+#: ``oga excite``: frequencies of the swept section, Hz (amplitude limited by acceleration).
+EXCITE_SWEEP_HZ = (1.0, 2.0, 4.0, 7.0, 10.0, 15.0, 20.0)
+#: ``oga excite``: default travel per axis, mm.
+EXCITE_TRAVEL_MM = 100.0

@@ -41,6 +41,7 @@ __all__ = [
     "Cascade",
     "Arx",
     "Axis",
+    "Uncertainty",
     "Timing",
     "GainSettings",
     "PlannerSettings",
@@ -161,17 +162,63 @@ class Arx(_Frozen):
         return num
 
 
+Factor = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+class Uncertainty(_Frozen):
+    """How far a cascade axis may differ from its nominal values: per parameter a
+    ``(low, high)`` factor on the nominal value (``low <= 1 <= high``; +-50 % is
+    ``(0.5, 1.5)``, x0.5-x2 is ``(0.5, 2.0)``), and the extra dead time, ``(low, high)``
+    whole samples added to ``timing.dead_time_samples``. Each field is named after the
+    cascade field it scales. ``oga identify`` writes it from its confidence intervals.
+    """
+
+    coulomb_n: tuple[Factor, Factor] = (1.0, 1.0)
+    static_n: tuple[Factor, Factor] = (1.0, 1.0)
+    mass_kg: tuple[Factor, Factor] = (1.0, 1.0)
+    kv_n_s_m: tuple[Factor, Factor] = (1.0, 1.0)
+    tn_s: tuple[Factor, Factor] = (1.0, 1.0)
+    force_lag_s: tuple[Factor, Factor] = (1.0, 1.0)
+    stribeck_m_s: tuple[Factor, Factor] = (1.0, 1.0)
+    viscous_n_s_m: tuple[Factor, Factor] = (1.0, 1.0)
+    dead_time_extra_samples: tuple[
+        Annotated[int, Field(ge=0, le=10)], Annotated[int, Field(ge=0, le=10)]
+    ] = (0, 0)
+
+    @model_validator(mode="after")
+    def _around_nominal(self) -> "Uncertainty":
+        for name in FACTOR_FIELDS:
+            lo, hi = getattr(self, name)
+            if not lo <= 1.0 <= hi:
+                raise ValueError(f"{name}: factors ({lo}, {hi}) must satisfy low <= 1 <= high")
+        lo, hi = self.dead_time_extra_samples
+        if lo > hi:
+            raise ValueError(f"dead_time_extra_samples: lower end {lo} is above upper end {hi}")
+        return self
+
+
+#: The fields of :class:`Uncertainty` that are factors on a cascade field of that name.
+FACTOR_FIELDS: tuple[str, ...] = (
+    "coulomb_n", "static_n", "mass_kg", "kv_n_s_m", "tn_s", "force_lag_s", "stribeck_m_s",
+    "viscous_n_s_m",
+)
+
+
 class Axis(_Frozen):
-    """One linear axis: its limits and exactly one model kind, ``cascade`` or ``arx``."""
+    """One linear axis: its limits, exactly one model kind, ``cascade`` or ``arx``, and,
+    for a cascade, optionally its :class:`Uncertainty`."""
 
     limits: Limits
     cascade: Cascade | None = None
     arx: Arx | None = None
+    uncertainty: Uncertainty | None = None
 
     @model_validator(mode="after")
     def _one_kind(self) -> "Axis":
         if (self.cascade is None) == (self.arx is None):
             raise ValueError("give exactly one axis model: a cascade table or an arx table")
+        if self.uncertainty is not None and self.cascade is None:
+            raise ValueError("uncertainty: only a cascade axis takes one")
         return self
 
     @property

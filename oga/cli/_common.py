@@ -12,6 +12,7 @@ from oga.defaults import NP
 from oga.errors import InputError, OgaError, OptionError
 
 __all__ = [
+    "add_base_machine_arg",
     "add_search_args",
     "add_toolpath_args",
     "check_files",
@@ -36,6 +37,12 @@ def add_toolpath_args(p: argparse.ArgumentParser, *, toolpath_required: bool = T
                    help="feed override in mm/min (default: the program's F)")
     p.add_argument("--tolerance", type=float, default=None, metavar="MM",
                    help="interpolation tolerance in mm (default 0.02)")
+
+
+def add_base_machine_arg(p: argparse.ArgumentParser, what: str) -> None:
+    """``--machine``, the base machine of ``oga excite``/``oga identify`` (``what`` it gives)."""
+    p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
+                   help=f"base machine preset or file ({what}); default ucp710")
 
 
 def add_search_args(p: argparse.ArgumentParser) -> None:

@@ -1,0 +1,349 @@
+"""The grey-box fit of one cascade axis to a recorded trace, through the optimizer's simulator.
+
+The model is exactly :mod:`oga.simulate`'s cascade (velocity PI ``Kv``/``Tn``, force lag,
+mass, Coulomb/static/Stribeck/viscous friction, dead time ``d`` samples), closed by the
+recorded position loop: ``u_k = Kp_k (cmd_k - p_k) + Kf_k ff_k`` with the recorded gains
+and setpoints. The simulated positions, shifted by ``l`` samples of measurement lag (a
+recorder that logs the position ``l`` periods late), are fitted to the measured ones by
+:func:`scipy.optimize.least_squares` (trust-region reflective, bounds, finite-difference
+Jacobian) over
+
+    x = [log Kv, log Tn, log force lag, Fc, Fs - Fc, log vs, B]
+
+with the mass held at the base machine's. Positions alone cannot tell the mass: scaling
+mass, ``Kv``, every friction force and the force limit by one factor leaves every
+position unchanged (divide the equation of motion by the mass), so they determine
+``Kv/m``, ``Fc/m``, ...; a fit at the base mass is then the same plant as far as any
+table can tell. Where the trace records the drive force, the force is linear in that
+factor, and the mass is its least-squares solution; every force-like parameter is
+rescaled with it.
+
+The logging lag ``l`` comes from the steady following error at constant speed
+(:func:`logging_lag`: there the loop's error does not depend on the plant). The dead time
+``d`` is searched by the nonlinear fit itself (a linear ARX fit of the velocity, tried
+first, picks the wrong delay under encoder quantisation): upwards from 0, each fit from the
+base values, until the residual clearly rises; the least residual wins. Multi-start over the Stribeck velocity (the fit is not convex in it). Confidence intervals from the Jacobian at the optimum,
+``cov = (J'J)^-1 s^2`` with ``s^2`` the residual variance.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oga.defaults import IDENT_CONFIDENCE, IDENT_MAX_DEAD_SAMPLES, IDENT_STARTS
+from oga.errors import InputError, OgaError
+from oga.identify.trace import AxisTrace, TraceError
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Cascade, Machine, Timing
+
+__all__ = ["AxisFit", "fit_axis", "axis_inputs", "PARAMETERS"]
+
+#: Fitted cascade parameters, in the order of the result's tables.
+PARAMETERS = ("mass_kg", "coulomb_n", "static_n", "stribeck_m_s", "viscous_n_s_m", "kv_n_s_m",
+              "tn_s", "force_lag_s")
+#: Most measurement lag searched, samples.
+_MAX_LAG = 2
+#: Function evaluations of the solver per dead-time candidate, and for the final fits.
+_SEARCH_NFEV = 15
+_FINAL_NFEV = 40
+#: Second starting point of the dead-time search: the base's friction forces times this.
+_FRICTION_START = 4.0
+
+
+class IdentifyError(OgaError, RuntimeError):
+    """The fit failed (the solver's message wrapped)."""
+
+
+@dataclass(frozen=True, eq=False)
+class AxisFit:
+    """The fit of one axis.
+
+    Attributes
+    ----------
+    status : {"ok", "poor"}
+        ``poor``: the residual RMS exceeds 10x the trace's noise estimate (the model does
+        not explain the trace; the values are then the best the model gives).
+    cascade : Cascade
+        The fitted cascade (force limit and friction smoothing from the base).
+    dead_time_samples, lag_samples : int
+        Fitted dead time and measurement lag.
+    values, ci_low, ci_high : dict[str, float]
+        Each fitted parameter (:data:`PARAMETERS`) with its confidence interval
+        (``IDENT_CONFIDENCE``). Without a force channel the mass is the base's and its
+        interval that value (``mass_identified`` False).
+    mass_identified : bool
+        True when a force channel fixed the mass.
+    residual_rms_m : float
+        RMS of the position residual, m.
+    noise_rms_m : float
+        Estimate of the measurement noise (RMS of the second difference of the measured
+        positions over sqrt(6), where the axis stands still), m.
+    force_residual_rms_n : float or None
+    candidates : list of (d, l, residual RMS m)
+        Every dead time and lag tried.
+    fit_time_s : float
+    n_samples : int
+    """
+
+    status: str
+    cascade: Cascade
+    dead_time_samples: int
+    lag_samples: int
+    values: dict
+    ci_low: dict
+    ci_high: dict
+    mass_identified: bool
+    residual_rms_m: float
+    noise_rms_m: float
+    force_residual_rms_n: float | None
+    candidates: list = field(default_factory=list)
+    fit_time_s: float = 0.0
+    n_samples: int = 0
+
+
+def axis_inputs(tr: AxisTrace, dt: float):
+    """(cmd, ff velocity, Kp in 1/s, Kf) of an axis trace as float64 arrays; the feed-forward
+    velocity is the centred difference of the commands (our planner's) where not recorded."""
+    cmd = np.ascontiguousarray(tr.cmd_m, dtype=np.float64)
+    if tr.ff_vel_m_s is not None:
+        ff = np.ascontiguousarray(tr.ff_vel_m_s, dtype=np.float64)
+    else:
+        ff = np.gradient(cmd, dt) if cmd.size > 1 else np.zeros_like(cmd)
+    kp = np.ascontiguousarray(tr.kp_m_min_per_mm * KP_SI_PER_M_MIN_PER_MM, dtype=np.float64)
+    kf = np.ascontiguousarray(tr.kf, dtype=np.float64)
+    return cmd, ff, kp, kf
+
+
+def _machine(base: Machine, axis: str, cas: Cascade, dead: int) -> Machine:
+    """``base`` with only ``axis``, its cascade replaced, and dead time ``dead``."""
+    ax = base.axis(axis).model_copy(update={"cascade": cas, "uncertainty": None})
+    timing = Timing(te_s=base.te, substeps=base.timing.substeps, dead_time_samples=dead)
+    return base.model_copy(update={"axes": {axis: ax}, "timing": timing})
+
+
+class _Model:
+    """Simulation of one axis for a parameter vector ``x`` (module docstring)."""
+
+    def __init__(self, base: Machine, axis: str, tr: AxisTrace, dt: float, mass: float):
+        self.base, self.axis, self.mass = base, axis, mass
+        self.cas0 = base.axis(axis).cascade
+        self.cmd, self.ff, self.kp, self.kf = axis_inputs(tr, dt)
+        self.meas = np.ascontiguousarray(tr.act_m, dtype=np.float64)
+        self.p0 = float(self.meas[0])
+
+    def cascade(self, x) -> Cascade:
+        fc, dfs, b = max(x[3], 0.0), max(x[4], 0.0), max(x[6], 0.0)
+        return self.cas0.model_copy(update={
+            "mass_kg": self.mass, "kv_n_s_m": math.exp(x[0]), "tn_s": math.exp(x[1]),
+            "force_lag_s": math.exp(x[2]), "coulomb_n": fc, "static_n": fc + dfs,
+            "stribeck_m_s": math.exp(x[5]), "viscous_n_s_m": b,
+        })
+
+    def params(self, x, dead: int) -> np.ndarray:
+        from oga.simulate import _pack
+
+        return _pack(_machine(self.base, self.axis, self.cascade(x), dead), self.axis, True)
+
+    def simulate(self, x, dead: int) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, forces) simulated, shape (N,) each."""
+        from oga.identify.sim import simulate_forces
+
+        return simulate_forces(self.params(x, dead), self.p0, self.cmd, self.ff, self.kp, self.kf)
+
+    def residual(self, x, dead: int, lag: int) -> np.ndarray:
+        """Simulated minus measured positions, um (the simulation ``lag`` samples earlier)."""
+        from oga.simulate import simulate_axis
+
+        p, _ = simulate_axis(self.params(x, dead), self.p0, self.cmd, self.ff, self.kp, self.kf)
+        n = p.size
+        return (p[: n - lag] - self.meas[lag:]) * 1e6
+
+
+def _x0(cas: Cascade, vs_factor: float = 1.0) -> np.ndarray:
+    return np.array([math.log(cas.kv_n_s_m), math.log(cas.tn_s), math.log(cas.force_lag_s),
+                     cas.coulomb_n, cas.static_n - cas.coulomb_n,
+                     math.log(cas.stribeck_m_s * vs_factor), cas.viscous_n_s_m])
+
+
+def _bounds(cas: Cascade, mass: float) -> tuple[np.ndarray, np.ndarray]:
+    flim = cas.force_limit_n
+    lo = [math.log(mass * 2 * math.pi * 1.0), math.log(2e-4), math.log(1e-5), 0.0, 0.0,
+          math.log(1e-5), 0.0]
+    hi = [math.log(mass * 2 * math.pi * 1000.0), math.log(2.0), math.log(0.05), flim / 2,
+          flim / 2, math.log(0.1), mass * 100.0]
+    return np.array(lo), np.array(hi)
+
+
+def logging_lag(cmd, ff, kp_si, kf, meas, dt: float) -> int:
+    """Samples by which the log's measured position lags the loop's, from the steady
+    following error: at a constant speed ``v`` the velocity PI has no error, so the loop's
+    ``pd - p = (v - Kf ff) / Kp`` whatever the plant, and a log ``l`` samples late adds
+    ``l v Te``. Median over the samples whose commanded speed (above 1 mm/s) has not changed
+    for 300 samples; 0 if there are none. Clipped to 0 .. :data:`_MAX_LAG`."""
+    v = np.gradient(cmd, dt)
+    changed = np.abs(np.diff(v, prepend=v[0])) > 1e-9
+    window = 300
+    recent = np.convolve(changed.astype(np.float64), np.ones(window))[: v.size]
+    steady = (recent == 0) & (np.abs(v) > 1e-3)
+    steady[:window] = False
+    if steady.sum() < 10:
+        return 0
+    extra = (cmd - meas - (v - kf * ff) / kp_si)[steady] / (v[steady] * dt)
+    return int(np.clip(np.round(np.median(extra)), 0, _MAX_LAG))
+
+
+def _noise_rms(meas: np.ndarray) -> float:
+    """Noise RMS from the second differences where the axis stands (white noise: their
+    variance is 6 sigma^2); 0 if the axis never stands."""
+    d2 = np.diff(meas, 2)
+    still = np.abs(np.diff(meas)[1:]) < 1e-6
+    if still.sum() < 20:
+        return float(np.sqrt(np.mean(d2 ** 2) / 6))
+    return float(np.sqrt(np.mean(d2[still] ** 2) / 6))
+
+
+def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
+             max_dead: int = IDENT_MAX_DEAD_SAMPLES, starts: int = IDENT_STARTS) -> AxisFit:
+    """Fit the cascade of ``axis`` of ``base`` to the trace ``tr`` (period ``dt``).
+
+    Parameters
+    ----------
+    base : Machine
+        The base machine: its cascade of the axis starts the fit and gives the force limit,
+        friction smoothing, Te and sub-steps; its mass is kept where no force is recorded.
+    axis : str
+    tr : AxisTrace
+    dt : float
+        Trace period, s; must equal the machine's Te.
+    max_dead : int
+        Largest dead time searched, samples.
+    starts : int
+        Starting points of the Stribeck velocity (multi-start).
+
+    Returns
+    -------
+    AxisFit
+
+    Raises
+    ------
+    InputError
+        Period differs from Te, axis not a cascade, trace too short or not moving.
+    IdentifyError
+        The solver failed.
+    """
+    from scipy.optimize import least_squares
+    from scipy.stats import norm
+
+    t_start = time.process_time()
+    if not math.isclose(dt, base.te, rel_tol=1e-6):
+        raise TraceError(f"the trace's period {dt:g} s differs from the machine's Te {base.te:g} s")
+    cas0 = base.axis(axis).cascade
+    if cas0 is None:
+        raise InputError(f"axis {axis} of {base.name} is not a cascade axis")
+    if tr.cmd_m.size < 200 or np.ptp(tr.cmd_m) < 1e-5:
+        raise TraceError(f"axis {axis}: the trace must move the axis (>= 10 um) over >= 200 samples")
+    mass0 = cas0.mass_kg
+    model = _Model(base, axis, tr, dt, mass0)
+    lo, hi = _bounds(cas0, mass0)
+    x_base = np.clip(_x0(cas0), lo, hi)
+    def solve(x0, dead, lag, nfev):
+        try:
+            return least_squares(model.residual, np.clip(x0, lo + 1e-9, hi - 1e-9), args=(dead, lag),
+                                 bounds=(lo, hi), x_scale="jac", method="trf",
+                                 diff_step=1e-6, max_nfev=nfev)
+        except (ValueError, np.linalg.LinAlgError) as err:
+            raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
+
+    # the logging lag from the steady following error; the dead time upwards from 0, each fit
+    # from the base values (a warm start carries a force lag that stands in for dead time),
+    # until the residual clearly rises twice; then multi-start over the Stribeck velocity
+    lag = logging_lag(model.cmd, model.ff, model.kp, model.kf, model.meas, dt)
+    # two starts per dead time: the base's friction and 4 times it (the fit is not convex in
+    # the friction level, and a real axis may have much more than its base)
+    x_high = x_base.copy()
+    x_high[[3, 4, 6]] *= _FRICTION_START
+    x_high = np.clip(x_high, lo, hi)
+    tried = {}
+    for dead in range(max_dead + 1):
+        tried[(dead, lag)] = min((solve(x0, dead, lag, _SEARCH_NFEV) for x0 in (x_base, x_high)),
+                                 key=lambda r: r.cost)
+        (d_best, _), r_best = min(tried.items(), key=lambda kv: kv[1].cost)
+        if dead > d_best + 1 and tried[(dead, lag)].cost > 1.5 * r_best.cost:
+            break
+    # the two best pairs fitted to convergence (a short search fit may stop early)
+    best = None
+    for (dead, lag), r in sorted(tried.items(), key=lambda kv: kv[1].cost)[:2]:
+        r_f = solve(r.x, dead, lag, _FINAL_NFEV)
+        tried[(dead, lag)] = r_f
+        if best is None or r_f.cost < best[0].cost:
+            best = (r_f, dead, lag)
+    r, dead, lag = best
+    for k in range(1, max(1, starts)):
+        x0 = r.x.copy()
+        x0[5] += math.log(3.0) * (1 if k % 2 else -1) * ((k + 1) // 2)
+        r_k = solve(x0, dead, lag, _FINAL_NFEV)
+        if r_k.cost < best[0].cost:
+            best = (r_k, dead, lag)
+    candidates = [(d, lg, float(np.sqrt(2 * t.cost / t.fun.size)) * 1e-6)
+                  for (d, lg), t in sorted(tried.items())]
+    r, dead, lag = best
+    n = r.fun.size
+    dof = max(n - r.x.size, 1)
+    s2 = 2 * r.cost / dof
+    z = float(norm.ppf(0.5 + IDENT_CONFIDENCE / 2))
+    try:
+        cov = np.linalg.pinv(r.jac.T @ r.jac) * s2  # x per um^2: s2 in um^2
+    except np.linalg.LinAlgError:
+        cov = np.full((r.x.size, r.x.size), np.inf)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    x = r.x
+    # mass from the force channel (the force is linear in the common scale factor)
+    mass, mass_sd, f_rms, ratio = mass0, 0.0, None, 1.0
+    if tr.force_n is not None:
+        _, f_unit = model.simulate(x, dead)
+        f_unit = f_unit[: n]
+        f_meas = np.asarray(tr.force_n, dtype=np.float64)[lag:]
+        den = float(f_unit @ f_unit)
+        if den > 0:
+            ratio = float(f_unit @ f_meas) / den
+            res = f_meas - ratio * f_unit
+            f_rms = float(np.sqrt(np.mean(res ** 2)))
+            ratio_sd = math.sqrt(float(res @ res) / max(n - 1, 1) / den)
+            mass, mass_sd = mass0 * ratio, mass0 * ratio_sd
+    rel_m = mass_sd / mass if mass > 0 else 0.0
+    vals, los, his = {}, {}, {}
+
+    def log_param(name, i, scaled):
+        v = math.exp(x[i]) * (ratio if scaled else 1.0)
+        rel = math.sqrt(sd[i] ** 2 + (rel_m ** 2 if scaled else 0.0))
+        vals[name], los[name], his[name] = v, v * math.exp(-z * rel), v * math.exp(z * rel)
+
+    def lin_param(name, value, var):
+        v = value * ratio
+        half = z * math.sqrt(var * ratio ** 2 + (v * rel_m) ** 2)
+        vals[name], los[name], his[name] = v, max(v - half, 0.0), v + half
+
+    vals["mass_kg"] = mass
+    los["mass_kg"], his["mass_kg"] = mass - z * mass_sd, mass + z * mass_sd
+    lin_param("coulomb_n", x[3], cov[3, 3])
+    lin_param("static_n", x[3] + x[4], cov[3, 3] + cov[4, 4] + 2 * cov[3, 4])
+    log_param("stribeck_m_s", 5, False)
+    lin_param("viscous_n_s_m", x[6], cov[6, 6])
+    log_param("kv_n_s_m", 0, True)
+    log_param("tn_s", 1, False)
+    log_param("force_lag_s", 2, False)
+    cas = model.cascade(x).model_copy(update={
+        "mass_kg": mass, "kv_n_s_m": vals["kv_n_s_m"], "coulomb_n": vals["coulomb_n"],
+        "static_n": max(vals["static_n"], vals["coulomb_n"]), "viscous_n_s_m": vals["viscous_n_s_m"],
+        "force_limit_n": cas0.force_limit_n * ratio,
+    })
+    rms = float(np.sqrt(2 * r.cost / n)) * 1e-6
+    noise = _noise_rms(model.meas)
+    status = "ok" if rms <= 10 * max(noise, 1e-9) else "poor"
+    return AxisFit(status=status, cascade=cas, dead_time_samples=dead, lag_samples=lag,
+                   values=vals, ci_low=los, ci_high=his, mass_identified=tr.force_n is not None,
+                   residual_rms_m=rms, noise_rms_m=noise, force_residual_rms_n=f_rms,
+                   candidates=candidates, fit_time_s=time.process_time() - t_start, n_samples=n)

@@ -1,0 +1,133 @@
+"""``oga.identify(...)``: a trace and a base machine in, the identified machine out."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from oga.errors import InputError
+from oga.identify.fit import AxisFit, axis_inputs, fit_axis
+from oga.identify.trace import AxisTrace, Trace
+from oga.identify.write import identified_machine, machine_toml
+from oga.machine import Machine
+
+__all__ = ["Identification", "identify"]
+
+
+@dataclass(frozen=True, eq=False)
+class Identification:
+    """The result of :func:`identify`.
+
+    Attributes
+    ----------
+    status : {"ok", "poor"}
+        ``poor`` when an axis's fit does not explain its trace (:class:`AxisFit`).
+    machine : Machine
+        The identified machine (loads like any other once written).
+    toml : str
+        Its machine file, intervals and residuals beside the values.
+    fits : dict[str, AxisFit]
+    holdout : dict[str, dict]
+        Per axis, where a held-out check ran: ``fraction`` of the trace held out (its
+        end), ``rms_fit_m`` on the part fitted, ``rms_heldout_m`` predicted on the rest.
+    trace : Trace
+    base : Machine
+        The base machine the fit started from.
+    time_s : float
+    """
+
+    status: str
+    machine: Machine
+    toml: str
+    fits: dict
+    holdout: dict
+    trace: Trace
+    base: Machine
+    time_s: float
+
+    def summary(self) -> dict:
+        """JSON-ready summary: status, dead time, per-axis values, intervals, residuals."""
+        return {
+            "status": self.status,
+            "machine": self.machine.name,
+            "dead_time_samples": self.machine.timing.dead_time_samples,
+            "time_s": self.time_s,
+            "axes": {a: {
+                "status": f.status, "dead_time_samples": f.dead_time_samples,
+                "lag_samples": f.lag_samples, "mass_identified": f.mass_identified,
+                "residual_rms_m": f.residual_rms_m, "noise_rms_m": f.noise_rms_m,
+                "force_residual_rms_n": f.force_residual_rms_n,
+                "values": f.values, "ci_low": f.ci_low, "ci_high": f.ci_high,
+                "candidates": [list(c) for c in f.candidates], "fit_time_s": f.fit_time_s,
+                **({"holdout": self.holdout[a]} if a in self.holdout else {}),
+            } for a, f in self.fits.items()},
+        }
+
+
+def _head(tr: AxisTrace, n: int) -> AxisTrace:
+    cut = {k: (None if v is None else v[:n]) for k, v in vars(tr).items()}
+    return AxisTrace(**cut)
+
+
+def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = None,
+             holdout_fraction: float = 0.0) -> Identification:
+    """Fit every cascade parameter of the traced axes of ``machine`` to ``trace``.
+
+    Parameters
+    ----------
+    trace : Trace
+        From :func:`oga.identify.trace.read_trace`; its period must be the machine's Te.
+    machine : Machine
+        The base machine: limits, gains settings and the starting values.
+    axes : iterable of str, optional
+        Axes to fit (default every axis the trace moves).
+    name : str, optional
+        Name of the identified machine (default ``<base>-identified``).
+    holdout_fraction : float
+        If > 0, a second fit on the trace without its last ``holdout_fraction``, whose
+        prediction of the rest is the held-out check (costs a second fit).
+
+    Returns
+    -------
+    Identification
+
+    Raises
+    ------
+    InputError
+        An axis not in the trace or the machine, or not a cascade; a bad trace.
+    """
+    t0 = time.process_time()
+    names = ([a for a, tr in trace.axes.items() if np.ptp(tr.cmd_m) >= 1e-5] if axes is None
+             else list(axes))
+    if not names:
+        raise InputError("no axis moves in the trace (by 10 um or more)")
+    for a in names:
+        if a not in trace.axes:
+            raise InputError(f"axis {a}: not in the trace (it has {', '.join(trace.axes)})")
+        machine.axis(a)
+    if not (0.0 <= holdout_fraction < 0.9):
+        raise InputError(f"holdout_fraction must be in [0, 0.9), got {holdout_fraction}")
+    fits: dict[str, AxisFit] = {a: fit_axis(machine, a, trace.axes[a], trace.dt_s) for a in names}
+    holdout = {}
+    if holdout_fraction > 0:
+        from oga.simulate import axis_params, simulate_axis
+
+        n_fit = int(round(trace.n * (1 - holdout_fraction)))
+        for a in names:
+            part = fit_axis(machine, a, _head(trace.axes[a], n_fit), trace.dt_s)
+            cmd, ff, kp, kf = axis_inputs(trace.axes[a], trace.dt_s)
+            meas = trace.axes[a].act_m
+            p, _ = simulate_axis(axis_params(identified_machine(machine, {a: part}), a), meas[0],
+                                 cmd, ff, kp, kf)
+            lag = part.lag_samples
+            res = p[: p.size - lag] - meas[lag:]
+            cut = n_fit - lag
+            holdout[a] = {"fraction": holdout_fraction,
+                          "rms_fit_m": float(np.sqrt(np.mean(res[:cut] ** 2))),
+                          "rms_heldout_m": float(np.sqrt(np.mean(res[cut:] ** 2)))}
+    ident = identified_machine(machine, fits, name)
+    status = "ok" if all(f.status == "ok" for f in fits.values()) else "poor"
+    return Identification(status=status, machine=ident, toml=machine_toml(ident, fits), fits=fits,
+                          holdout=holdout, trace=trace, base=machine, time_s=time.process_time() - t0)
