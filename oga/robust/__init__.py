@@ -1,0 +1,5 @@
+"""Robust schedules over a machine's uncertainty set.
+
+- :mod:`oga.robust.plants`: concrete plants drawn from the set (Monte Carlo and corners).
+- :mod:`oga.robust.certificate`: a table and the fixed baseline replayed on every plant.
+"""
