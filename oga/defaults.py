@@ -237,3 +237,12 @@ ROBUST_SEED = 17
 #: schedule's result (friction level, mass, Kv, Tn, dead time); the rest stay nominal.
 ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), ("tn_s",),
                         ("dead_time_extra_samples",))
+#: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
+#: to each cut of the limit reserve.
+ROBUST_ROUNDS = 4
+ROBUST_RESERVE_MARGIN = 0.02
+#: Robust search (prototype): shares of the searched schedule's departure from the baseline
+#: tried, and the plants (where the schedule does worst) of the small scenario set they are
+#: tried on.
+ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
+ROBUST_SUBSET = 8

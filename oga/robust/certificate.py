@@ -25,7 +25,7 @@ from oga.robust.plants import ScenarioSet, scenario_set
 from oga.stability import stable_range
 from oga.verify import Verification, verify
 
-__all__ = ["PlantReplay", "Certificate", "certify", "certify_result"]
+__all__ = ["PlantReplay", "Certificate", "plant_bounds", "certify", "certify_result"]
 
 _UM = 1e6
 
@@ -149,12 +149,14 @@ class Certificate:
         }
 
 
-def _plant_bounds(plant: Machine, moving) -> dict[str, tuple[float, float]]:
-    bounds = {}
-    for a in moving:
-        rng = stable_range(plant, a)
-        bounds[a] = (float(rng.kp_min), float(rng.kp_max))
-    return bounds
+def plant_bounds(scenarios: ScenarioSet, axes) -> tuple[dict[str, tuple[float, float]], ...]:
+    """Each plant's stable Kp range per axis of ``axes``, (m/min)/mm (compute once per set:
+    a range costs an eigenvalue sweep)."""
+    out = []
+    for plant in scenarios.plants:
+        rngs = {a: stable_range(plant, a) for a in axes}
+        out.append({a: (float(r.kp_min), float(r.kp_max)) for a, r in rngs.items()})
+    return tuple(out)
 
 
 def certify(
@@ -165,6 +167,7 @@ def certify(
     baseline_kp_m_min_per_mm: np.ndarray,
     baseline_kf: np.ndarray,
     scenarios: ScenarioSet | None = None,
+    bounds: tuple[dict[str, tuple[float, float]], ...] | None = None,
 ) -> Certificate:
     """Replay a schedule and the fixed baseline on every plant of ``machine``'s set.
 
@@ -181,6 +184,8 @@ def certify(
     scenarios : ScenarioSet, optional
         Default :func:`oga.robust.plants.scenario_set` of ``machine`` (its default count,
         seed and corners).
+    bounds : tuple of dict, optional
+        :func:`plant_bounds` of ``scenarios`` over the moving axes (computed when omitted).
 
     Returns
     -------
@@ -189,14 +194,15 @@ def certify(
     if scenarios is None:
         scenarios = scenario_set(machine)
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
+    if bounds is None:
+        bounds = plant_bounds(scenarios, moving)
     replays = []
-    for label, plant in zip(scenarios.labels, scenarios.plants):
-        bounds = _plant_bounds(plant, moving)
+    for label, plant, bnd in zip(scenarios.labels, scenarios.plants, bounds):
         replays.append(PlantReplay(
             label=label,
-            kp_bounds=bounds,
-            schedule=verify(setpoints, plant, kp_m_min_per_mm, kf, bounds),
-            baseline=verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bounds),
+            kp_bounds=bnd,
+            schedule=verify(setpoints, plant, kp_m_min_per_mm, kf, bnd),
+            baseline=verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bnd),
         ))
     ratio = np.array([p.ratio for p in replays])
     reasons = []
