@@ -63,9 +63,12 @@ def _path(file: Path, lines: int | None):
     return read_toolpath(text, "gcode", source=f"{file.name}[:{lines}]")
 
 
-def sp_axis(sp) -> str:
-    """The first moving axis's name."""
-    return "xyz"[sp.moving_axes[0]]
+def _row(name, motion, nominal, cert, rt, rt_cert, tail) -> None:
+    s = cert.summary()
+    print(f"{name:18s} {motion} {nominal:8.3f} {cert.median:7.3f} {cert.p90:7.3f} "
+          f"{cert.worst:7.3f} {len(cert.breaks('schedule')):7d} {len(cert.breaks('baseline')):8d} "
+          f"{len(cert.breaks('schedule-only')):8d} {s['schedule']['max_ce_um']:9.2f} "
+          f"{s['baseline']['max_ce_um']:10.2f} {rt:7.2f} {rt_cert}  {tail}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,26 +100,17 @@ def main(argv: list[str] | None = None) -> int:
         t1 = time.process_time()
         cert = certify_result(res, scen)
         t2 = time.process_time()
-        s = cert.summary()
-        print(f"{name:18s} {sp.duration:8.1f} {res.search_ratio_mse:8.3f} {cert.median:7.3f} "
-              f"{cert.p90:7.3f} {cert.worst:7.3f} {len(cert.breaks('schedule')):7d} "
-              f"{len(cert.breaks('baseline')):8d} {len(cert.breaks('schedule-only')):8d} "
-              f"{s['schedule']['max_ce_um']:9.2f} {s['baseline']['max_ce_um']:10.2f} "
-              f"{sp.duration / (t1 - t0):7.1f} {sp.duration / (t2 - t1):7.2f}  "
-              f"{cert.worst_plant.label}", flush=True)
+        _row(name, f"{sp.duration:8.1f}", res.search_ratio_mse, cert, sp.duration / (t1 - t0),
+             f"{sp.duration / (t2 - t1):7.2f}", cert.worst_plant.label)
         t0 = time.process_time()
         rob = robust_optimize(sp, machine, scenarios=scen)
         t1 = time.process_time()
-        rc = rob.certificate
-        rs = rc.summary()
         price = verify(sp, machine, rob.schedule.kp_m_min_per_mm, rob.schedule.kf,
                        res.kp_bounds).metrics.mse_m2 / res.baseline.metrics.mse_m2
-        print(f"{'  robust':18s} {'':8s} {price:8.3f} {rc.median:7.3f} {rc.p90:7.3f} "
-              f"{rc.worst:7.3f} {len(rc.breaks('schedule')):7d} {len(rc.breaks('baseline')):8d} "
-              f"{len(rc.breaks('schedule-only')):8d} {rs['schedule']['max_ce_um']:9.2f} "
-              f"{rs['baseline']['max_ce_um']:10.2f} {sp.duration / (t1 - t0):7.2f} {'':7s}  "
-              f"{rob.status} alpha {rob.alpha} base Kp {rob.result.baseline_kp[sp_axis(sp)]} "
-              f"Kf {rob.result.baseline_kf[sp_axis(sp)]} reserve {rob.reserve:.3f}", flush=True)
+        a = "xyz"[sp.moving_axes[0]]
+        _row("  robust", f"{'':8s}", price, rob.certificate, sp.duration / (t1 - t0), f"{'':7s}",
+             f"{rob.status} alpha {rob.alpha} base Kp {rob.result.baseline_kp[a]} "
+             f"Kf {rob.result.baseline_kf[a]} reserve {rob.reserve:.3f}")
     return 0
 
 
