@@ -34,6 +34,7 @@ for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # one thread, as the real-time target says
 
 from feedplan.read import load_toolpath, read_toolpath  # noqa: E402
+from oga.errors import OgaError  # noqa: E402
 from oga.machine import load_machine  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
@@ -103,7 +104,11 @@ def main(argv: list[str] | None = None) -> int:
         _row(name, f"{sp.duration:8.1f}", res.search_ratio_mse, cert, sp.duration / (t1 - t0),
              f"{sp.duration / (t2 - t1):7.2f}", cert.worst_plant.label)
         t0 = time.process_time()
-        rob = robust_optimize(sp, machine, scenarios=scen)
+        try:
+            rob = robust_optimize(sp, machine, scenarios=scen)
+        except OgaError as err:
+            print(f"{'  robust':18s} failed: {err}", flush=True)
+            continue
         t1 = time.process_time()
         price = verify(sp, machine, rob.schedule.kp_m_min_per_mm, rob.schedule.kf,
                        res.kp_bounds).metrics.mse_m2 / res.baseline.metrics.mse_m2

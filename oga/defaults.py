@@ -238,8 +238,8 @@ ROBUST_SEED = 17
 ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), ("tn_s",),
                         ("dead_time_extra_samples",))
 #: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
-#: to each cut of the limit reserve.
-ROBUST_ROUNDS = 4
+#: to the first cut of the limit reserve (doubled at each further cut).
+ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
 #: Robust search (prototype): shares of the searched schedule's departure from the baseline
 #: tried, and the plants (where the schedule does worst) of the small scenario set they are

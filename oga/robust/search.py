@@ -9,7 +9,8 @@ the nominal dynamics, with
 - the acceleration and jerk limits (and any following-error limit) scaled by a reserve
   ``r <= 1``: a plant's velocity command differs from the nominal one, and the reserve
   is what the worst plant needs. ``r`` starts at 1 and, after each round, shrinks by the
-  largest excess over 1 of a limit on any plant (the baseline's or the schedule's).
+  largest excess over 1 of a limit on any plant (the baseline's or the schedule's) and a
+  margin that doubles each round (a fixed gain's excess is not linear in ``r``).
 
 The baseline is the best equal fixed gains of the design machine
 (:func:`oga.ranges.best_fixed_gains`), the reserve shrunk in rounds until they keep the
@@ -36,6 +37,7 @@ from oga import defaults
 from oga.errors import OptionError
 from oga.machine import Machine, machine_from_dict
 from oga.optimize import GainSchedule, OptimizeResult, optimize
+from oga.ranges import best_fixed_gains
 from oga.options import OptimizeOptions, options_from_dict
 from oga.robust.certificate import Certificate, certify, plant_bounds
 from oga.robust.plants import ScenarioSet, scenario_set
@@ -142,9 +144,8 @@ def robust_optimize(
     n = len(setpoints)
     reserve, anchor = 1.0, options.anchor_value
     base = None
-    for _ in range(defaults.ROBUST_ROUNDS):
+    for k in range(defaults.ROBUST_ROUNDS):
         design = design_machine(machine, reserve, (kp_lo, kp_hi))
-        from oga.ranges import best_fixed_gains
 
         best = best_fixed_gains(setpoints, design)
         if best is None:
@@ -157,7 +158,7 @@ def robust_optimize(
         if over <= 1.0:
             base = (kp0, kf0)
             break
-        reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN)
+        reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
     if base is None:
         raise OptionError("baseline: no equal fixed gains keep the limits on every plant "
                           "of the uncertainty set")
@@ -171,7 +172,7 @@ def robust_optimize(
         if not cert.breaks("schedule-only"):
             break
         reserve /= max(_excess(p.schedule for p in cert.plants), 1.0) * (
-            1.0 + defaults.ROBUST_RESERVE_MARGIN)
+            1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
     alpha, cert = _shrink(setpoints, machine, res.searched_schedule, bkp, bkf, scenarios,
                           bounds, cert)
     ok = cert.status == "ok" and res.searched.ok
