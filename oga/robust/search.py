@@ -120,7 +120,7 @@ def robust_optimize(
     machine : Machine
         With an uncertainty section.
     options : OptimizeOptions or dict, optional
-        Full-mode options; ``baseline`` and ``kp_range`` are set by the robust search.
+        Full-mode options; ``baseline`` is set by the robust search.
     scenarios : ScenarioSet, optional
         Default :func:`oga.robust.plants.scenario_set` of ``machine``.
 
@@ -142,15 +142,11 @@ def robust_optimize(
     kp_lo = max(b[a][0] for b in bounds for a in moving)
     kp_hi = min(b[a][1] for b in bounds for a in moving)
     n = len(setpoints)
-    reserve, anchor = 1.0, options.anchor_value
-    base = None
+    reserve, base = 1.0, None
     for k in range(defaults.ROBUST_ROUNDS):
-        design = design_machine(machine, reserve, (kp_lo, kp_hi))
-
-        best = best_fixed_gains(setpoints, design)
+        best = best_fixed_gains(setpoints, design_machine(machine, reserve, (kp_lo, kp_hi)))
         if best is None:
-            raise OptionError("baseline: no equal fixed gains keep the limits on every plant "
-                              "of the uncertainty set")
+            break
         kp0, kf0 = float(best.kp[moving[0]]), float(best.kf[moving[0]])
         bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
         over = _excess(verify(setpoints, p, bkp, bkf, b)
