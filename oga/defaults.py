@@ -242,7 +242,8 @@ ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), 
 ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
 #: Robust search (prototype): shares of the searched schedule's departure from the baseline
-#: tried, and the plants (where the schedule does worst) of the small scenario set they are
+#: tried (Kf; Kp), and the plants (where the schedule does worst) of the small scenario set they are
 #: tried on.
 ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
+ROBUST_KP_ALPHAS = (1.0, 0.75, 0.5, 0.25)
 ROBUST_SUBSET = 8

@@ -53,7 +53,9 @@ def test_robust_table_and_baseline_hold_on_every_plant():
     if r.status == "ok":
         assert cert.worst <= 1.0 and not cert.breaks("schedule-only")
         s = r.result.searched_schedule
-        np.testing.assert_allclose(sched.kf, bkf + r.alpha * (s.kf - bkf), atol=1e-15)
+        np.testing.assert_allclose(sched.kf, bkf + r.alpha[1] * (s.kf - bkf), atol=1e-15)
+        np.testing.assert_allclose(sched.kp_m_min_per_mm,
+                                   bkp + r.alpha[0] * (s.kp_m_min_per_mm - bkp), atol=1e-15)
         nominal = verify(sp, m, sched.kp_m_min_per_mm, sched.kf, r.result.kp_bounds)
         assert nominal.ok and nominal.metrics.mse_m2 < verify(
             sp, m, bkp, bkf, r.result.kp_bounds).metrics.mse_m2

@@ -20,7 +20,8 @@ plant of the set. The schedule is then searched from that baseline on the design
 
 The nominal search fits the nominal friction glitch and dead time sharply; on a plant with
 another dead time or a faster loop its pulses overshoot. The prototype therefore keeps a
-share ``alpha`` of the schedule's departure from the baseline, ``K = Kb + alpha (Ks - Kb)``,
+share ``alpha`` of the schedule's departure from the baseline, ``K = Kb + alpha (Ks - Kb)``
+(one share for Kp, one for Kf),
 chosen by the least worst-case ratio (minimax) over a small scenario set: the plants where
 the full schedule does worst, refreshed with those where the chosen one does worst on the
 whole set. The result is certified on the whole set.
@@ -28,6 +29,7 @@ whole set. The result is certified on the whole set.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,8 +69,8 @@ class RobustResult:
         The Kp bound common to every plant, (m/min)/mm.
     rounds : int
         Searches run.
-    alpha : float
-        Share of the searched schedule's departure from the baseline that is kept.
+    alpha : (float, float)
+        Shares of the searched schedule's departure from the baseline that are kept, Kp and Kf.
     """
 
     status: str
@@ -78,7 +80,7 @@ class RobustResult:
     reserve: float
     kp_max: float
     rounds: int
-    alpha: float
+    alpha: tuple[float, float]
 
 
 def design_machine(machine: Machine, reserve: float, kp_bounds: tuple[float, float]) -> Machine:
@@ -172,9 +174,7 @@ def robust_optimize(
     alpha, cert = _shrink(setpoints, machine, res.searched_schedule, bkp, bkf, scenarios,
                           bounds, cert)
     ok = cert.status == "ok" and res.searched.ok
-    s = res.searched_schedule
-    kp = bkp + alpha * (s.kp_m_min_per_mm - bkp) if ok else bkp
-    kf = bkf + alpha * (s.kf - bkf) if ok else bkf
+    kp, kf = _shrunk(res.searched_schedule, bkp, bkf, alpha) if ok else (bkp, bkf)
     return RobustResult(status="ok" if ok else "failed",
                         schedule=GainSchedule(kp_m_min_per_mm=kp, kf=kf), result=res,
                         certificate=cert,
@@ -191,25 +191,29 @@ def _subset(scenarios: ScenarioSet, bounds, keep) -> tuple[ScenarioSet, tuple]:
             tuple(bounds[i] for i in keep))
 
 
+def _shrunk(schedule, bkp, bkf, alpha):
+    a_kp, a_kf = alpha
+    return bkp + a_kp * (schedule.kp_m_min_per_mm - bkp), bkf + a_kf * (schedule.kf - bkf)
+
+
 def _shrink(setpoints, machine, schedule, bkp, bkf, scenarios, bounds, cert):
-    """The schedule ``Kb + alpha (Ks - Kb)`` whose worst ratio over a small scenario set is
-    least (alpha on :data:`oga.defaults.ROBUST_ALPHAS`), the set being the plants where the
-    full schedule does worst and refreshed with those where the chosen one does worst on
-    the whole set; then certified on the whole set. Returns (alpha, certificate)."""
+    """The schedule ``Kb + alpha (Ks - Kb)`` (``alpha`` one share for Kp, one for Kf, on
+    :data:`oga.defaults.ROBUST_KP_ALPHAS` x :data:`oga.defaults.ROBUST_ALPHAS`) whose worst
+    ratio over a small scenario set is least, the set being the plants where the full
+    schedule does worst, refreshed with those where the chosen one does worst on the whole
+    set; then certified on the whole set. Returns (alpha, certificate)."""
     worst = [int(i) for i in np.argsort(cert.ratio)[::-1][:defaults.ROBUST_SUBSET]]
-    best = (1.0, cert)
+    best = ((1.0, 1.0), cert)
     for _ in range(defaults.ROBUST_ROUNDS):
         sub, sub_bounds = _subset(scenarios, bounds, worst)
         trials = []
-        for alpha in defaults.ROBUST_ALPHAS:
-            kp = bkp + alpha * (schedule.kp_m_min_per_mm - bkp)
-            kf = bkf + alpha * (schedule.kf - bkf)
-            c = certify(setpoints, machine, kp, kf, bkp, bkf, sub, sub_bounds)
+        for alpha in itertools.product(defaults.ROBUST_KP_ALPHAS, defaults.ROBUST_ALPHAS):
+            c = certify(setpoints, machine, *_shrunk(schedule, bkp, bkf, alpha), bkp, bkf, sub,
+                        sub_bounds)
             trials.append((c.worst if not c.breaks("schedule-only") else np.inf, alpha))
         alpha = min(trials)[1]
-        kp = bkp + alpha * (schedule.kp_m_min_per_mm - bkp)
-        kf = bkf + alpha * (schedule.kf - bkf)
-        full = certify(setpoints, machine, kp, kf, bkp, bkf, scenarios, bounds)
+        full = certify(setpoints, machine, *_shrunk(schedule, bkp, bkf, alpha), bkp, bkf,
+                       scenarios, bounds)
         if full.worst < best[1].worst or best[1].status != "ok":
             best = (alpha, full)
         if full.status == "ok":
