@@ -247,3 +247,6 @@ ROBUST_RESERVE_MARGIN = 0.02
 ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
 ROBUST_KP_ALPHAS = (1.0, 0.75, 0.5, 0.25)
 ROBUST_SUBSET = 8
+#: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
+#: be chosen by its median ratio on the typical ones.
+ROBUST_WORST_GOAL = 0.9
