@@ -305,3 +305,27 @@ EXCITE_VMAX_FRACTIONS = (0.02, 0.1, 0.3, 0.6)
 EXCITE_SWEEP_HZ = (1.0, 2.0, 4.0, 7.0, 10.0, 15.0, 20.0)
 #: ``oga excite``: default travel per axis, mm.
 EXCITE_TRAVEL_MM = 100.0
+
+# robust --------------------------------------------------------------------------------------
+#: Monte Carlo plants drawn from a machine's uncertainty set (the certificate's sample).
+ROBUST_MC_PLANTS = 64
+#: Seed of that draw (a certificate is reproducible).
+ROBUST_SEED = 17
+#: Groups of uncertain parameters whose set corners are added to the Monte Carlo plants, all
+#: axes at the same end of their own ranges (2^groups corners): the parameters that move the
+#: schedule's result (friction level, mass, Kv, Tn, dead time); the rest stay nominal.
+ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), ("tn_s",),
+                        ("dead_time_extra_samples",))
+#: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
+#: to the first cut of the limit reserve (doubled at each further cut).
+ROBUST_ROUNDS = 5
+ROBUST_RESERVE_MARGIN = 0.02
+#: Robust search (prototype): shares of the searched schedule's departure from the baseline
+#: tried (Kf; Kp), and the plants (where the schedule does worst) of the small scenario set they are
+#: tried on.
+ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
+ROBUST_KP_ALPHAS = (1.0, 0.75, 0.5, 0.25)
+ROBUST_SUBSET = 8
+#: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
+#: be chosen by its median ratio on the typical ones.
+ROBUST_WORST_GOAL = 0.9

@@ -160,6 +160,8 @@ def _root(f, lo: float, hi: float, f_lo: float, f_hi: float) -> float:
         return lo
     if f_hi == 0.0:
         return hi
+    if (f_lo > 0.0) == (f_hi > 0.0):  # the crossing is an end, within rounding (e.g. Nyquist)
+        return lo if abs(f_lo) < abs(f_hi) else hi
     ends = {lo: f_lo, hi: f_hi}
 
     def g(w):

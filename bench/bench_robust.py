@@ -1,0 +1,123 @@
+"""Robustness of the schedules: the certificate of each benchmark program's table.
+
+Run:  python bench/bench_robust.py [--machine ucp710-robust] [--plants 64] [--only NAME,..]
+
+Per program, on the machine (default ``ucp710-robust``: ucp710 with its documented default
+uncertainty set): today's schedule searched on the nominal model (``optimize``; it ignores
+the set), its nominal MSE ratio against the best fixed gains, then its certificate
+(:func:`oga.robust.certificate.certify_result`): the schedule and those fixed gains
+replayed on the seeded Monte Carlo plants of the set plus its 32 corners, the ratio's
+median / p90 / worst, the plants where the schedule, the baseline, and the schedule alone
+break a check (eq. 2, the following-error limit, the plant's stable Kp range), and the
+largest contour error of both over the set. RT = motion time / CPU time (one thread,
+after a warm-up) of the nominal ``optimize``, and of the certificate.
+Then the robust search prototype (:func:`oga.robust.search.robust_optimize`): its certificate
+against the robust baseline, and the price on the nominal plant: MSE(CE) of the robust
+table over that of the nominal best fixed gains (the "nominal" column's denominator), with
+its RT (search, shrink and certificate included).
+
+Programs: reference_xz, freeform_xz, helix_r20, circle_r50_f3000 and cncjs_toolpath (MIT,
+tests/data), and LinuxCNC's arcspiral (GPL: read from ../shared/toolpaths/external, never
+copied; its first 40 lines, 20 s of arcs at 24 in/min, with an axis reversal at every
+quadrant; the whole program is 254 s of motion). A benchmark prints figures; it asserts
+nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one thread, as the real-time target says
+
+from feedplan.read import load_toolpath, read_toolpath  # noqa: E402
+from oga.errors import OgaError  # noqa: E402
+from oga.machine import load_machine  # noqa: E402
+from oga.optimize import optimize  # noqa: E402
+from oga.pipeline import plan_toolpath  # noqa: E402
+from oga.robust.certificate import certify_result  # noqa: E402
+from oga.robust.plants import scenario_set  # noqa: E402
+from oga.robust.search import robust_optimize  # noqa: E402
+from oga.verify import verify  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
+EXTERNAL = ROOT.parent / "shared" / "toolpaths" / "external"
+#: (name, file, lines kept or None for all)
+PROGRAMS = (
+    ("reference_xz", DATA / "reference_xz.ngc", None),
+    ("freeform_xz", DATA / "freeform_xz.ngc", None),
+    ("helix_r20", DATA / "helix_r20.ngc", None),
+    ("circle_r50_f3000", DATA / "circle_r50_f3000.ngc", None),
+    ("cncjs_toolpath", DATA / "cncjs_toolpath.nc", None),
+    ("arcspiral[:40]", EXTERNAL / "lcnc_arcspiral.ngc", 40),
+)
+
+
+def _path(file: Path, lines: int | None):
+    if lines is None:
+        return load_toolpath(file)
+    text = "\n".join(file.read_text().splitlines()[:lines])
+    return read_toolpath(text, "gcode", source=f"{file.name}[:{lines}]")
+
+
+def _row(name, motion, nominal, cert, rt, rt_cert, tail) -> None:
+    s = cert.summary()
+    print(f"{name:18s} {motion} {nominal:8.3f} {cert.median:7.3f} {cert.p90:7.3f} "
+          f"{cert.worst:7.3f} {len(cert.breaks('schedule')):7d} {len(cert.breaks('baseline')):8d} "
+          f"{len(cert.breaks('schedule-only')):8d} {s['schedule']['max_ce_um']:9.2f} "
+          f"{s['baseline']['max_ce_um']:10.2f} {rt:7.2f} {rt_cert}  {tail}", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--machine", default="ucp710-robust")
+    ap.add_argument("--plants", type=int, default=64, help="Monte Carlo plants (+ corners)")
+    ap.add_argument("--seed", type=int, default=17)
+    ap.add_argument("--only", default="", help="comma-separated program names")
+    args = ap.parse_args(argv)
+    machine = load_machine(args.machine)
+    scen = scenario_set(machine, n=args.plants, seed=args.seed)
+    only = {s for s in args.only.split(",") if s}
+    warm = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), machine, feed_m_s=None, tol_m=2e-5)
+    certify_result(optimize(warm, machine), scenario_set(machine, n=1, corners=False))
+    print(f"machine {machine.name}: {len(scen)} plants ({scen.n_monte_carlo} Monte Carlo, seed "
+          f"{scen.seed}, {scen.n_corners} corners)")
+    print(f"{'program':18s} {'motion s':>8s} {'nominal':>8s} {'median':>7s} {'p90':>7s} "
+          f"{'worst':>7s} {'brk sch':>7s} {'brk base':>8s} {'sch only':>8s} {'maxCE sch':>9s} "
+          f"{'maxCE base':>10s} {'RT opt':>7s} {'RT cert':>7s}  worst plant")
+    for name, file, lines in PROGRAMS:
+        if only and name not in only:
+            continue
+        if not file.exists():
+            print(f"{name:18s} (missing: {file})")
+            continue
+        sp = plan_toolpath(_path(file, lines), machine, feed_m_s=None, tol_m=2e-5)
+        t0 = time.process_time()
+        res = optimize(sp, machine)
+        t1 = time.process_time()
+        cert = certify_result(res, scen)
+        t2 = time.process_time()
+        _row(name, f"{sp.duration:8.1f}", res.search_ratio_mse, cert, sp.duration / (t1 - t0),
+             f"{sp.duration / (t2 - t1):7.2f}", cert.worst_plant.label)
+        t0 = time.process_time()
+        try:
+            rob = robust_optimize(sp, machine, scenarios=scen)
+        except OgaError as err:
+            print(f"{'  robust':18s} failed: {err}", flush=True)
+            continue
+        t1 = time.process_time()
+        price = verify(sp, machine, rob.schedule.kp_m_min_per_mm, rob.schedule.kf,
+                       res.kp_bounds).metrics.mse_m2 / res.baseline.metrics.mse_m2
+        a = "xyz"[sp.moving_axes[0]]
+        _row("  robust", f"{'':8s}", price, rob.certificate, sp.duration / (t1 - t0), f"{'':7s}",
+             f"{rob.status} alpha {rob.alpha} base Kp {rob.result.baseline_kp[a]} "
+             f"Kf {rob.result.baseline_kf[a]} reserve {rob.reserve:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

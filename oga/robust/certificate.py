@@ -1,0 +1,230 @@
+"""The robustness certificate of a gain table: its replay on every plant of an uncertainty set.
+
+On each plant of a :class:`oga.robust.plants.ScenarioSet` the schedule and the fixed
+baseline are replayed from rest by :func:`oga.verify.verify` (the same replay and the
+same checks as the nominal verification), with the plant's own stable Kp range as the
+stability bound. Per plant: the ratio MSE(CE) schedule / baseline, the largest contour
+and following errors, and whether each replay keeps the limits (eq. 2 and the
+following-error limit) and the plant's stable range. Over the set: the ratio's median,
+90th percentile and worst, and the plants where a replay breaks a check.
+
+A certificate passes (status ``"ok"``) when the worst ratio is at most 1 and there is no
+plant where the schedule breaks a check the baseline keeps on that plant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from feedplan.setpoints import AXES, Setpoints
+from oga.errors import OptionError
+from oga.machine import Machine
+from oga.robust.plants import ScenarioSet, scenario_set
+from oga.stability import stable_range
+from oga.verify import Verification, verify
+
+__all__ = ["PlantReplay", "Certificate", "plant_bounds", "certify", "certify_result"]
+
+_UM = 1e6
+
+
+@dataclass(frozen=True, eq=False)
+class PlantReplay:
+    """The schedule and the baseline on one plant.
+
+    Attributes
+    ----------
+    label : str
+        The plant (``"mc-0007"``, ``"corner ..."``).
+    kp_bounds : dict
+        The plant's stable Kp range per moving axis, (m/min)/mm.
+    schedule, baseline : Verification
+        The two replays (their ``pos``/``u``/``ce`` series included).
+    """
+
+    label: str
+    kp_bounds: dict[str, tuple[float, float]]
+    schedule: Verification
+    baseline: Verification
+
+    @property
+    def ratio(self) -> float:
+        """MSE(CE) of the schedule over MSE(CE) of the baseline on this plant."""
+        return self.schedule.metrics.mse_m2 / self.baseline.metrics.mse_m2
+
+    @property
+    def schedule_only_break(self) -> bool:
+        """The schedule breaks a check (limits or stability) that the baseline keeps."""
+        return ((not self.schedule.limits_ok and self.baseline.limits_ok)
+                or (not self.schedule.stability_ok and self.baseline.stability_ok))
+
+
+@dataclass(frozen=True, eq=False)
+class Certificate:
+    """A schedule against the fixed baseline over a scenario set.
+
+    Attributes
+    ----------
+    status : {"ok", "failed"}
+        ``"ok"``: worst ratio <= 1 and no plant where the schedule alone breaks a check.
+    reasons : tuple of str
+        Why it failed, in words (empty when ok).
+    scenarios : ScenarioSet
+        The plants.
+    plants : tuple of PlantReplay
+        One per plant, in the set's order.
+    ratio : ndarray, shape (P,)
+        MSE ratio per plant.
+    """
+
+    status: str
+    reasons: tuple[str, ...]
+    scenarios: ScenarioSet
+    plants: tuple[PlantReplay, ...]
+    ratio: np.ndarray
+
+    @property
+    def median(self) -> float:
+        """Median of the ratio over the plants."""
+        return float(np.median(self.ratio))
+
+    @property
+    def p90(self) -> float:
+        """90th percentile of the ratio (linear interpolation)."""
+        return float(np.percentile(self.ratio, 90))
+
+    @property
+    def worst(self) -> float:
+        """Largest ratio."""
+        return float(self.ratio.max())
+
+    @property
+    def worst_plant(self) -> PlantReplay:
+        """The plant of the largest ratio."""
+        return self.plants[int(np.argmax(self.ratio))]
+
+    def breaks(self, which: str) -> tuple[str, ...]:
+        """Labels of the plants where a replay breaks a check.
+
+        Parameters
+        ----------
+        which : {"schedule", "baseline", "schedule-only"}
+            The schedule's breaks, the baseline's, or where the schedule breaks a check
+            the baseline keeps.
+        """
+        if which == "schedule-only":
+            return tuple(p.label for p in self.plants if p.schedule_only_break)
+        if which not in ("schedule", "baseline"):
+            raise OptionError(f"breaks: unknown replay {which!r}; use schedule, baseline or schedule-only")
+        return tuple(p.label for p in self.plants if not getattr(p, which).ok)
+
+    def summary(self) -> dict:
+        """The certificate in users' units (um), for the summary JSON."""
+
+        def largest(which: str) -> dict:
+            vs = [getattr(p, which) for p in self.plants]
+            return {
+                "max_ce_um": max(v.metrics.max_abs_m for v in vs) * _UM,
+                "track_max_um": {a: max(v.metrics.track_max_m[i] for v in vs) * _UM
+                                 for i, a in enumerate(AXES)},
+            }
+
+        s = self.scenarios
+        return {
+            "status": self.status,
+            "reasons": list(self.reasons),
+            "plants": len(self.plants),
+            "monte_carlo": s.n_monte_carlo,
+            "corners": s.n_corners,
+            "seed": s.seed,
+            "ratio_median": self.median,
+            "ratio_p90": self.p90,
+            "ratio_worst": self.worst,
+            "worst_plant": self.worst_plant.label,
+            "breaks": {w: list(self.breaks(w)) for w in ("schedule", "baseline", "schedule-only")},
+            "schedule": largest("schedule"),
+            "baseline": largest("baseline"),
+        }
+
+
+def plant_bounds(scenarios: ScenarioSet, axes) -> tuple[dict[str, tuple[float, float]], ...]:
+    """Each plant's stable Kp range per axis of ``axes``, (m/min)/mm (compute once per set:
+    a range costs an eigenvalue sweep)."""
+    out = []
+    for plant in scenarios.plants:
+        rngs = {a: stable_range(plant, a) for a in axes}
+        out.append({a: (float(r.kp_min), float(r.kp_max)) for a, r in rngs.items()})
+    return tuple(out)
+
+
+def certify(
+    setpoints: Setpoints,
+    machine: Machine,
+    kp_m_min_per_mm: np.ndarray,
+    kf: np.ndarray,
+    baseline_kp_m_min_per_mm: np.ndarray,
+    baseline_kf: np.ndarray,
+    scenarios: ScenarioSet | None = None,
+    bounds: tuple[dict[str, tuple[float, float]], ...] | None = None,
+) -> Certificate:
+    """Replay a schedule and the fixed baseline on every plant of ``machine``'s set.
+
+    Parameters
+    ----------
+    setpoints : Setpoints
+        The planned motion (N samples).
+    machine : Machine
+        The nominal machine, with its uncertainty set.
+    kp_m_min_per_mm, kf : ndarray, shape (N, 3)
+        The schedule.
+    baseline_kp_m_min_per_mm, baseline_kf : ndarray, shape (N, 3)
+        The fixed baseline's gains per sample.
+    scenarios : ScenarioSet, optional
+        Default :func:`oga.robust.plants.scenario_set` of ``machine`` (its default count,
+        seed and corners).
+    bounds : tuple of dict, optional
+        :func:`plant_bounds` of ``scenarios`` over the moving axes (computed when omitted).
+
+    Returns
+    -------
+    Certificate
+    """
+    if scenarios is None:
+        scenarios = scenario_set(machine)
+    moving = tuple(AXES[i] for i in setpoints.moving_axes)
+    if bounds is None:
+        bounds = plant_bounds(scenarios, moving)
+    replays = []
+    for label, plant, bnd in zip(scenarios.labels, scenarios.plants, bounds):
+        replays.append(PlantReplay(
+            label=label,
+            kp_bounds=bnd,
+            schedule=verify(setpoints, plant, kp_m_min_per_mm, kf, bnd),
+            baseline=verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bnd),
+        ))
+    ratio = np.array([p.ratio for p in replays])
+    reasons = []
+    if ratio.max() > 1.0:
+        worst = replays[int(np.argmax(ratio))]
+        reasons.append(f"the schedule is worse than the fixed baseline on plant {worst.label!r} "
+                       f"(MSE ratio {ratio.max():.3f})")
+    only = [p.label for p in replays if p.schedule_only_break]
+    if only:
+        first = next(p for p in replays if p.schedule_only_break)
+        reasons.append(f"the schedule breaks a check the baseline keeps on {len(only)} plant(s), "
+                       f"first {first.label!r}: {first.schedule.violations[0]}")
+    return Certificate(status="failed" if reasons else "ok", reasons=tuple(reasons),
+                       scenarios=scenarios, plants=tuple(replays), ratio=ratio)
+
+
+def certify_result(result, scenarios: ScenarioSet | None = None) -> Certificate:
+    """:func:`certify` of an :class:`oga.optimize.OptimizeResult`'s searched schedule
+    against its fixed baseline, on its machine's set."""
+    n = len(result.setpoints)
+    base_kp = np.tile([result.baseline_kp[a] for a in AXES], (n, 1))
+    base_kf = np.tile([result.baseline_kf[a] for a in AXES], (n, 1))
+    s = result.searched_schedule
+    return certify(result.setpoints, result.machine, s.kp_m_min_per_mm, s.kf, base_kp, base_kf,
+                   scenarios)

@@ -1,0 +1,157 @@
+"""The robustness certificate against fresh simulations on perturbed machine files.
+
+The plants are rebuilt here from the preset's raw TOML and the certificate's draws,
+written to TOML files and loaded back; each is simulated with ``oga.simulate``, its
+contour error computed with ``oga.contour.contour_error`` and eq. 2 checked with numpy
+differences, none of it through the certificate's or the verification's code.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from feedplan.read import load_toolpath
+from oga.contour import contour_error
+from oga.machine import PRESETS, load_machine
+from oga.optimize import optimize
+from oga.pipeline import plan_toolpath
+from oga.robust.certificate import certify, certify_result
+from oga.robust.plants import scenario_set
+from oga.simulate import simulate
+from oga.stability import stable_range
+
+DATA = Path(__file__).parent / "data"
+PRESET = Path(__import__("oga").__file__).parent / "presets" / "ucp710-robust.toml"
+
+
+def _toml(data: dict, prefix: str = "") -> str:
+    """A small TOML writer for a machine dict (tables of scalars and arrays)."""
+
+    def value(v):
+        if isinstance(v, str):
+            return '"' + v.replace('"', '\\"') + '"'
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    lines = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    out = ([f"[{prefix}]"] if prefix and lines else []) + lines
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out.append(_toml(v, f"{prefix}.{k}" if prefix else k))
+    return "\n".join(out)
+
+
+def _plant_file(raw: dict, draw, path: Path):
+    factors, dead = draw
+    data = {k: (dict(v) if isinstance(v, dict) else v) for k, v in raw.items()}
+    data["axes"] = {}
+    for a, ax in raw["axes"].items():
+        cas = dict(ax["cascade"])
+        for f, x in factors.get(a, {}).items():
+            cas[f] = cas[f] * x
+        cas["static_n"] = max(cas["static_n"], cas["coulomb_n"])
+        data["axes"][a] = {"limits": dict(ax["limits"]), "cascade": cas}
+    data["timing"]["dead_time_samples"] = raw["timing"]["dead_time_samples"] + dead
+    path.write_text(_toml(data))
+    return load_machine(path)
+
+
+def _replay(sp, plant, kp, kf):
+    """MSE(CE), max |CE|, max following error per axis, eq. 2 ok, stability ok."""
+    sim = simulate(sp, plant, kp, kf)
+    ce = contour_error(sp.pos, sim.pos, sp.plane)
+    feed = ~sp.rapid
+    lim = plant.axis_limits()
+    u = np.vstack([np.zeros((2, 3)), sim.u])
+    ratios = [np.abs(u[2:]) / lim.vmax_m_s,
+              np.abs(np.diff(u, axis=0)[1:]) / sp.dt / lim.amax_m_s2,
+              np.abs(np.diff(u, 2, axis=0)) / sp.dt**2 / lim.jmax_m_s3]
+    moving = [i for i in sp.moving_axes]
+    limits_ok = all(r[feed][:, moving].max() <= 1 + 1e-9 for r in ratios)
+    stab_ok = True
+    for i in moving:
+        rng = stable_range(plant, "xyz"[i])
+        stab_ok &= rng.kp_min - 1e-12 <= kp[:, i].min() and kp[:, i].max() <= rng.kp_max + 1e-12
+    track = np.abs(sp.pos - sim.pos)[feed].max(axis=0)
+    return np.mean(ce[feed] ** 2), np.abs(ce[feed]).max(), track, limits_ok, stab_ok
+
+
+@pytest.fixture(scope="module")
+def case():
+    m = load_machine("ucp710-robust")
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    return m, sp, optimize(sp, m)
+
+
+def test_certificate_figures_match_fresh_simulations_on_machine_files(case, tmp_path):
+    m, sp, res = case
+    assert "ucp710-robust" in PRESETS
+    scen = scenario_set(m, n=8, seed=4)
+    cert = certify_result(res, scen)
+    assert len(cert.plants) == 8 + 32
+    raw = tomllib.loads(PRESET.read_text())
+    n = len(sp)
+    kp, kf = res.searched_schedule.kp_m_min_per_mm, res.searched_schedule.kf
+    bkp = np.tile([res.baseline_kp[a] for a in "xyz"], (n, 1))
+    bkf = np.tile([res.baseline_kf[a] for a in "xyz"], (n, 1))
+    ratios, max_ce, sched_breaks, base_breaks, only = [], [], [], [], []
+    for i, (label, draw) in enumerate(zip(scen.labels, scen.draws)):
+        plant = _plant_file(raw, draw, tmp_path / f"plant{i}.toml")
+        s = _replay(sp, plant, kp, kf)
+        b = _replay(sp, plant, bkp, bkf)
+        ratios.append(s[0] / b[0])
+        max_ce.append(s[1])
+        if not (s[3] and s[4]):
+            sched_breaks.append(label)
+        if not (b[3] and b[4]):
+            base_breaks.append(label)
+        if (not s[3] and b[3]) or (not s[4] and b[4]):
+            only.append(label)
+        rep = cert.plants[i]
+        assert rep.label == label
+        np.testing.assert_allclose(rep.schedule.metrics.track_max_m, s[2], rtol=1e-12)
+        np.testing.assert_allclose(rep.baseline.metrics.track_max_m, b[2], rtol=1e-12)
+    ratios = np.array(ratios)
+    np.testing.assert_allclose(cert.ratio, ratios, rtol=1e-9)
+    assert cert.median == pytest.approx(np.median(ratios), rel=1e-9)
+    assert cert.p90 == pytest.approx(np.percentile(ratios, 90), rel=1e-9)
+    assert cert.worst == pytest.approx(ratios.max(), rel=1e-9)
+    assert cert.summary()["schedule"]["max_ce_um"] == pytest.approx(max(max_ce) * 1e6, rel=1e-9)
+    assert cert.breaks("schedule") == tuple(sched_breaks)
+    assert cert.breaks("baseline") == tuple(base_breaks)
+    assert cert.breaks("schedule-only") == tuple(only)
+    want_ok = ratios.max() <= 1.0 and not only
+    assert (cert.status == "ok") == want_ok and bool(cert.reasons) != want_ok
+    # the set is not trivial: the plants differ, and the nominal schedule is not as good on all
+    assert ratios.max() > 1.5 * ratios.min()
+
+
+def test_the_baseline_certifies_itself_and_a_worse_schedule_fails(case):
+    m, sp, res = case
+    scen = scenario_set(m, n=4, seed=1, corners=False)
+    n = len(sp)
+    bkp = np.tile([res.baseline_kp[a] for a in "xyz"], (n, 1))
+    bkf = np.tile([res.baseline_kf[a] for a in "xyz"], (n, 1))
+    same = certify(sp, m, bkp, bkf, bkp, bkf, scen)
+    np.testing.assert_array_equal(same.ratio, np.ones(4))
+    assert not same.breaks("schedule-only")
+    # no feed-forward: far worse than the baseline on every plant
+    worse = certify(sp, m, bkp, np.zeros_like(bkf), bkp, bkf, scen)
+    assert worse.status == "failed" and worse.ratio.min() > 1.0
+    assert "worse than the fixed baseline" in worse.reasons[0]
+
+
+def test_stable_range_is_found_on_every_plant_of_the_default_set():
+    # a corner whose phase reaches -900 deg exactly at Nyquist once broke the crossing search
+    from oga.robust.plants import corner_draws, perturbed_machine
+
+    m = load_machine("ucp710-robust")
+    for plant in (perturbed_machine(m, f, d) for f, d in corner_draws(m)[1]):
+        for a in ("x", "z"):
+            rng = stable_range(plant, a)
+            assert 1.0 <= rng.kp_max <= 5.0
