@@ -8,6 +8,7 @@ from pathlib import Path as FilePath
 from feedplan.gcode import parse_gcode
 from feedplan.path import Path
 from feedplan.polyline import parse_csv, parse_json
+from oga.defaults import MAX_TOOLPATH_BYTES
 from oga.errors import OptionError, ToolpathError
 
 __all__ = ["FORMATS", "SUFFIXES", "read_toolpath", "read_file", "load_toolpath"]
@@ -66,7 +67,8 @@ def read_file(path: str | os.PathLike) -> tuple[str, str]:
     Raises
     ------
     ToolpathError
-        Unknown extension, unreadable file, or not UTF-8 text.
+        Unknown extension, unreadable or too large file (:data:`~oga.defaults.MAX_TOOLPATH_BYTES`),
+        or not UTF-8 text.
     """
     name = os.fspath(path)
     suffix = FilePath(name).suffix.lower()
@@ -74,6 +76,10 @@ def read_file(path: str | os.PathLike) -> tuple[str, str]:
         raise ToolpathError(f"{name}: unknown toolpath extension {suffix or '(none)'!r} "
                             f"(expected one of {' '.join(SUFFIXES)})")
     try:
+        size = os.stat(name).st_size
+        if size > MAX_TOOLPATH_BYTES:
+            raise ToolpathError(f"{name}: file of {size} bytes, more than the "
+                                f"{MAX_TOOLPATH_BYTES} a toolpath may have")
         data = FilePath(name).read_bytes()
     except OSError as err:
         raise ToolpathError(f"{name}: cannot read the file ({err.strerror or err})") from None

@@ -230,6 +230,9 @@ API_STALL_S = 120.0
 # error naming the limit and the value, before anything is allocated from them.
 #: Largest |coordinate|, arc offset or radius of a program, metres (1 km).
 MAX_COORD_M = 1e3
+#: Largest toolpath file read, bytes (checked before reading: MAX_SEGMENTS moves of G-code
+#: with generous comments fit well within it).
+MAX_TOOLPATH_BYTES = 256 * 1024**2
 #: Most moves (segments) of one toolpath.
 MAX_SEGMENTS = 500_000
 #: Longest motion of one plan, seconds (estimated before planning, enforced while planning).

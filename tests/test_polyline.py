@@ -226,3 +226,18 @@ def test_json_numbers_beyond_float64_and_deep_nesting(text, message):
     with pytest.raises(ToolpathError) as err:
         parse_json(text, source="p.json")
     assert str(err.value).startswith(message)
+
+
+def test_a_toolpath_file_beyond_the_size_limit_is_refused_before_reading(tmp_path):
+    from feedplan.read import read_file
+    from oga.defaults import MAX_TOOLPATH_BYTES
+    from oga.errors import ToolpathError
+
+    big = tmp_path / "big.ngc"
+    with open(big, "wb") as f:  # sparse: no disk used, and never read
+        f.truncate(MAX_TOOLPATH_BYTES + 1)
+    with pytest.raises(ToolpathError, match=f"big.ngc: file of {MAX_TOOLPATH_BYTES + 1} bytes"):
+        read_file(big)
+    ok = tmp_path / "ok.ngc"
+    ok.write_text("G21 G90\nG1 X1 F100\n")
+    assert read_file(ok) == ("G21 G90\nG1 X1 F100\n", "gcode")
