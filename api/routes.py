@@ -130,8 +130,9 @@ def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Respo
     if fmt == "linuxcnc":  # a zip of the LinuxCNC files (oga export --format linuxcnc)
         from oga.linuxcnc import export_table
 
-        data = export_table(table_from_npz(blob), summary=row.summary, with_feedback=True,
-                            machine=machine_from_dict(row.machine)).zip_bytes()
+        # no simulated feedback: that is a replay, which no handler runs (oga export
+        # --with-feedback on the npz table gives it)
+        data = export_table(table_from_npz(blob), summary=row.summary).zip_bytes()
         suffix, media = ".zip", "application/zip"
     else:
         data = render_table(table_from_npz(blob), fmt, name=name)
@@ -203,8 +204,8 @@ def get_table(job_id: str, request: Request, format: TableFormat = "csv",
               name: Name = C_NAME) -> Response:
     """``csv`` is byte-identical to ``oga optimize --out``; ``json`` holds the columns and
     the metadata; ``npz`` one float64 array per column; ``c`` a C header for firmware;
-    ``linuxcnc`` a zip of the streamer and HAL files (mm, error-previous-target TRUE,
-    simulated feedback included; ``oga export`` for other settings)."""
+    ``linuxcnc`` a zip of the streamer and HAL files (mm, error-previous-target TRUE, no
+    simulated feedback; ``oga export`` on the npz table for other settings)."""
     return _table_response(request, _job(request, job_id), format, name)
 
 

@@ -364,7 +364,8 @@ class SqliteStore(Store):
 
 def without_password(db: str | os.PathLike) -> str:
     """``db`` as it may be printed: a URL's password replaced by ``***``."""
-    return re.sub(r"(://[^:/@]*):[^@]*@", r"\1:***@", str(db))
+    text = re.sub(r"(://[^:/@]*):[^@]*@", r"\1:***@", str(db))
+    return re.sub(r"(?i)(password=)[^&\s]*", r"\1***", text)  # libpq's ?password=...
 
 
 def is_postgres_url(db: str) -> bool:

@@ -8,7 +8,7 @@ from pathlib import Path as FilePath
 from feedplan.gcode import parse_gcode
 from feedplan.path import Path
 from feedplan.polyline import parse_csv, parse_json
-from oga.defaults import MAX_TOOLPATH_BYTES
+from oga.defaults import MAX_TOOLPATH_BYTES, MAX_TOOLPATH_LINES
 from oga.errors import OptionError, ToolpathError
 
 __all__ = ["FORMATS", "SUFFIXES", "read_toolpath", "read_file", "load_toolpath"]
@@ -43,13 +43,20 @@ def read_toolpath(text: str, fmt: str, source: str = "") -> Path:
     OptionError
         ``fmt`` is not a known format.
     GcodeError, ToolpathError
-        The text is invalid (line/column or field named).
+        The text is invalid (line/column or field named), or has more lines (JSON: arrays)
+        than :data:`~oga.defaults.MAX_TOOLPATH_LINES`.
     """
     try:
         reader = FORMATS[fmt]
     except KeyError:
         raise OptionError(f"unknown toolpath format {fmt!r} (expected one of "
                           f"{', '.join(FORMATS)})") from None
+    # bounded before the readers split or decode it (a line list or a JSON tree of the whole
+    # text costs far more memory than the text): lines, or JSON's arrays (one per point)
+    unit, count = ("arrays", text.count("[")) if fmt == "json" else ("lines", text.count("\n"))
+    if count > MAX_TOOLPATH_LINES:
+        raise ToolpathError(f"{source or 'toolpath'}: {count} {unit}, more than the "
+                            f"{MAX_TOOLPATH_LINES} a toolpath may have")
     return reader(text, source=source)
 
 

@@ -213,9 +213,6 @@ LINUXCNC = {"units": "mm", "error_previous_target": True, "thread": "servo-threa
 __all__ += ["LINUXCNC"]
 
 # --- service bounds (oga serve: what one job may use) -----------------------------------------
-#: Longest toolpath of POST /v1/jobs, seconds of motion at the programmed feeds (413 beyond):
-#: estimated at submission from the moves' lengths and feeds (capped at the slowest axis).
-API_JOB_MAX_MOTION_S = 3600.0
 #: CPU time one attempt of a job may use (RLIMIT_CPU of its worker), s; the job fails beyond.
 API_JOB_CPU_S = 1800.0
 #: Resident memory of the worker running a job (the engine itself takes about 250 MB), bytes;
@@ -233,10 +230,17 @@ MAX_COORD_M = 1e3
 #: Largest toolpath file read, bytes (checked before reading: MAX_SEGMENTS moves of G-code
 #: with generous comments fit well within it).
 MAX_TOOLPATH_BYTES = 256 * 1024**2
+#: Most lines of a G-code or CSV toolpath, and most arrays of a JSON one (checked before the
+#: text is split or decoded; 8 lines per move of MAX_SEGMENTS).
+MAX_TOOLPATH_LINES = 4_000_000
 #: Most moves (segments) of one toolpath.
 MAX_SEGMENTS = 500_000
 #: Longest motion of one plan, seconds (estimated before planning, enforced while planning).
 MAX_MOTION_S = 3600.0
+#: Longest toolpath of POST /v1/jobs by default (`oga serve --job-max-motion-s`, at most
+#: MAX_MOTION_S), seconds of motion: the planner's least motion time, estimated at submission
+#: (413 beyond).
+API_JOB_MAX_MOTION_S = MAX_MOTION_S
 #: Most samples of one plan (the memory of the setpoints and of every replay grows with it).
 MAX_SAMPLES = 4_000_000
 #: Sample period (and machine Te) range, seconds.

@@ -95,6 +95,9 @@ def test_missing_gains_unknown_columns_and_row_limit(monkeypatch):
     monkeypatch.setattr(trace_mod, "TRACE_MAX_ROWS", 20)
     with pytest.raises(TraceError, match="row 22: more than 20 rows"):
         read_trace(_csv(), kp=2.0, kf=0.5)
+    # counted before the text is split: a trace of empty lines never becomes a line list
+    with pytest.raises(TraceError, match="1021 lines, more than the 20 rows"):
+        read_trace("\n" * 1021, kp=2.0, kf=0.5)
 
 
 def test_halsampler_columns_and_sample_numbers():

@@ -241,3 +241,14 @@ def test_a_toolpath_file_beyond_the_size_limit_is_refused_before_reading(tmp_pat
     ok = tmp_path / "ok.ngc"
     ok.write_text("G21 G90\nG1 X1 F100\n")
     assert read_file(ok) == ("G21 G90\nG1 X1 F100\n", "gcode")
+
+
+@pytest.mark.parametrize("fmt, text, unit", [
+    ("gcode", "\n", "lines"), ("csv", "0,0,0\n", "lines"), ("json", "[0,0,0],", "arrays")])
+def test_line_and_array_counts_are_bounded_before_parsing(fmt, text, unit):
+    from oga.defaults import MAX_TOOLPATH_LINES
+    from oga.errors import ToolpathError
+
+    big = text * (MAX_TOOLPATH_LINES + 1)
+    with pytest.raises(ToolpathError, match=f"big: {MAX_TOOLPATH_LINES + 1} {unit}, more than"):
+        read_toolpath(big, fmt, source="big")

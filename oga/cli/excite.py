@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import add_base_machine_arg, write_text
+from oga.cli._common import add_base_machine_arg, check_files, write_text
 from oga.defaults import EXCITE_TRAVEL_MM
 
 __all__ = ["register", "run"]
@@ -31,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from oga.identify.excite import excite_program
     from oga.machine import load_machine
 
+    check_files(args, "out", "setpoints")  # before any work
     machine = load_machine(args.machine)
     axes = [a.strip() for a in args.axes.split(",") if a.strip()]
     text = excite_program(machine, axes, args.travel_mm)

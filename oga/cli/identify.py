@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from oga.cli._common import add_base_machine_arg, write_json, write_text
+from oga.cli._common import add_base_machine_arg, check_files, write_json, write_text
 
 __all__ = ["register", "run"]
 
@@ -42,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from oga.identify.workflow import identify
     from oga.machine import load_machine
 
+    check_files(args, "out", "summary", "report")  # before any work: a fit takes minutes
     machine = load_machine(args.machine)
     columns = None if args.columns is None else args.columns.split(",")
     trace = load_trace(args.trace, args.format, columns=columns, units=args.units, kp=args.kp,

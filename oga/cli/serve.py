@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
 
     from api.app import Settings, create_app, default_workers
     from api.storage import StoreError, default_db_path, open_store, without_password
+    from oga import defaults
     from oga.errors import InputError
 
     if not 0 <= args.port <= 65535:
@@ -69,6 +70,9 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, flag)
         if not 0 < value < float("inf"):
             raise InputError(f"--{flag.replace('_', '-')} must be a positive number, got {value}")
+    if args.job_max_motion_s > defaults.MAX_MOTION_S:  # the planner refuses longer ones
+        raise InputError(f"--job-max-motion-s must be at most {defaults.MAX_MOTION_S:g} s (the "
+                         f"planner's MAX_MOTION_S), got {args.job_max_motion_s:g}")
     api_key = args.api_key or os.environ.get("OGA_API_KEY") or None
     db = args.db or str(default_db_path())
     try:  # create or open it now: a bad path or URL is the user's error, said once

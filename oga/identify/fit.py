@@ -309,6 +309,10 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
         den = float(f_unit @ f_unit)
         if den > 0:
             ratio = float(f_unit @ f_meas) / den
+            if not ratio > 0:  # a force recorded with the opposite sign, or unrelated
+                raise TraceError(f"column {axis}_force_n: the recorded force opposes the force "
+                                 f"the fit needs (scale {ratio:.3g}); record it with the sign "
+                                 f"of the axis's motion")
             res = f_meas - ratio * f_unit
             f_rms = float(np.sqrt(np.mean(res ** 2)))
             ratio_sd = math.sqrt(float(res @ res) / max(n - 1, 1) / den)

@@ -253,6 +253,9 @@ def read_trace(
         raise TraceError(f"unknown trace format {fmt!r}; use one of {', '.join(FORMATS)}")
     if units not in ("m", "mm"):
         raise TraceError(f"--units must be m or mm, got {units!r}")
+    lines = text.count("\n")  # bounded before the text is split into lines
+    if lines > TRACE_MAX_ROWS + 1000:  # the rows and a header (TwinCAT's is long)
+        raise TraceError(f"{lines} lines, more than the {TRACE_MAX_ROWS} rows a trace may have")
     cols = None if columns is None else [c.strip() for c in columns]
     if fmt == "csv":
         names, data, row0 = _read_csv(text)
