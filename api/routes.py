@@ -22,10 +22,10 @@ from starlette.exceptions import HTTPException
 
 from api.schemas import (
     ErrorBody,
+    IdentifyRequest,
     JobAccepted,
     JobOut,
     JobPage,
-    IdentifyRequest,
     JobRequest,
     MachineList,
     TableFormat,

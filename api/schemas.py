@@ -84,8 +84,9 @@ class IdentifyRequest(_Strict):
                       "no <a>_kp_m_min_per_mm column")
     kf: _Gain = Field(None, description="Kf while recording, where the trace has no <a>_kf column")
     units: Literal["m", "mm"] = Field("m", description="lengths in the trace")
-    columns: list[Annotated[str, Field(max_length=64)]] | None = Field(None, max_length=64, description="halsampler/twincat: "
-                                      "channel names in order, e.g. [x_cmd_m, x_act_m]")
+    columns: list[Annotated[str, Field(max_length=64)]] | None = Field(
+        None, max_length=64, description="halsampler/twincat: channel names in order, e.g. "
+        "[sample, x_cmd_m, x_act_m]")
     axes: list[Literal["x", "y", "z"]] | None = Field(
         None, min_length=1, max_length=3, description="axes to fit (default every axis moved)")
     name: str | None = Field(None, max_length=255, description="name of the identified machine")
@@ -120,8 +121,8 @@ class JobOut(BaseModel):
     started_at: str | None
     finished_at: str | None
     source: str = Field(description="program name")
-    toolpath_format: str = Field(description="gcode, csv or json for an optimisation; "
-                                 "trace-csv, trace-halsampler or trace-twincat for an identification")
+    toolpath_format: str = Field(description="gcode, csv or json for an optimisation; trace-csv, "
+                                 "trace-halsampler or trace-twincat for an identification")
     machine: str = Field(description="machine name")
     options: dict[str, Any]
     attempts: int = Field(description="times a worker started this job")

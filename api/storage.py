@@ -33,8 +33,9 @@ from pathlib import Path as FilePath
 
 from oga.errors import OgaError
 
-__all__ = ["STATUSES", "TRACE_PREFIX", "is_identification", "FINISHED", "Owner", "JobRow", "Store", "SqliteStore", "open_store",
-           "is_postgres_url", "without_password", "default_db_path", "StoreError"]
+__all__ = ["STATUSES", "FINISHED", "TRACE_PREFIX", "Owner", "JobRow", "Store", "SqliteStore",
+           "open_store", "is_identification", "is_postgres_url", "without_password",
+           "default_db_path", "StoreError"]
 
 #: Every job status.
 STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")

@@ -73,8 +73,8 @@ def _head(tr: AxisTrace, n: int) -> AxisTrace:
 
 def axes_to_fit(trace: Trace, machine: Machine, axes=None) -> list[str]:
     """The axes :func:`identify` fits: ``axes``, or every axis the trace moves by 10 um or
-    more; InputError if one is not in the trace, or fails :func:`~oga.identify.fit.check_fit_input`
-    (a check before a fit is queued)."""
+    more; InputError if one is not in the trace or fails
+    :func:`~oga.identify.fit.check_fit_input` (a check before a fit is queued)."""
     names = ([a for a, tr in trace.axes.items() if np.ptp(tr.cmd_m) >= 1e-5] if axes is None
              else list(axes))
     if not names:
