@@ -45,12 +45,29 @@ def client(tmp_path):
         yield c
 
 
+@pytest.fixture(params=["sqlite", "postgresql"])
+def any_client(request, tmp_path):
+    """:func:`client` on each store backend (PostgreSQL: a throwaway cluster)."""
+    if request.param == "sqlite":
+        yield request.getfixturevalue("client")
+        return
+    from pg_cluster import PgCluster
+
+    pg = PgCluster()
+    try:
+        with TestClient(create_app(Settings(db_path=pg.url, workers=0))) as c:
+            yield c
+    finally:
+        pg.stop()
+
+
 def request(content: str, fmt: str = "csv", **extra) -> dict:
     return {"trace": {"format": fmt, "content": content, "name": "trace.csv"},
             "machine": "ucp710", "kp": {"x": 3.0}, "kf": 0.8, **extra}
 
 
-def test_identify_job_returns_a_machine_file_that_loads(client, trace, tmp_path):
+def test_identify_job_returns_a_machine_file_that_loads(any_client, trace, tmp_path):
+    client = any_client
     text, true = trace
     r = client.post("/v1/identify", json=request(text))
     assert r.status_code == 202, r.text
