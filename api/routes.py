@@ -22,6 +22,7 @@ from starlette.exceptions import HTTPException
 
 from api.schemas import (
     ErrorBody,
+    IdentifyRequest,
     JobAccepted,
     JobOut,
     JobPage,
@@ -30,7 +31,7 @@ from api.schemas import (
     TableFormat,
     job_out,
 )
-from api.storage import FINISHED, STATUSES, JobRow, Store
+from api.storage import FINISHED, STATUSES, TRACE_PREFIX, JobRow, Store, is_identification
 from feedplan.setpoints import AXES
 from oga.errors import MachineError, ToolpathError
 from oga.export import C_NAME, TABLE_FORMATS, render_table, table_from_npz
@@ -123,7 +124,15 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
         priority=1 if sync else 0)
 
 
+def _no_table(row: JobRow) -> None:
+    """409 for an identification job at a route of optimisations."""
+    if is_identification(row):
+        raise HTTPException(409, f"job {row.id} identifies a machine: no table "
+                            f"(GET /v1/jobs/{row.id}/machine)")
+
+
 def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Response:
+    _no_table(row)
     blob = _store(request).table(row.id)
     if row.status != "succeeded" or blob is None:
         raise HTTPException(409, f"job {row.id} is {row.status}: no table")
@@ -237,6 +246,7 @@ def get_report(job_id: str, request: Request) -> Response:
     row = store.get(job_id, with_toolpath=True)
     if row is None:
         raise HTTPException(404, f"no job {job_id!r}")
+    _no_table(row)
     blob = store.table(row.id)
     if row.status != "succeeded" or blob is None or row.summary is None:
         raise HTTPException(409, f"job {row.id} is {row.status}: no report")
@@ -250,6 +260,46 @@ def get_report(job_id: str, request: Request) -> Response:
     kf = np.column_stack([column[f"{a}_kf"] for a in AXES])
     data = replay_report_data(sp, machine, kp, kf, row.summary)
     return HTMLResponse(render_report(data), headers={"X-Oga-Job-Id": row.id})
+
+
+@router.post("/identify", status_code=202, response_model=JobAccepted, responses=_BODY_ERRORS,
+             summary="Submit a recorded trace: identify the machine's axis model")
+def submit_identify(body: IdentifyRequest, request: Request, response: Response) -> dict:
+    """Queue an identification (``oga identify``). The trace is read and checked at once
+    (422 naming the column and the row if it is malformed; an axis not traced, or not a
+    cascade of the base machine, 422 too); the fit runs in a worker. When the job has
+    succeeded, ``GET /v1/jobs/{id}/machine`` is the identified machine file and
+    ``/summary`` the fitted values, their intervals and the residuals per axis."""
+    from api.identify import identify_options, read_job_trace
+
+    machine = _machine(body.machine)
+    fmt, options = TRACE_PREFIX + body.trace.format, identify_options(body)
+    read_job_trace(body.trace.content, fmt, machine, options, body.trace.name)
+    row = _store(request).submit(
+        source=body.trace.name, toolpath_format=fmt, toolpath=body.trace.content,
+        machine=machine.model_dump(mode="json", exclude_none=True), options=options)
+    response.headers["Location"] = f"/v1/jobs/{row.id}"
+    return {"id": row.id, "status": row.status}
+
+
+@router.get("/jobs/{job_id}/machine", responses={
+    200: {"content": {"application/toml": {}}, "description": "the identified machine file"},
+    **_ERRORS}, response_class=Response, summary="The machine file of a succeeded identification")
+def get_identified_machine(job_id: str, request: Request) -> Response:
+    """The identified machine as TOML (as ``oga identify --out``): it loads as any machine
+    file (``oga optimize --machine MINE.toml``); each fitted value has its confidence
+    interval and the fit's residual beside it. 409 until the job has succeeded, and for
+    an optimisation job."""
+    row = _job(request, job_id)
+    if not is_identification(row):
+        raise HTTPException(409, f"job {row.id} optimises a toolpath: no machine file")
+    blob = _store(request).table(row.id)
+    if row.status != "succeeded" or blob is None:
+        raise HTTPException(409, f"job {row.id} is {row.status}: no machine file")
+    stem = PurePath(row.source).stem or row.id
+    return Response(blob, media_type="application/toml", headers={
+        "Content-Disposition": f'attachment; filename="{_ascii(stem)}-identified.toml"',
+        "X-Oga-Job-Id": row.id})
 
 
 @router.post("/gain-table", responses={

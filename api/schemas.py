@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from api.storage import JobRow
+from api.storage import JobRow, is_identification
 from oga.options import OptimizeOptions
 
 __all__ = [
     "ToolpathIn",
     "JobRequest",
+    "TraceIn",
+    "IdentifyRequest",
     "ErrorBody",
     "JobAccepted",
     "JobOut",
@@ -57,6 +59,41 @@ class JobRequest(_Strict):
         "kp_range, feed in mm/min, tolerance in mm), same defaults")
 
 
+class TraceIn(_Strict):
+    """A recorded trace of the position loop, as text (``oga identify``'s formats)."""
+
+    format: Literal["csv", "halsampler", "twincat"] = Field(
+        "csv", description="csv (header t_s, <a>_cmd_m, <a>_act_m, ...), halsampler "
+        "(whitespace columns named by `columns`) or twincat (Scope View CSV export)")
+    content: str = Field(min_length=1, description="the trace text (UTF-8)")
+    name: str = Field("", max_length=255, description="trace name, for messages and the summary")
+
+
+#: Gains active while recording: one value for every axis, or per axis.
+_Gain = float | dict[Literal["x", "y", "z"], float] | None
+
+
+class IdentifyRequest(_Strict):
+    """Body of ``POST /v1/identify``: the options of ``oga identify``."""
+
+    trace: TraceIn
+    machine: str | dict[str, Any] = Field(
+        "ucp710", description="the base machine (starting values, limits, gain settings): a "
+        "preset name or a machine object")
+    kp: _Gain = Field(None, description="Kp while recording, (m/min)/mm, where the trace has "
+                      "no <a>_kp_m_min_per_mm column")
+    kf: _Gain = Field(None, description="Kf while recording, where the trace has no <a>_kf column")
+    units: Literal["m", "mm"] = Field("m", description="lengths in the trace")
+    columns: list[Annotated[str, Field(max_length=64)]] | None = Field(
+        None, max_length=64, description="halsampler/twincat: channel names in order, e.g. "
+        "[sample, x_cmd_m, x_act_m]")
+    axes: list[Literal["x", "y", "z"]] | None = Field(
+        None, min_length=1, max_length=3, description="axes to fit (default every axis moved)")
+    name: str | None = Field(None, max_length=255, description="name of the identified machine")
+    holdout: float = Field(0.0, ge=0.0, lt=0.9, description="held-out check: refit without the "
+                           "trace's last fraction and predict it (costs a second fit)")
+
+
 class ErrorBody(BaseModel):
     """Every 4xx/5xx answer, and the ``error`` of a failed job."""
 
@@ -84,7 +121,8 @@ class JobOut(BaseModel):
     started_at: str | None
     finished_at: str | None
     source: str = Field(description="program name")
-    toolpath_format: str
+    toolpath_format: str = Field(description="gcode, csv or json for an optimisation; trace-csv, "
+                                 "trace-halsampler or trace-twincat for an identification")
     machine: str = Field(description="machine name")
     options: dict[str, Any]
     attempts: int = Field(description="times a worker started this job")
@@ -151,7 +189,9 @@ def job_out(row: JobRow) -> dict:
         "machine": row.machine.get("name", ""),
         "options": row.options,
         "attempts": row.attempts,
-        "links": {"self": base, "table": f"{base}/table", "summary": f"{base}/summary"},
+        "links": {"self": base, "summary": f"{base}/summary",
+                  **({"machine": f"{base}/machine"} if is_identification(row)
+                     else {"table": f"{base}/table"})},
     }
 
 

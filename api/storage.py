@@ -33,13 +33,20 @@ from pathlib import Path as FilePath
 
 from oga.errors import OgaError
 
-__all__ = ["STATUSES", "FINISHED", "Owner", "JobRow", "Store", "SqliteStore", "open_store",
-           "is_postgres_url", "without_password", "default_db_path", "StoreError"]
+__all__ = ["STATUSES", "FINISHED", "TRACE_PREFIX", "Owner", "JobRow", "Store", "SqliteStore",
+           "open_store", "is_identification", "is_postgres_url", "without_password",
+           "default_db_path", "StoreError"]
 
 #: Every job status.
 STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 #: Statuses a job never leaves.
 FINISHED = ("succeeded", "failed", "cancelled")
+
+#: ``toolpath_format`` of an identification job: this prefix and the trace's format
+#: (``trace-csv``, ``trace-halsampler``, ``trace-twincat``); its ``toolpath`` is the trace,
+#: its ``options`` those of ``oga identify``, its result (``results.table_npz``) the
+#: identified machine's TOML, UTF-8.
+TRACE_PREFIX = "trace-"
 
 #: The tables; ``{seq}``, ``{real}`` and ``{blob}`` are the backend's spellings of an
 #: insertion-order column, a double and a byte string.
@@ -72,6 +79,11 @@ CREATE TABLE IF NOT EXISTS results (
     table_npz {blob} NOT NULL
 );
 """
+
+
+def is_identification(row: "JobRow") -> bool:
+    """Whether a stored job identifies a machine from a trace (else it optimises a toolpath)."""
+    return row.toolpath_format.startswith(TRACE_PREFIX)
 
 
 def default_db_path() -> FilePath:

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import wait as wait_ready
 
 from api.schemas import error_body, json_safe
-from api.storage import JobRow, Owner, Store, open_store
+from api.storage import JobRow, Owner, Store, is_identification, open_store
 from oga import defaults
 
 __all__ = ["MAX_ATTEMPTS", "HEARTBEAT_S", "LEASE_S", "JobLimits", "WorkerPool", "run_claimed"]
@@ -118,7 +118,9 @@ def _pid_alive(pid: int) -> bool:
 def run_claimed(store: Store, job: JobRow) -> str:
     """Run a job this process has claimed, and store its outcome.
 
-    A verified schedule stores the summary and the table; a schedule that
+    An identification stores its summary and the identified machine's TOML (a fit that
+    does not explain the trace too: its status, ``poor``, is in the summary). A verified
+    schedule stores the summary and the table; a schedule that
     fails verification fails the job with its violations (and keeps the
     summary); a bad input fails it with the error naming line/field; a
     ``MemoryError`` fails it.
@@ -150,6 +152,14 @@ def run_claimed(store: Store, job: JobRow) -> str:
 
     try:
         machine = machine_from_dict(job.machine)
+        if is_identification(job):
+            from api.identify import run_identification
+
+            ident = run_identification(job.toolpath, job.toolpath_format, machine, job.options,
+                                       job.source)
+            store.succeed(job.id, job.attempts, json_safe(ident.summary()),
+                          ident.toml.encode("utf-8"))
+            return "succeeded"
         options = options_from_dict(job.options)
         done = run_job(job.toolpath, job.toolpath_format, machine, options, source=job.source,
                        progress=progress)

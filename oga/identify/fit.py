@@ -39,7 +39,7 @@ from oga.errors import InputError, OgaError
 from oga.identify.trace import AxisTrace, TraceError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Cascade, Machine, Timing
 
-__all__ = ["AxisFit", "fit_axis", "axis_inputs", "PARAMETERS"]
+__all__ = ["AxisFit", "fit_axis", "check_fit_input", "axis_inputs", "PARAMETERS"]
 
 #: Fitted cascade parameters, in the order of the result's tables.
 PARAMETERS = ("mass_kg", "coulomb_n", "static_n", "stribeck_m_s", "viscous_n_s_m", "kv_n_s_m",
@@ -205,6 +205,23 @@ def _noise_rms(meas: np.ndarray) -> float:
     return float(np.sqrt(np.mean(d2[still] ** 2) / 6))
 
 
+def check_fit_input(base: Machine, axis: str, tr: AxisTrace, dt: float) -> None:
+    """What :func:`fit_axis` needs, checked: the trace's period is the machine's Te, the
+    axis is a cascade, the trace moves it (>= 10 um) over >= 200 samples.
+
+    Raises
+    ------
+    InputError
+        TraceError for the trace, MachineError for an axis the machine lacks.
+    """
+    if not math.isclose(dt, base.te, rel_tol=1e-6):
+        raise TraceError(f"the trace's period {dt:g} s differs from the machine's Te {base.te:g} s")
+    if base.axis(axis).cascade is None:
+        raise InputError(f"axis {axis} of {base.name} is not a cascade axis")
+    if tr.cmd_m.size < 200 or np.ptp(tr.cmd_m) < 1e-5:
+        raise TraceError(f"axis {axis}: the trace must move the axis (>= 10 um) over >= 200 samples")
+
+
 def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
              max_dead: int = IDENT_MAX_DEAD_SAMPLES, starts: int = IDENT_STARTS) -> AxisFit:
     """Fit the cascade of ``axis`` of ``base`` to the trace ``tr`` (period ``dt``).
@@ -238,13 +255,8 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
     from scipy.stats import norm
 
     t_start = time.process_time()
-    if not math.isclose(dt, base.te, rel_tol=1e-6):
-        raise TraceError(f"the trace's period {dt:g} s differs from the machine's Te {base.te:g} s")
+    check_fit_input(base, axis, tr, dt)
     cas0 = base.axis(axis).cascade
-    if cas0 is None:
-        raise InputError(f"axis {axis} of {base.name} is not a cascade axis")
-    if tr.cmd_m.size < 200 or np.ptp(tr.cmd_m) < 1e-5:
-        raise TraceError(f"axis {axis}: the trace must move the axis (>= 10 um) over >= 200 samples")
     mass0 = cas0.mass_kg
     model = _Model(base, axis, tr, dt, mass0)
     lo, hi = _bounds(cas0, mass0)

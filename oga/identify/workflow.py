@@ -8,12 +8,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from oga.errors import InputError
-from oga.identify.fit import AxisFit, axis_inputs, fit_axis
+from oga.identify.fit import AxisFit, axis_inputs, check_fit_input, fit_axis
 from oga.identify.trace import AxisTrace, Trace
 from oga.identify.write import identified_machine, machine_toml
 from oga.machine import Machine
 
-__all__ = ["Identification", "identify"]
+__all__ = ["Identification", "identify", "axes_to_fit"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,6 +71,21 @@ def _head(tr: AxisTrace, n: int) -> AxisTrace:
     return AxisTrace(**cut)
 
 
+def axes_to_fit(trace: Trace, machine: Machine, axes=None) -> list[str]:
+    """The axes :func:`identify` fits: ``axes``, or every axis the trace moves by 10 um or
+    more; InputError if one is not in the trace or fails
+    :func:`~oga.identify.fit.check_fit_input` (a check before a fit is queued)."""
+    names = ([a for a, tr in trace.axes.items() if np.ptp(tr.cmd_m) >= 1e-5] if axes is None
+             else list(axes))
+    if not names:
+        raise InputError("no axis moves in the trace (by 10 um or more)")
+    for a in names:
+        if a not in trace.axes:
+            raise InputError(f"axis {a}: not in the trace (it has {', '.join(trace.axes)})")
+        check_fit_input(machine, a, trace.axes[a], trace.dt_s)
+    return names
+
+
 def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = None,
              holdout_fraction: float = 0.0) -> Identification:
     """Fit every cascade parameter of the traced axes of ``machine`` to ``trace``.
@@ -99,14 +114,7 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
         An axis not in the trace or the machine, or not a cascade; a bad trace.
     """
     t0 = time.process_time()
-    names = ([a for a, tr in trace.axes.items() if np.ptp(tr.cmd_m) >= 1e-5] if axes is None
-             else list(axes))
-    if not names:
-        raise InputError("no axis moves in the trace (by 10 um or more)")
-    for a in names:
-        if a not in trace.axes:
-            raise InputError(f"axis {a}: not in the trace (it has {', '.join(trace.axes)})")
-        machine.axis(a)
+    names = axes_to_fit(trace, machine, axes)
     if not (0.0 <= holdout_fraction < 0.9):
         raise InputError(f"holdout_fraction must be in [0, 0.9), got {holdout_fraction}")
     fits: dict[str, AxisFit] = {a: fit_axis(machine, a, trace.axes[a], trace.dt_s) for a in names}
