@@ -244,7 +244,9 @@ async function poll(id) {
   const changed = shown.status !== job.status;
   shown = job;
   showJob(job);
-  if (changed && job.status === "succeeded") await showSummary(id).catch(sayError);
+  if (changed && job.status === "succeeded") {
+    await (job.links && job.links.machine ? showIdentified(job) : showSummary(id)).catch(sayError);
+  }
   if (changed) await loadJobs().catch(sayError);
   if (!FINISHED.includes(job.status)) {
     pollTimer = setTimeout(() => poll(id), POLL_MS);
@@ -267,10 +269,24 @@ function showJob(job) {
   $("job-error").replaceChildren(...(job.error ? errorNodes(job.error, "") : []));
 }
 
+// The report and table buttons, which only an optimisation has.
+function showDownloads(on) {
+  $("open-report").hidden = !on;
+  document.querySelector("#results .downloads").hidden = !on;
+}
+
+// An identification job (POST /v1/identify) has a machine file, not a table: say where it is.
+async function showIdentified(job) {
+  showDownloads(false);
+  $("outcome").textContent = `An identification: the identified machine file is at ` +
+                             `GET ${job.links.machine} (this page shows optimisations).`;
+}
+
 // The outcome in one line, from the job's summary (as `oga optimize --summary`).
 async function showSummary(id) {
   const s = await getJson(`/v1/jobs/${encodeURIComponent(id)}/summary`);
   if (shown.id !== id) return;
+  showDownloads(true);
   const um = (key) => `${s.baseline[key].toFixed(2)} \u2192 ${s.optimized[key].toFixed(2)} \u00b5m`;
   $("outcome").textContent =
     `Contour error rms ${um("rms_ce_um")}, max ${um("max_ce_um")} ` +
