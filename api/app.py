@@ -79,6 +79,9 @@ class Settings:
     stall_s : float
         ``/healthz`` says "degraded" while a running job's progress has not moved for this
         long, s.
+    scheduler : str or None
+        A Dask scheduler (``tcp://HOST:PORT``): the jobs run on its cluster
+        (:mod:`api.workers_dask`) instead of ``workers`` local processes.
     """
 
     db_path: str
@@ -91,6 +94,7 @@ class Settings:
     job_cpu_s: float = defaults.API_JOB_CPU_S
     job_memory_bytes: int = defaults.API_JOB_MEMORY_BYTES
     stall_s: float = defaults.API_STALL_S
+    scheduler: str | None = None
 
 
 def _message_of(err: dict) -> str:
@@ -205,10 +209,13 @@ def create_app(settings: Settings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         pool = None
-        if settings.workers:
-            pool = WorkerPool(settings.db_path, settings.workers,
-                              JobLimits(settings.job_cpu_s, settings.job_memory_bytes),
-                              settings.stall_s)
+        limits = JobLimits(settings.job_cpu_s, settings.job_memory_bytes)
+        if settings.scheduler:
+            from api.workers_dask import DaskPool
+
+            pool = DaskPool(settings.db_path, settings.scheduler, limits, settings.stall_s)
+        elif settings.workers:
+            pool = WorkerPool(settings.db_path, settings.workers, limits, settings.stall_s)
         app.state.pool = pool
         if pool is not None:
             await run_in_threadpool(pool.start)

@@ -98,12 +98,13 @@ def _now() -> str:
 
 @dataclass(frozen=True)
 class Owner:
-    """Who runs a job: the server process (host, pid, instance id) and its worker's pid."""
+    """Who runs a job: the server process (host, pid, instance id) and its worker's pid
+    (None until a Dask task has started the job's process)."""
 
     host: str
     pid: int
     instance: str
-    worker_pid: int
+    worker_pid: int | None
 
 
 @dataclass(frozen=True)
@@ -264,6 +265,16 @@ class Store:
                 (_now(), owner.host, owner.pid, owner.instance, owner.worker_pid, time.time()),
             ).fetchone()
         return None if r is None else JobRow._from(r)
+
+    def mark_started(self, job_id: str, attempt: int, worker_pid: int) -> bool:
+        """Record the process that runs this attempt, once: False when the attempt already
+        named one (a Dask task run again after its worker died) or is no longer running."""
+        with self._tx() as db:
+            cur = db.execute(
+                "UPDATE jobs SET worker_pid = ?, heartbeat = ? WHERE id = ? AND attempts = ? "
+                "AND status = 'running' AND worker_pid IS NULL",
+                (worker_pid, time.time(), job_id, attempt))
+        return cur.rowcount == 1
 
     def progress(self, job_id: str, attempt: int, fraction: float) -> bool:
         """Record progress; False when the job is no longer this attempt's (cancelled, requeued)."""

@@ -407,7 +407,8 @@ class WorkerPool:
                 continue
             key = (job.id, job.attempts)
             before = self._moved.get(key)
-            moved[key] = (before if before is not None and before[0] == job.progress
+            moved[key] = (before if before is not None
+                          and before[::2] == (job.progress, o.worker_pid)
                           else (job.progress, now, o.worker_pid))
         with self._lock:
             self._moved = moved

@@ -30,6 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "that several servers share")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes, jobs optimised at once (default: one per CPU)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the jobs on the Dask cluster of this scheduler (tcp://HOST:8786) "
+                   "instead of local worker processes; its workers must reach --db (PostgreSQL, "
+                   "or an SQLite file on this host)")
     p.add_argument("--api-key", default=None, metavar="KEY",
                    help="require this key (header X-API-Key) on every route but /healthz and the web "
                    "page; "
@@ -66,6 +70,9 @@ def run(args: argparse.Namespace) -> int:
     workers = default_workers() if args.workers is None else args.workers
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
+    if args.scheduler is not None and args.workers is not None:
+        raise InputError("--workers is for local worker processes: with --scheduler the "
+                         "cluster's workers run the jobs")
     for flag in ("max_upload_mb", "job_cpu_s", "job_memory_mb", "job_max_motion_s", "stall_s"):
         value = getattr(args, flag)
         if not 0 < value < float("inf"):
@@ -79,12 +86,18 @@ def run(args: argparse.Namespace) -> int:
         open_store(db).close()
     except StoreError as err:
         raise InputError(f"--db {err}") from None
+    if args.scheduler is not None:  # reachable now: an unreachable one is the user's error
+        from oga.cli.batch_dask import connect
+
+        connect(args.scheduler).close()
     settings = Settings(db_path=db, workers=workers, api_key=api_key,
                         max_upload_bytes=int(args.max_upload_mb * 2**20),
                         job_max_motion_s=args.job_max_motion_s, job_cpu_s=args.job_cpu_s,
-                        job_memory_bytes=int(args.job_memory_mb * 2**20), stall_s=args.stall_s)
+                        job_memory_bytes=int(args.job_memory_mb * 2**20), stall_s=args.stall_s,
+                        scheduler=args.scheduler)
+    runs = (f"jobs on the Dask cluster {args.scheduler}" if args.scheduler
+            else f"{workers} worker(s)")
     print(f"oga serve: http://{args.host}:{args.port} (docs /docs), database "
-          f"{without_password(db)}, "
-          f"{workers} worker(s){', API key required' if api_key else ''}", flush=True)
+          f"{without_password(db)}, {runs}{', API key required' if api_key else ''}", flush=True)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
     return 0

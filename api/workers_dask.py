@@ -1,0 +1,301 @@
+"""The service's jobs on a Dask cluster (``oga serve --scheduler tcp://HOST:8786``).
+
+:class:`DaskPool` takes the place of the local :class:`api.workers.WorkerPool`: its
+dispatcher thread claims queued jobs from the store (as many as the cluster has
+worker threads, less those it already runs) and submits one Dask task per claimed
+attempt. The store keeps every rule of the local path: the claim's attempt number
+fences every write, the server heartbeats its jobs, and the recovery of other
+servers' jobs is :meth:`WorkerPool.recover`'s.
+
+One job, one child process. Dask cannot interrupt a running task, so the task
+(:func:`run_on_worker`) runs the job in a child process of its own (``python -m
+api.workers_dask``, which runs :func:`api.workers.run_claimed` as a local worker
+does, with the same niceness, no core file, ``PR_SET_PDEATHSIG``, and the CPU cap
+as ``RLIMIT_CPU`` counted from the job's start) and watches it every
+:data:`~api.workers.WATCH_S`:
+
+- CPU cap: the kernel ends the child with SIGXCPU; the task fails the job with the
+  local path's message; it is not requeued.
+- Memory cap: the task reads the child's resident size; above the cap it kills
+  the child and fails the job.
+- Cancel: the task reads the job's row; once it is no longer this attempt's
+  running job (``DELETE``, on this server or on any other one sharing the
+  database, or a requeue by the lease rules) it kills the child. The server also
+  cancels the task's future, which drops a task still waiting on the cluster.
+- Any other death of the child: the job goes back to the queue, failing after
+  :data:`~api.workers.MAX_ATTEMPTS` starts ("WorkerLost"), as locally.
+
+Either way the Dask worker lives on and takes the next task.
+
+Progress and results: the child writes them to the store itself, exactly as a
+local worker (same code, same bytes), so the Dask workers must reach the
+database: a PostgreSQL URL from any host, or an SQLite file on the same host. No
+result travels through the scheduler, and a ``DELETE`` on another server reaches
+the job through the row it already polls; Dask's pub/sub would add a second
+channel with neither property.
+
+A Dask worker lost mid-job: its child dies with it (``PR_SET_PDEATHSIG``) and the
+scheduler runs the task again elsewhere. The first run recorded its child in the
+row (:meth:`~api.storage.Store.mark_started`, once per attempt), so the rerun
+starts nothing: it requeues the job, which is claimed again as a new attempt,
+one more start counted against :data:`~api.workers.MAX_ATTEMPTS`. A stale run's
+writes are fenced off by its attempt number, so no job completes twice.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import traceback
+
+from api.storage import Owner, Store, open_store
+from api.workers import (
+    HEARTBEAT_S,
+    MAX_ATTEMPTS,
+    POLL_S,
+    WATCH_S,
+    WORKER_NICE,
+    JobLimits,
+    WorkerPool,
+    _cap_cpu,
+    _die_with_parent,
+    _resident_bytes,
+    run_claimed,
+)
+from oga import defaults
+
+__all__ = ["DaskPool", "run_on_worker"]
+
+log = logging.getLogger("oga.api")
+
+_stores: dict[str, Store] = {}
+_stores_lock = threading.Lock()
+
+
+def _store_of(db: str) -> Store:
+    """One store per database per Dask worker process (it keeps a connection per thread)."""
+    with _stores_lock:
+        if db not in _stores:
+            _stores[db] = open_store(db)
+        return _stores[db]
+
+
+def _ours(store: Store, job_id: str, attempt: int) -> bool:
+    row = store.get(job_id)
+    return row is not None and row.status == "running" and row.attempts == attempt
+
+
+def run_on_worker(db: str, job_id: str, attempt: int, limits: JobLimits) -> str:
+    """The Dask task of one attempt of a job: run it in a child process and watch it.
+
+    Returns
+    -------
+    {"done", "cpu", "memory", "abandoned", "requeued"}
+        How the child ended ("done": it stored the job's outcome, or found the job no
+        longer its own); "requeued": this task had run before, on a worker that died.
+    """
+    store = _store_of(db)
+    child = subprocess.Popen([sys.executable, "-m", "api.workers_dask"], stdin=subprocess.PIPE,
+                             stdout=subprocess.DEVNULL)
+    try:
+        child.stdin.write(json.dumps({"db": db, "job": job_id, "attempt": attempt,
+                                      "cpu_s": limits.cpu_s, "parent": os.getpid()}).encode())
+        child.stdin.close()
+    except OSError:  # the child died at once: told below by its exit code
+        pass
+    if not store.mark_started(job_id, attempt, child.pid):
+        _end(child)
+        if _ours(store, job_id, attempt):  # run again after its Dask worker died
+            new = store.requeue(job_id, attempt, MAX_ATTEMPTS)
+            log.warning("job %s: its Dask worker was lost; %s", job_id, new)
+            return "requeued"
+        return "abandoned"
+    while True:
+        try:
+            code = child.wait(timeout=WATCH_S)
+            break
+        except subprocess.TimeoutExpired:
+            pass
+        if _resident_bytes(child.pid) > limits.memory_bytes:
+            _end(child)
+            store.fail(job_id, attempt, {"message": limits.memory_message(),
+                                         "type": "MemoryLimit"})
+            return "memory"
+        if not _ours(store, job_id, attempt):  # cancelled, or requeued by the lease rules
+            _end(child)
+            log.info("job %s: cancelled or requeued; its process %s ended", job_id, child.pid)
+            return "abandoned"
+    if code == -signal.SIGXCPU:
+        store.fail(job_id, attempt, {"message": limits.cpu_message(), "type": "CpuTimeLimit"})
+        return "cpu"
+    if code != 0:
+        log.warning("job %s: its process %s died (exit code %s)", job_id, child.pid, code)
+    # the child stored the outcome, or died: then (only then, by the fencing) it is requeued
+    store.requeue(job_id, attempt, MAX_ATTEMPTS)
+    return "done"
+
+
+def _end(child: subprocess.Popen) -> None:
+    child.kill()
+    child.wait()
+
+
+def _child_main() -> int:
+    """``python -m api.workers_dask``: run one attempt of a job (its spec as JSON on stdin)."""
+    spec = json.loads(sys.stdin.read())
+    _die_with_parent(spec["parent"])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a job killed at its CPU cap: no core file
+    os.nice(WORKER_NICE)
+    import oga.pipeline  # noqa: F401  (the engine loaded before the CPU cap starts counting)
+
+    store = open_store(spec["db"])
+    job = store.get(spec["job"], with_toolpath=True)
+    if job is None or job.status != "running" or job.attempts != spec["attempt"]:
+        return 0
+    _cap_cpu(spec["cpu_s"])
+    run_claimed(store, job)
+    return 0
+
+
+class DaskPool(WorkerPool):
+    """The jobs of the store at ``db_path`` run on the Dask cluster at ``address``.
+
+    Same interface as :class:`~api.workers.WorkerPool` (``start``, ``kill``, ``alive``,
+    ``stalled``, ``stop``); :meth:`alive` counts the cluster's workers.
+
+    Parameters
+    ----------
+    db_path : str
+        The job database (reachable from the Dask workers).
+    address : str
+        The scheduler, ``tcp://HOST:PORT``.
+    limits : JobLimits
+        CPU time and memory of one attempt of a job.
+    stall_s : float
+        As :class:`~api.workers.WorkerPool`'s.
+    """
+
+    def __init__(self, db_path, address: str, limits: JobLimits = JobLimits(),
+                 stall_s: float = defaults.API_STALL_S) -> None:
+        super().__init__(os.path.abspath(db_path) if "://" not in str(db_path) else db_path, 1,
+                         limits, stall_s)
+        self.address = address
+        self.client = None
+        self._futures: dict[str, tuple[object, int]] = {}  # job id -> (future, attempt)
+        self._threads, self._threads_at = 0, -HEARTBEAT_S
+
+    def start(self) -> None:
+        from oga.cli.batch_dask import connect
+
+        self.client = connect(self.address)
+        super().start()
+
+    def alive(self) -> int:
+        try:
+            return len(self.client.nthreads())
+        except Exception:  # the scheduler is unreachable: no worker to speak of
+            return 0
+
+    def kill(self, job) -> bool:
+        """Cancel the task of ``job`` (just cancelled in the store): dropped if it waits on
+        the cluster; if it runs, it ends its child within :data:`~api.workers.WATCH_S`."""
+        o = job.owner
+        if o is None or o.instance != self.instance:
+            return False
+        with self._lock:
+            entry = self._futures.get(job.id)
+        if entry is None:
+            return False
+        entry[0].cancel()
+        log.info("job %s: cancelled; its Dask task told", job.id)
+        return True
+
+    def stalled(self) -> list[dict]:
+        """As :meth:`WorkerPool.stalled`, of the jobs whose task has started their process
+        (a job waiting for a busy cluster is not stalled)."""
+        return [s for s in super().stalled() if s["worker_pid"] is not None]
+
+    def _supervise(self) -> None:
+        beat = 0.0
+        while not self._halt.wait(POLL_S):
+            try:
+                self._reap()
+                self._dispatch()
+                if time.monotonic() - beat >= HEARTBEAT_S:
+                    beat = time.monotonic()
+                    self._store.heartbeat(self.instance)
+                    self.recover()
+                    self._watch()
+            except Exception:  # keep supervising whatever happens
+                log.error("dispatcher: %s", traceback.format_exc())
+
+    def _capacity(self) -> int:
+        """Worker threads of the cluster (asked at most every HEARTBEAT_S)."""
+        if time.monotonic() - self._threads_at >= HEARTBEAT_S:
+            self._threads = sum(self.client.nthreads().values())
+            self._threads_at = time.monotonic()
+        return self._threads
+
+    def _dispatch(self) -> None:
+        """Claim queued jobs while the cluster has idle threads; submit a task for each."""
+        owner = Owner(self.host, os.getpid(), self.instance, None)
+        while len(self._futures) < self._capacity() and not self._halt.is_set():
+            job = self._store.claim(owner)
+            if job is None:
+                return
+            try:
+                future = self.client.submit(
+                    run_on_worker, self.db_path, job.id, job.attempts, self.limits, pure=False,
+                    key=f"oga-job-{job.id}-{job.attempts}")
+            except Exception:
+                self._store.requeue(job.id, job.attempts)
+                raise
+            with self._lock:
+                self._futures[job.id] = (future, job.attempts)
+
+    def _reap(self) -> None:
+        """Forget finished tasks; requeue the job of a task the cluster lost or failed."""
+        from distributed.scheduler import KilledWorker
+
+        with self._lock:
+            done = {k: v for k, v in self._futures.items() if v[0].done()}
+            for k in done:
+                del self._futures[k]
+        for job_id, (future, attempt) in done.items():
+            if future.status == "finished":
+                continue
+            err = future.exception() if future.status == "error" else None
+            if err is None or isinstance(err, KilledWorker):  # cancelled (fenced) or lost
+                self._store.requeue(job_id, attempt, MAX_ATTEMPTS)
+            else:  # the task itself failed (oga missing on a worker, database unreachable)
+                log.error("job %s: its Dask task failed: %s: %s", job_id, type(err).__name__, err)
+                self._store.fail(job_id, attempt, {
+                    "message": f"the Dask cluster failed the job: {type(err).__name__}: {err}",
+                    "type": "ClusterError"})
+
+    def stop(self) -> None:
+        """Stop dispatching, cancel this server's tasks and requeue their jobs (their
+        children see the requeue and end)."""
+        self._halt.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        if self.client is not None:
+            with self._lock:
+                futures = [f for f, _ in self._futures.values()]
+            if futures:
+                self.client.cancel(futures, force=True)
+            self.client.close()
+        super().stop()
+
+
+if __name__ == "__main__":
+    sys.exit(_child_main())
