@@ -10,11 +10,17 @@ the same command run again (every program skipped: start, connect, checks); "bey
 optimize" is ((wall - fixed) x workers - sum of the summaries' ``optimize_time_s``) / N, the
 time of a program outside the gain search (planning, verification, rendering, transfer,
 writing).
+
+The service on the same cluster (``oga serve --scheduler``, jobs in SQLite): the N programs
+POSTed at once, the wall time until the last one finished, and per job ``wall x workers /
+N - optimize`` beyond the search: planning, verification, the job's own process (start,
+imports, kernels loaded from the cache) and the store's writes.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -44,9 +50,50 @@ def _noop(x):
     return x
 
 
+def _service(address: str, folder: Path, programs: list[str]) -> tuple[float, float]:
+    """``oga serve --scheduler``: wall time of the programs as jobs, and their optimize time."""
+    import httpx
+    from test_api_server import _free_port
+
+    port = _free_port()
+    folder.mkdir()
+    with open(folder / "serve.log", "ab") as log:
+        server = subprocess.Popen([sys.executable, "-m", "oga", "serve", "--port", str(port),
+                                   "--db", str(folder / "oga.db"), "--scheduler", address],
+                                  stdout=log, stderr=subprocess.STDOUT)
+    try:
+        http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30)
+        while True:
+            try:
+                http.get("/healthz")
+                break
+            except httpx.TransportError:
+                assert server.poll() is None, f"oga serve exited: see {folder / 'serve.log'}"
+                time.sleep(0.2)
+        t0 = time.perf_counter()
+        ids = [http.post("/v1/jobs", json={"toolpath": {"format": "gcode", "name": Path(p).name,
+                                                        "content": Path(p).read_text()},
+                                           "machine": "ucp710"}).json()["id"]
+               for p in programs]
+        while True:
+            jobs = http.get("/healthz").json()["jobs"]
+            if jobs["succeeded"] + jobs["failed"] == len(ids):
+                break
+            time.sleep(0.05)
+        assert not jobs["failed"], f"{jobs['failed']} job(s) failed: see {folder}"
+        wall = time.perf_counter() - t0
+        compute = sum(http.get(f"/v1/jobs/{i}/summary").json()["optimize_time_s"] for i in ids)
+        return wall, compute
+    finally:
+        server.terminate()
+        server.wait(30)
+
+
 def main(n: int) -> None:
     from distributed import Client
 
+    print(f"load before (1/5/15 min): {' '.join(f'{x:.2f}' for x in os.getloadavg())} on "
+          f"{os.cpu_count()} CPUs", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         programs = _programs(tmp, n)
@@ -74,6 +121,8 @@ def main(n: int) -> None:
                                 str(out), "--scheduler", cluster.address], check=True,
                                capture_output=True)
                 fixed = time.perf_counter() - t0
+                service_wall, service_compute = _service(cluster.address, tmp / f"serve{workers}",
+                                                         programs)
             finally:
                 cluster.stop()
             compute = sum(json.loads(p.read_text())["optimize_time_s"]
@@ -84,6 +133,12 @@ def main(n: int) -> None:
                   f"{((wall - fixed) * workers - compute) / n * 1e3:.0f} ms/program beyond "
                   f"optimize; empty task {empty_ms:.2f} ms",
                   flush=True)
+            print(f"  oga serve --scheduler: {n} jobs in {service_wall:.1f} s = "
+                  f"{n / service_wall * 60:.1f} jobs/min; "
+                  f"{(service_wall * workers - service_compute) / n * 1e3:.0f} ms/job beyond "
+                  f"optimize", flush=True)
+    print(f"load after (1/5/15 min): {' '.join(f'{x:.2f}' for x in os.getloadavg())}",
+          flush=True)
 
 
 if __name__ == "__main__":

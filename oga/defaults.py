@@ -31,6 +31,7 @@ __all__ = [
     "BATCH_MAX_JOBS_PER_CPU",
     "DASK_CONNECT_S",
     "PG_CONNECT_S",
+    "PG_POOL_MAX",
     "CCC_DEFAULTS",
     "CCC_TUNE_GRID",
     "ZPETC_CCC_DDOB_DEFAULTS",
@@ -122,6 +123,8 @@ BATCH_MAX_JOBS_PER_CPU = 4
 DASK_CONNECT_S = 10.0
 #: ``oga serve --db postgresql://...``: how long to wait for the database's answer, s.
 PG_CONNECT_S = 10.0
+#: ``oga serve --db postgresql://...``: connections to the database per process at most.
+PG_POOL_MAX = 8
 #: Report figures: points per drawn line at most (min/max buckets keep the peaks).
 REPORT_MAX_POINTS = 2000
 

@@ -17,7 +17,7 @@ from oga.machine import Machine
 from oga.optimize import OptimizeResult, optimize
 from oga.options import OptimizeOptions
 
-__all__ = ["Job", "PLAN_SHARE", "plan_toolpath", "run_job"]
+__all__ = ["Job", "PLAN_SHARE", "plan_toolpath", "run_job", "toolpath_sha256"]
 
 #: Share of a job's progress fraction given to planning (measured: about a third of the time
 #: of LinuxCNC's arcspiral goes to planning, the rest to the search).
@@ -48,6 +48,11 @@ class Job:
     def summary(self) -> dict:
         """The summary JSON of ``oga optimize --summary``."""
         return self.result.summary(toolpath=self.path.source, toolpath_sha256=self.toolpath_sha256)
+
+
+def toolpath_sha256(text: str) -> str:
+    """Hash of a toolpath's text (UTF-8, hex), as summaries and tables record it."""
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 def plan_toolpath(
@@ -112,5 +117,4 @@ def run_job(
     sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m,
                        progress=plan_progress)
     result = optimize(sp, machine, options, progress=search_progress)
-    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()
-    return Job(path=path, setpoints=sp, result=result, toolpath_sha256=digest)
+    return Job(path=path, setpoints=sp, result=result, toolpath_sha256=toolpath_sha256(text))

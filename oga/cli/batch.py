@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import hashlib
 import json
 import multiprocessing as mp
 import os
@@ -229,14 +228,17 @@ def _worker(conn, parent_pid: int) -> None:
 
 
 def _up_to_date(out: FilePath, task: _Task, machine_sha256: str) -> bool:
+    from feedplan.read import read_file
+    from oga.pipeline import toolpath_sha256
+
     tables, summary_name = _outputs(task.stem, task.formats)
     try:
         summary = json.loads((out / summary_name).read_text(encoding="utf-8"))
-        text = FilePath(task.file).read_bytes().decode("utf-8-sig")
-    except (OSError, ValueError):
+        text, _ = read_file(task.file)
+    except (OSError, ValueError):  # ValueError: bad JSON, or the file's ToolpathError
         return False
     return (summary.get("status") == "ok"
-            and summary.get("toolpath_sha256") == hashlib.sha256(text.encode()).hexdigest()
+            and summary.get("toolpath_sha256") == toolpath_sha256(text)
             and summary.get("machine_sha256") == machine_sha256
             and summary.get("options") == task.options
             and all((out / t).is_file() for t in tables))
