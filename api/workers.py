@@ -351,11 +351,15 @@ class WorkerPool:
                 self._replace_dead()
                 if time.monotonic() - beat >= HEARTBEAT_S:
                     beat = time.monotonic()
-                    self._store.heartbeat(self.instance)
-                    self.recover()
-                    self._watch()
+                    self._beat()
             except Exception:  # keep supervising whatever happens
                 log.error("supervisor: %s", traceback.format_exc())
+
+    def _beat(self) -> None:
+        """Heartbeat of this server's jobs, recovery of dead servers' jobs, stalls noted."""
+        self._store.heartbeat(self.instance)
+        self.recover()
+        self._watch()
 
     def _check_memory(self) -> None:
         """Fail the job of a worker above the memory limit, and end that worker."""

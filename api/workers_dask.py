@@ -1,41 +1,43 @@
 """The service's jobs on a Dask cluster (``oga serve --scheduler tcp://HOST:8786``).
 
 :class:`DaskPool` takes the place of the local :class:`api.workers.WorkerPool`: its
-dispatcher thread claims queued jobs from the store (as many as the cluster has
-worker threads, less those it already runs) and submits one Dask task per claimed
-attempt. The store keeps every rule of the local path: the claim's attempt number
+dispatcher thread claims queued jobs from the store (for each worker thread of the
+cluster, one to run and one to wait) and submits one Dask task per claimed attempt. The store keeps every rule of the local path: the claim's attempt number
 fences every write, the server heartbeats its jobs, and the recovery of other
 servers' jobs is :meth:`WorkerPool.recover`'s.
 
-One job, one child process. Dask cannot interrupt a running task, so the task
-(:func:`run_on_worker`) runs the job in a child process of its own (``python -m
-api.workers_dask``, which runs :func:`api.workers.run_claimed` as a local worker
-does, with the same niceness, no core file, ``PR_SET_PDEATHSIG``, and the CPU cap
-as ``RLIMIT_CPU`` counted from the job's start) and watches it every
+Jobs run in a child process. Dask cannot interrupt a running task, so the task
+(:func:`run_on_worker`) hands its job to a job process of its Dask worker thread
+(``python -m api.workers_dask``: started on the thread's first job and kept warm
+for the next, as a local worker process is; it runs :func:`api.workers.run_claimed`
+with the same niceness, no core file, ``PR_SET_PDEATHSIG``, and the CPU cap as
+``RLIMIT_CPU`` counted from the job's start) and watches it every
 :data:`~api.workers.WATCH_S`:
 
-- CPU cap: the kernel ends the child with SIGXCPU; the task fails the job with the
-  local path's message; it is not requeued.
-- Memory cap: the task reads the child's resident size; above the cap it kills
-  the child and fails the job.
+- CPU cap: the kernel ends the job process with SIGXCPU; the task fails the job
+  with the local path's message; it is not requeued.
+- Memory cap: the task reads the job process's resident size; above the cap it
+  kills it and fails the job.
 - Cancel: the task reads the job's row; once it is no longer this attempt's
   running job (``DELETE``, on this server or on any other one sharing the
-  database, or a requeue by the lease rules) it kills the child. The server also
-  cancels the task's future, which drops a task still waiting on the cluster.
-- Any other death of the child: the job goes back to the queue, failing after
-  :data:`~api.workers.MAX_ATTEMPTS` starts ("WorkerLost"), as locally.
+  database, or a requeue by the lease rules) it kills the job process. The
+  server also cancels the task's future, which drops a task still waiting on the
+  cluster.
+- Any other death of the job process: the job goes back to the queue, failing
+  after :data:`~api.workers.MAX_ATTEMPTS` starts ("WorkerLost"), as locally.
 
-Either way the Dask worker lives on and takes the next task.
+A killed job process is replaced on the thread's next job; the Dask worker lives
+on and takes the next task.
 
-Progress and results: the child writes them to the store itself, exactly as a
-local worker (same code, same bytes), so the Dask workers must reach the
+Progress and results: the job process writes them to the store itself, exactly
+as a local worker (same code, same bytes), so the Dask workers must reach the
 database: a PostgreSQL URL from any host, or an SQLite file on the same host. No
 result travels through the scheduler, and a ``DELETE`` on another server reaches
-the job through the row it already polls; Dask's pub/sub would add a second
-channel with neither property.
+the job through the row the task already polls; Dask's pub/sub would add a
+second channel with neither property.
 
-A Dask worker lost mid-job: its child dies with it (``PR_SET_PDEATHSIG``) and the
-scheduler runs the task again elsewhere. The first run recorded its child in the
+A Dask worker lost mid-job: its job process dies with it (``PR_SET_PDEATHSIG``) and
+the scheduler runs the task again elsewhere. The first run recorded its job process in the
 row (:meth:`~api.storage.Store.mark_started`, once per attempt), so the rerun
 starts nothing: it requeues the job, which is claimed again as a new attempt,
 one more start counted against :data:`~api.workers.MAX_ATTEMPTS`. A stale run's
@@ -47,6 +49,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import resource
+import select
 import signal
 import subprocess
 import sys
@@ -54,7 +58,7 @@ import threading
 import time
 import traceback
 
-from api.storage import Owner, Store, open_store
+from api.storage import Owner, Store, is_postgres_url, open_store
 from api.workers import (
     HEARTBEAT_S,
     MAX_ATTEMPTS,
@@ -74,6 +78,9 @@ __all__ = ["DaskPool", "run_on_worker"]
 
 log = logging.getLogger("oga.api")
 
+#: Claimed jobs a server keeps waiting on the cluster per worker thread, besides the running one.
+WAITING_PER_THREAD = 1
+
 _stores: dict[str, Store] = {}
 _stores_lock = threading.Lock()
 
@@ -91,37 +98,58 @@ def _ours(store: Store, job_id: str, attempt: int) -> bool:
     return row is not None and row.status == "running" and row.attempts == attempt
 
 
+_children = threading.local()
+
+
+def _child() -> subprocess.Popen:
+    """The job process of this Dask worker thread: started on its first job, kept warm for
+    the next ones (engine imported, kernels loaded) until it is killed or dies."""
+    child = getattr(_children, "proc", None)
+    if child is None or child.poll() is not None:
+        child = subprocess.Popen([sys.executable, "-m", "api.workers_dask", str(os.getpid())],
+                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        _children.proc = child
+    return child
+
+
+def _end(child: subprocess.Popen) -> None:
+    """Kill the job process (a later job starts another one)."""
+    child.kill()
+    child.wait()
+    _children.proc = None
+
+
 def run_on_worker(db: str, job_id: str, attempt: int, limits: JobLimits) -> str:
-    """The Dask task of one attempt of a job: run it in a child process and watch it.
+    """The Dask task of one attempt of a job: run it in this thread's job process and watch.
 
     Returns
     -------
-    {"done", "cpu", "memory", "abandoned", "requeued"}
-        How the child ended ("done": it stored the job's outcome, or found the job no
-        longer its own); "requeued": this task had run before, on a worker that died.
+    {"succeeded", "failed", "abandoned", "memory", "cpu", "lost", "requeued"}
+        How it ended ("lost": the job process died, the job requeued by the lease rules;
+        "requeued": this task had run before, on a Dask worker that died).
     """
     store = _store_of(db)
-    child = subprocess.Popen([sys.executable, "-m", "api.workers_dask"], stdin=subprocess.PIPE,
-                             stdout=subprocess.DEVNULL)
-    try:
-        child.stdin.write(json.dumps({"db": db, "job": job_id, "attempt": attempt,
-                                      "cpu_s": limits.cpu_s, "parent": os.getpid()}).encode())
-        child.stdin.close()
-    except OSError:  # the child died at once: told below by its exit code
-        pass
+    child = _child()
     if not store.mark_started(job_id, attempt, child.pid):
-        _end(child)
         if _ours(store, job_id, attempt):  # run again after its Dask worker died
             new = store.requeue(job_id, attempt, MAX_ATTEMPTS)
             log.warning("job %s: its Dask worker was lost; %s", job_id, new)
             return "requeued"
         return "abandoned"
+    try:
+        child.stdin.write(json.dumps({"db": db, "job": job_id, "attempt": attempt,
+                                      "cpu_s": limits.cpu_s}).encode() + b"\n")
+        child.stdin.flush()
+    except OSError:  # it died meanwhile: told below by its exit code
+        pass
     while True:
-        try:
-            code = child.wait(timeout=WATCH_S)
-            break
-        except subprocess.TimeoutExpired:
-            pass
+        if select.select([child.stdout], [], [], WATCH_S)[0]:
+            outcome = child.stdout.readline().decode().strip()
+            if not outcome:  # the job process died
+                break
+            if outcome == "memory":  # it ends itself (a fragmented heap)
+                _end(child)
+            return outcome
         if _resident_bytes(child.pid) > limits.memory_bytes:
             _end(child)
             store.fail(job_id, attempt, {"message": limits.memory_message(),
@@ -131,39 +159,43 @@ def run_on_worker(db: str, job_id: str, attempt: int, limits: JobLimits) -> str:
             _end(child)
             log.info("job %s: cancelled or requeued; its process %s ended", job_id, child.pid)
             return "abandoned"
+    code = child.wait()
+    _children.proc = None
     if code == -signal.SIGXCPU:
         store.fail(job_id, attempt, {"message": limits.cpu_message(), "type": "CpuTimeLimit"})
         return "cpu"
-    if code != 0:
-        log.warning("job %s: its process %s died (exit code %s)", job_id, child.pid, code)
-    # the child stored the outcome, or died: then (only then, by the fencing) it is requeued
+    log.warning("job %s: its process %s died (exit code %s)", job_id, child.pid, code)
     store.requeue(job_id, attempt, MAX_ATTEMPTS)
-    return "done"
+    return "lost"
 
 
-def _end(child: subprocess.Popen) -> None:
-    child.kill()
-    child.wait()
-
-
-def _child_main() -> int:
-    """``python -m api.workers_dask``: run one attempt of a job (its spec as JSON on stdin)."""
-    spec = json.loads(sys.stdin.read())
-    _die_with_parent(spec["parent"])
+def _child_main(parent: int) -> None:
+    """``python -m api.workers_dask PID``: the job process of a Dask worker thread (``PID``
+    the Dask worker's); runs the jobs named on stdin (JSON lines), answers each with its
+    outcome; ends after a job that ran out of memory."""
+    _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    import resource
-
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a job killed at its CPU cap: no core file
     os.nice(WORKER_NICE)
-    import oga.pipeline  # noqa: F401  (the engine loaded before the CPU cap starts counting)
+    answers = os.fdopen(os.dup(1), "w")  # the outcomes; anything printed goes to stderr
+    os.dup2(2, 1)
+    import oga.pipeline  # noqa: F401  (the engine loaded before the first job)
 
-    store = open_store(spec["db"])
-    job = store.get(spec["job"], with_toolpath=True)
-    if job is None or job.status != "running" or job.attempts != spec["attempt"]:
-        return 0
-    _cap_cpu(spec["cpu_s"])
-    run_claimed(store, job)
-    return 0
+    for line in sys.stdin:
+        spec = json.loads(line)
+        store = _store_of(spec["db"])
+        job = store.get(spec["job"], with_toolpath=True)
+        outcome = "abandoned"
+        if job is not None and job.status == "running" and job.attempts == spec["attempt"]:
+            saved = _cap_cpu(spec["cpu_s"])
+            try:
+                outcome = run_claimed(store, job)
+            finally:
+                resource.setrlimit(resource.RLIMIT_CPU, saved)
+        answers.write(outcome + "\n")
+        answers.flush()
+        if outcome == "memory":
+            return
 
 
 class DaskPool(WorkerPool):
@@ -186,8 +218,8 @@ class DaskPool(WorkerPool):
 
     def __init__(self, db_path, address: str, limits: JobLimits = JobLimits(),
                  stall_s: float = defaults.API_STALL_S) -> None:
-        super().__init__(os.path.abspath(db_path) if "://" not in str(db_path) else db_path, 1,
-                         limits, stall_s)
+        db = str(db_path)  # as the workers must open it: an SQLite file by its absolute path
+        super().__init__(db if is_postgres_url(db) else os.path.abspath(db), 1, limits, stall_s)
         self.address = address
         self.client = None
         self._futures: dict[str, tuple[object, int]] = {}  # job id -> (future, attempt)
@@ -232,18 +264,18 @@ class DaskPool(WorkerPool):
                 self._dispatch()
                 if time.monotonic() - beat >= HEARTBEAT_S:
                     beat = time.monotonic()
-                    self._store.heartbeat(self.instance)
-                    self.recover()
-                    self._watch()
+                    self._beat()
             except Exception:  # keep supervising whatever happens
                 log.error("dispatcher: %s", traceback.format_exc())
 
     def _capacity(self) -> int:
-        """Worker threads of the cluster (asked at most every HEARTBEAT_S)."""
+        """Jobs this server keeps on the cluster: one running and :data:`WAITING_PER_THREAD`
+        waiting per worker thread (threads asked at most every HEARTBEAT_S), so that no
+        thread idles between two jobs."""
         if time.monotonic() - self._threads_at >= HEARTBEAT_S:
             self._threads = sum(self.client.nthreads().values())
             self._threads_at = time.monotonic()
-        return self._threads
+        return self._threads * (1 + WAITING_PER_THREAD)
 
     def _dispatch(self) -> None:
         """Claim queued jobs while the cluster has idle threads; submit a task for each."""
@@ -298,4 +330,4 @@ class DaskPool(WorkerPool):
 
 
 if __name__ == "__main__":
-    sys.exit(_child_main())
+    _child_main(int(sys.argv[1]))

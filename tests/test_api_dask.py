@@ -24,7 +24,6 @@ from test_api_server import (
     REFERENCE,
     SHORT,
     Server,
-    _free_port,
     _freeze,
     _gone,
     submit,
@@ -40,25 +39,8 @@ class DaskServer(Server):
     """``oga serve --scheduler ADDRESS`` in a subprocess on a free loopback port."""
 
     def __init__(self, db: str, scheduler: str, log: Path, *flags: str) -> None:
-        self.port = _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.db = db
-        self.log = open(log, "ab")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "oga", "serve", "--port", str(self.port), "--db", str(db),
-             "--scheduler", scheduler, *flags], stdout=self.log, stderr=subprocess.STDOUT)
-        self.http = httpx.Client(base_url=self.url, timeout=30.0)
+        super().__init__(db, None, log, "--scheduler", scheduler, *flags)
         self.store = open_store(db)
-        t_end = time.monotonic() + 90
-        while time.monotonic() < t_end:
-            assert self.proc.poll() is None, f"oga serve exited: see {log}"
-            try:
-                if self.http.get("/healthz").json()["workers_alive"] >= 1:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise AssertionError("oga serve did not come up")
 
     def worker_of(self, job_id: str) -> int | None:
         owner = self.store.get(job_id).owner

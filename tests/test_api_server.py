@@ -39,20 +39,23 @@ def _free_port() -> int:
 class Server:
     """``oga serve`` in a subprocess on a free loopback port."""
 
-    def __init__(self, db: Path, workers: int, log: Path, *flags: str) -> None:
+    def __init__(self, db: Path, workers: int | None, log: Path, *flags: str) -> None:
+        """``workers`` None: no ``--workers`` (``--scheduler`` among the flags)."""
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.db = db
         self.log = open(log, "ab")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "oga", "serve", "--port", str(self.port), "--db", str(db),
-             "--workers", str(workers), *flags], stdout=self.log, stderr=subprocess.STDOUT)
+             *(("--workers", str(workers)) if workers else ()), *flags], stdout=self.log,
+            stderr=subprocess.STDOUT)
         self.http = httpx.Client(base_url=self.url, timeout=30.0)
         t_end = time.monotonic() + 90
         while time.monotonic() < t_end:
             assert self.proc.poll() is None, f"oga serve exited: see {log}"
             try:
-                if self.http.get("/healthz").json()["workers_alive"] == workers:
+                alive = self.http.get("/healthz").json()["workers_alive"]
+                if alive == workers or workers is None and alive:
                     return
             except httpx.TransportError:
                 pass
