@@ -86,7 +86,7 @@ _stores_lock = threading.Lock()
 
 
 def _store_of(db: str) -> Store:
-    """One store per database per Dask worker process (it keeps a connection per thread)."""
+    """One store per database per process (Dask worker or job process), shared by its threads."""
     with _stores_lock:
         if db not in _stores:
             _stores[db] = open_store(db)
@@ -94,6 +94,7 @@ def _store_of(db: str) -> Store:
 
 
 def _ours(store: Store, job_id: str, attempt: int) -> bool:
+    """Whether the job is still running as this attempt (not cancelled, requeued, finished)."""
     row = store.get(job_id)
     return row is not None and row.status == "running" and row.attempts == attempt
 
@@ -239,7 +240,7 @@ class DaskPool(WorkerPool):
 
     def kill(self, job) -> bool:
         """Cancel the task of ``job`` (just cancelled in the store): dropped if it waits on
-        the cluster; if it runs, it ends its child within :data:`~api.workers.WATCH_S`."""
+        the cluster; if it runs, it kills its job process within :data:`~api.workers.WATCH_S`."""
         o = job.owner
         if o is None or o.instance != self.instance:
             return False
@@ -278,7 +279,7 @@ class DaskPool(WorkerPool):
         return self._threads * (1 + WAITING_PER_THREAD)
 
     def _dispatch(self) -> None:
-        """Claim queued jobs while the cluster has idle threads; submit a task for each."""
+        """Claim queued jobs up to :meth:`_capacity`; submit a task for each."""
         owner = Owner(self.host, os.getpid(), self.instance, None)
         while len(self._futures) < self._capacity() and not self._halt.is_set():
             job = self._store.claim(owner)
@@ -315,8 +316,8 @@ class DaskPool(WorkerPool):
                     "type": "ClusterError"})
 
     def stop(self) -> None:
-        """Stop dispatching, cancel this server's tasks and requeue their jobs (their
-        children see the requeue and end)."""
+        """Stop dispatching, cancel this server's tasks and requeue their jobs (the tasks
+        running them see the requeue and kill their job processes)."""
         self._halt.set()
         if self._thread.is_alive():
             self._thread.join()

@@ -12,7 +12,8 @@ time of a program outside the gain search (planning, verification, rendering, tr
 writing).
 
 The service on the same cluster (``oga serve --scheduler``, jobs in SQLite): the N programs
-POSTed at once, the wall time until the last one finished, and per job ``wall x workers /
+POSTed at once (after one job per worker has started the workers' job processes), the wall
+time until the last one finished, and per job ``wall x workers /
 N - optimize`` beyond the search: planning, verification, the job's own process (start,
 imports, kernels loaded from the cache) and the store's writes.
 """
@@ -50,7 +51,8 @@ def _noop(x):
     return x
 
 
-def _service(address: str, folder: Path, programs: list[str]) -> tuple[float, float]:
+def _service(address: str, folder: Path, programs: list[str],
+             workers: int) -> tuple[float, float]:
     """``oga serve --scheduler``: wall time of the programs as jobs, and their optimize time."""
     import httpx
     from test_api_server import _free_port
@@ -70,17 +72,24 @@ def _service(address: str, folder: Path, programs: list[str]) -> tuple[float, fl
             except httpx.TransportError:
                 assert server.poll() is None, f"oga serve exited: see {folder / 'serve.log'}"
                 time.sleep(0.2)
+
+        def run(paths: list[str]) -> list[str]:
+            before = http.get("/healthz").json()["jobs"]["succeeded"]
+            ids = [http.post("/v1/jobs", json={
+                "toolpath": {"format": "gcode", "name": Path(p).name,
+                             "content": Path(p).read_text()}, "machine": "ucp710"}).json()["id"]
+                for p in paths]
+            while True:
+                jobs = http.get("/healthz").json()["jobs"]
+                if jobs["succeeded"] + jobs["failed"] == before + len(ids):
+                    break
+                time.sleep(0.05)
+            assert not jobs["failed"], f"{jobs['failed']} job(s) failed: see {folder}"
+            return ids
+
+        run(programs[:workers])  # every worker thread's job process started and warm
         t0 = time.perf_counter()
-        ids = [http.post("/v1/jobs", json={"toolpath": {"format": "gcode", "name": Path(p).name,
-                                                        "content": Path(p).read_text()},
-                                           "machine": "ucp710"}).json()["id"]
-               for p in programs]
-        while True:
-            jobs = http.get("/healthz").json()["jobs"]
-            if jobs["succeeded"] + jobs["failed"] == len(ids):
-                break
-            time.sleep(0.05)
-        assert not jobs["failed"], f"{jobs['failed']} job(s) failed: see {folder}"
+        ids = run(programs)
         wall = time.perf_counter() - t0
         compute = sum(http.get(f"/v1/jobs/{i}/summary").json()["optimize_time_s"] for i in ids)
         return wall, compute
@@ -122,7 +131,7 @@ def main(n: int) -> None:
                                capture_output=True)
                 fixed = time.perf_counter() - t0
                 service_wall, service_compute = _service(cluster.address, tmp / f"serve{workers}",
-                                                         programs)
+                                                         programs, workers)
             finally:
                 cluster.stop()
             compute = sum(json.loads(p.read_text())["optimize_time_s"]
