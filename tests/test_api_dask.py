@@ -1,8 +1,8 @@
 """``oga serve --scheduler``: the service's jobs on a real Dask cluster on loopback (``dask
 scheduler`` and two ``dask worker`` processes): the same stored tables and summaries as local
-workers (jobs in PostgreSQL), progress in the store, DELETE kills the job's child process and
-the Dask worker takes the next job, a CPU-capped job fails once, and a Dask worker killed
-mid-job costs one more attempt of its job only."""
+workers (jobs in PostgreSQL), progress in the store, DELETE kills a running job's process (the
+Dask worker takes the next job) and drops a job waiting on the cluster, a CPU-capped job fails
+once, and a Dask worker killed mid-job costs one more attempt of its job only."""
 
 from __future__ import annotations
 
@@ -136,13 +136,28 @@ def test_delete_kills_the_job_process_and_the_worker_takes_the_next(cluster, tmp
             time.sleep(0.2)
         assert [(s["job"], s["worker_pid"]) for s in health["stalled"]] == [(long_id, pid)]
 
-        t0 = time.monotonic()
-        assert server.http.delete(f"/v1/jobs/{long_id}").json()["status"] == "cancelled"
-        while not _gone(pid) and time.monotonic() - t0 < 1.0:
-            time.sleep(0.005)
-        ended_s = time.monotonic() - t0
-        assert _gone(pid), "the process of a cancelled job still runs after 1 s"
-        print(f"\nDELETE -> job process {pid} gone in {ended_s * 1e3:.0f} ms")
+        # both threads busy: a third job is claimed and waits on the cluster; DELETE drops it
+        other = submit(server, LONG.replace("X1000", "X1001"), "other.ngc")
+        other_pid = server.child_of(other)
+        _freeze(other_pid, db)
+        waiting = submit(server, LONG.replace("X1000", "X1002"), "waiting.ngc")
+        wait_for(server, waiting, ("running",))
+        assert server.http.delete(f"/v1/jobs/{waiting}").json()["status"] == "cancelled"
+        with Client(cluster.address, set_as_default=False) as client:
+            t_end = time.monotonic() + 10
+            while any(waiting in str(key) for key in client.run_on_scheduler(
+                    lambda dask_scheduler: list(dask_scheduler.tasks))):
+                assert time.monotonic() < t_end, "the cancelled job's task stayed on the cluster"
+                time.sleep(0.05)
+        assert server.worker_of(waiting) is None  # it never started
+        for job_id, job_pid in ((other, other_pid), (long_id, pid)):
+            t0 = time.monotonic()
+            assert server.http.delete(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
+            while not _gone(job_pid) and time.monotonic() - t0 < 1.0:
+                time.sleep(0.005)
+            ended_s = time.monotonic() - t0
+            assert _gone(job_pid), "the process of a cancelled job still runs after 1 s"
+            print(f"\nDELETE -> job process {job_pid} gone in {ended_s * 1e3:.0f} ms")
         assert all(w.poll() is None for w in cluster.workers)  # the Dask workers live on
         ids = [submit(server, SHORT, f"next{k}.ngc") for k in range(2)]
         for job_id in ids:
