@@ -336,3 +336,15 @@ ROBUST_SUBSET = 8
 #: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
 #: be chosen by its median ratio on the typical ones.
 ROBUST_WORST_GOAL = 0.9
+
+# robust search -------------------------------------------------------------------------------
+#: Multi-scenario search (:mod:`oga.robust.multi`): active plants searched at once (the
+#: nominal one included), and the samples between refreshes of the active set.
+ROBUST_ACTIVE = 4
+ROBUST_REFRESH = 200
+#: Weight of the nominal plant in the window cost (the worst active plants share the rest).
+ROBUST_NOMINAL_WEIGHT = 0.5
+#: Decay per refresh of the running squared errors that rank the pool's plants.
+ROBUST_SCORE_DECAY = 0.5
+#: Monte Carlo plants in the pool the active plants are drawn from (besides the corners).
+ROBUST_POOL_MC = 8

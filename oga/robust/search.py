@@ -31,6 +31,7 @@ the whole set. The result is certified on the whole set.
 from __future__ import annotations
 
 import itertools
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +44,8 @@ from oga.optimize import GainSchedule, OptimizeResult, optimize
 from oga.ranges import best_fixed_gains
 from oga.options import OptimizeOptions, options_from_dict
 from oga.robust.certificate import Certificate, certify, plant_bounds
-from oga.robust.plants import ScenarioSet, scenario_set
+from oga.robust.multi import multi_search
+from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
 from oga.verify import verify
 
 __all__ = ["RobustResult", "design_machine", "robust_optimize"]
@@ -82,6 +84,8 @@ class RobustResult:
     kp_max: float
     rounds: int
     alpha: tuple[float, float]
+    baseline_reserve: float = 1.0
+    active: tuple = ()
 
 
 def design_machine(machine: Machine, reserve: float, kp_bounds: tuple[float, float]) -> Machine:
@@ -109,6 +113,40 @@ def _excess(verifications) -> float:
     return worst
 
 
+def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range):
+    """The best equal fixed gains that keep the limits and stability on every plant, found
+    as the best fixed gains of a design machine whose limit reserve is cut until they do.
+
+    Returns ``(kp, kf, reserve, replays)``: the gains, the reserve, and the baseline's
+    replays on every plant of ``scenarios`` (kept: every certificate reuses them).
+    """
+    moving = tuple(AXES[i] for i in setpoints.moving_axes)
+    n = len(setpoints)
+    reserve = 1.0
+    for k in range(defaults.ROBUST_ROUNDS):
+        best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range))
+        if best is None:
+            break
+        kp0, kf0 = float(best.kp[moving[0]]), float(best.kf[moving[0]])
+        bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
+        replays = tuple(verify(setpoints, p, bkp, bkf, b)
+                        for p, b in zip(scenarios.plants, bounds))
+        over = _excess(replays)
+        if over <= 1.0:
+            return kp0, kf0, reserve, replays
+        reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
+    raise OptionError("baseline: no equal fixed gains keep the limits on every plant "
+                      "of the uncertainty set")
+
+
+def _pool(scenarios: ScenarioSet) -> list[int]:
+    """Indices of the plants of ``scenarios`` the search's active plants are drawn from: the
+    corners (the set's extremes, where the schedules do worst) and the first
+    :data:`oga.defaults.ROBUST_POOL_MC` Monte Carlo plants (typical ones)."""
+    mc = list(range(min(defaults.ROBUST_POOL_MC, scenarios.n_monte_carlo)))
+    return mc + list(range(scenarios.n_monte_carlo, len(scenarios)))
+
+
 def robust_optimize(
     setpoints: Setpoints,
     machine: Machine,
@@ -134,52 +172,79 @@ def robust_optimize(
     Raises
     ------
     OptionError
-        No equal fixed gains keep the limits on every plant.
+        Not the full mode, or no equal fixed gains keep the limits on every plant.
     """
+    t0 = time.perf_counter()
     if not isinstance(options, OptimizeOptions):
         options = options_from_dict(options)
+    if options.mode != "full":
+        raise OptionError(f"mode: the robust search is the full mode's (got {options.mode!r}); "
+                          "the paper's search runs on the nominal model only (--nominal)")
     if scenarios is None:
         scenarios = scenario_set(machine)
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
+    if not moving:
+        raise OptionError("toolpath: no axis moves; nothing to optimise")
     bounds = plant_bounds(scenarios, moving)
-    kp_lo = max(b[a][0] for b in bounds for a in moving)
-    kp_hi = min(b[a][1] for b in bounds for a in moving)
+    nominal = perturbed_machine(machine, {}, 0, machine.name)
+    nominal_bounds = plant_bounds(ScenarioSet(
+        status="nominal-only", nominal=machine, plants=(nominal,), labels=("nominal",),
+        draws=(({}, 0),), seed=0, n_monte_carlo=0, n_corners=0), moving)[0]
+    kp_lo = max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving)
+    kp_hi = min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving)
     n = len(setpoints)
-    reserve, base = 1.0, None
-    for k in range(defaults.ROBUST_ROUNDS):
-        best = best_fixed_gains(setpoints, design_machine(machine, reserve, (kp_lo, kp_hi)))
-        if best is None:
-            break
-        kp0, kf0 = float(best.kp[moving[0]]), float(best.kf[moving[0]])
-        bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
-        over = _excess(verify(setpoints, p, bkp, bkf, b)
-                       for p, b in zip(scenarios.plants, bounds))
-        if over <= 1.0:
-            base = (kp0, kf0)
-            break
-        reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
-    if base is None:
-        raise OptionError("baseline: no equal fixed gains keep the limits on every plant "
-                          "of the uncertainty set")
-    bkp, bkf = np.full((n, 3), base[0]), np.full((n, 3), base[1])
-    rounds = 0
+    kp0, kf0, base_reserve, base_replays = _robust_baseline(setpoints, machine, scenarios, bounds,
+                                                            (kp_lo, kp_hi))
+    bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
+    for arr in (bkp, bkf):
+        arr.flags.writeable = False
+    kp_bounds = {a: (kp_lo, kp_hi) for a in moving}
+    base_nominal = verify(setpoints, nominal, bkp, bkf, kp_bounds)
+    pool = _pool(scenarios)
+    feed = ~setpoints.rapid
+    base_ce2 = np.stack([np.where(feed, v.ce, 0.0) ** 2
+                         for v in (base_nominal,) + tuple(base_replays[i] for i in pool)])
+    reserve, rounds = 1.0, 0
     for rounds in range(1, defaults.ROBUST_ROUNDS + 1):
-        design = design_machine(machine, reserve, (kp_lo, kp_hi))
-        res = optimize(setpoints, design, options.model_copy(update={"baseline": base}))
-        s = res.searched_schedule
-        cert = certify(setpoints, machine, s.kp_m_min_per_mm, s.kf, bkp, bkf, scenarios, bounds)
+        found = multi_search(setpoints, (nominal,) + tuple(scenarios.plants[i] for i in pool),
+                             base_ce2, options, kp0, kf0, (kp_lo, kp_hi), reserve)
+        cert = certify(setpoints, machine, found.kp, found.kf, bkp, bkf, scenarios, bounds,
+                       base_replays)
         if not cert.breaks("schedule-only"):
             break
         reserve /= max(_excess(p.schedule for p in cert.plants), 1.0) * (
             1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
-    alpha, cert = _shrink(setpoints, machine, res.searched_schedule, bkp, bkf, scenarios,
-                          bounds, cert)
-    ok = cert.status == "ok" and res.searched.ok
-    kp, kf = _shrunk(res.searched_schedule, bkp, bkf, alpha) if ok else (bkp, bkf)
-    return RobustResult(status="ok" if ok else "failed",
-                        schedule=GainSchedule(kp_m_min_per_mm=kp, kf=kf), result=res,
-                        certificate=cert,
-                        reserve=reserve, kp_max=kp_hi, rounds=rounds, alpha=alpha)
+    searched_schedule = GainSchedule(kp_m_min_per_mm=found.kp, kf=found.kf)
+    alpha = (1.0, 1.0)
+    if cert.worst > defaults.ROBUST_WORST_GOAL or cert.breaks("schedule-only"):
+        alpha, cert = _shrink(setpoints, machine, searched_schedule, bkp, bkf, scenarios, bounds,
+                              cert, base_replays)
+    kp, kf = _shrunk(searched_schedule, bkp, bkf, alpha)
+    searched = verify(setpoints, nominal, kp, kf, kp_bounds)
+    ok = cert.status == "ok" and searched.ok
+    if not ok:
+        kp, kf = bkp, bkf
+    schedule = GainSchedule(kp_m_min_per_mm=kp, kf=kf)
+    result = OptimizeResult(
+        status=searched.status if ok else base_nominal.status,
+        setpoints=setpoints, machine=machine, options=options, schedule=schedule,
+        baseline_kp={a: kp0 for a in AXES}, baseline_kf={a: kf0 for a in AXES},
+        baseline=base_nominal, optimized=searched if ok else base_nominal,
+        searched_schedule=GainSchedule(kp_m_min_per_mm=_frozen(kp), kf=_frozen(kf)),
+        searched=searched, kept_baseline=not ok,
+        adjusted=moving if options.adjust is None else tuple(options.adjust),
+        kp_bounds=kp_bounds, optimize_time_s=time.perf_counter() - t0,
+        fallbacks=found.fallbacks, windows=found.windows,
+    )
+    return RobustResult(status="ok" if ok else "failed", schedule=schedule, result=result,
+                        certificate=cert, reserve=reserve, kp_max=kp_hi, rounds=rounds,
+                        alpha=alpha, baseline_reserve=base_reserve, active=found.active)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.array(a)
+    a.flags.writeable = False
+    return a
 
 
 def _subset(scenarios: ScenarioSet, bounds, keep) -> tuple[ScenarioSet, tuple]:
@@ -197,7 +262,7 @@ def _shrunk(schedule, bkp, bkf, alpha):
     return bkp + a_kp * (schedule.kp_m_min_per_mm - bkp), bkf + a_kf * (schedule.kf - bkf)
 
 
-def _shrink(setpoints, machine, schedule, bkp, bkf, scenarios, bounds, cert):
+def _shrink(setpoints, machine, schedule, bkp, bkf, scenarios, bounds, cert, base_replays):
     """The schedule ``Kb + alpha (Ks - Kb)`` (``alpha`` one share for Kp, one for Kf, on
     :data:`oga.defaults.ROBUST_KP_ALPHAS` x :data:`oga.defaults.ROBUST_ALPHAS`), chosen on a
     small scenario set: the plants where the full schedule does worst (refreshed with those
@@ -217,14 +282,14 @@ def _shrink(setpoints, machine, schedule, bkp, bkf, scenarios, bounds, cert):
         trials = []
         for alpha in itertools.product(defaults.ROBUST_KP_ALPHAS, defaults.ROBUST_ALPHAS):
             c = certify(setpoints, machine, *_shrunk(schedule, bkp, bkf, alpha), bkp, bkf, sub,
-                        sub_bounds)
+                        sub_bounds, tuple(base_replays[i] for i in keep))
             w = c.ratio[w_rows].max() if not c.breaks("schedule-only") else np.inf
             trials.append((w > defaults.ROBUST_WORST_GOAL,
                            w if w > defaults.ROBUST_WORST_GOAL else np.median(c.ratio[t_rows]),
                            alpha))
         alpha = min(trials)[2]
         full = certify(setpoints, machine, *_shrunk(schedule, bkp, bkf, alpha), bkp, bkf,
-                       scenarios, bounds)
+                       scenarios, bounds, base_replays)
         if full.worst < best[1].worst or best[1].status != "ok":
             best = (alpha, full)
         if full.status == "ok":
