@@ -338,13 +338,12 @@ ROBUST_SUBSET = 8
 ROBUST_WORST_GOAL = 0.9
 
 # robust search -------------------------------------------------------------------------------
-#: Multi-scenario search (:mod:`oga.robust.multi`): active plants searched at once (the
-#: nominal one included), and the samples between refreshes of the active set.
+#: Multi-scenario search (:mod:`oga.robust.multi`): plants searched at once at most (the
+#: nominal one included; the plants where the schedule did worst join it round by round).
 ROBUST_ACTIVE = 4
-ROBUST_REFRESH = 200
 #: Weight of the nominal plant in the window cost (the worst active plants share the rest).
 ROBUST_NOMINAL_WEIGHT = 0.5
-#: Decay per refresh of the running squared errors that rank the pool's plants.
-ROBUST_SCORE_DECAY = 0.5
-#: Monte Carlo plants in the pool the active plants are drawn from (besides the corners).
-ROBUST_POOL_MC = 8
+#: The certificate's median and 90th percentile of the MSE ratio a round aims for (with
+#: ROBUST_WORST_GOAL): the rounds stop there.
+ROBUST_MEDIAN_GOAL = 0.3
+ROBUST_P90_GOAL = 0.5
