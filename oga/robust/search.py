@@ -1,31 +1,33 @@
-"""Prototype of the robust search: the existing search on a *design machine*, certified.
+"""The robust search: a schedule searched on several plants of the uncertainty set at once.
 
-The nominal search (:func:`oga.optimize.optimize`) is run unchanged on a design machine:
-the nominal dynamics, with
+1. **Kp range**: the stable range common to every plant of the scenario set and the
+   nominal plant (the least ``kp_max``, the largest ``kp_min`` over them and the moving
+   axes).
+2. **Baseline**: the best equal fixed gains that keep the limits and stability on every
+   plant: the best fixed gains (:func:`oga.ranges.best_fixed_gains`) of a *design
+   machine* (nominal dynamics, that Kp range, acceleration, jerk and following-error
+   limits times a reserve ``r``), ``r`` cut after each try by the largest limit excess
+   over the plants (and a margin doubling per cut) until they keep every limit on every
+   plant. Its replays on the set are kept: every certificate below reuses them.
+3. **Rounds** (:data:`oga.defaults.ROBUST_ROUNDS` at most) of the multi-scenario search
+   (:func:`oga.robust.multi.multi_search`): the first on the nominal plant alone, each
+   next one on the nominal plant and the plants of the set where the previous schedule
+   did worst (the set refreshed round by round, :data:`oga.defaults.ROBUST_ACTIVE` plants
+   at most, the oldest leaving), limits times the baseline's reserve, cut further (the
+   same rule) while the schedule breaks a limit on a plant where the baseline keeps it.
+   Each schedule is certified on the whole set (:func:`oga.robust.certificate.certify`);
+   the rounds stop at the first that breaks no such limit and meets the goals
+   (:data:`oga.defaults.ROBUST_MEDIAN_GOAL`, ``ROBUST_P90_GOAL``, ``ROBUST_WORST_GOAL``:
+   the issue's 0.3, 0.5, 0.9); else the best round is kept (no break first, then goals
+   met, then the least worst ratio).
+4. **Shrink** (the prototype's safety net, used only when the kept schedule's worst
+   ratio exceeds its goal or it breaks a limit the baseline keeps): ``K = Kb + alpha (Ks -
+   Kb)``, one share for Kp, one for Kf, chosen on a small set of plants (:func:`_shrink`).
+5. The table exported is the schedule when its certificate passes (worst ratio <= 1, no
+   plant where it alone breaks a check) and its nominal replay passes; else the baseline.
 
-- the Kp bounds cut to the stable range common to every plant of the scenario set (the
-  least ``kp_max`` and largest ``kp_min`` over the plants and the moving axes), so the
-  stability bound holds on every plant;
-- the acceleration and jerk limits (and any following-error limit) scaled by a reserve
-  ``r <= 1``: a plant's velocity command differs from the nominal one, and the reserve
-  is what the worst plant needs. ``r`` starts at 1 and, after each round, shrinks by the
-  largest excess over 1 of a limit on any plant (the baseline's or the schedule's) and a
-  margin that doubles each round (a fixed gain's excess is not linear in ``r``).
-
-The baseline is the best equal fixed gains of the design machine
-(:func:`oga.ranges.best_fixed_gains`), the reserve shrunk in rounds until they keep the
-limits on every plant: the best equal gains (in nominal MSE) feasible and stable on every
-plant of the set. The schedule is then searched from that baseline on the design machine
-(more reserve while it breaks a limit on a plant where the baseline keeps it).
-
-The nominal search fits the nominal friction glitch and dead time sharply; on a plant with
-another dead time or a faster loop its pulses overshoot. The prototype therefore keeps a
-share ``alpha`` of the schedule's departure from the baseline, ``K = Kb + alpha (Ks - Kb)``
-(one share for Kp, one for Kf),
-chosen on a small scenario set: the least median ratio over a few typical plants among the
-shares whose worst ratio over the plants where the full schedule does worst stays within a
-goal (the issue's 0.9), the set refreshed with the plants where the chosen one does worst on
-the whole set. The result is certified on the whole set.
+Why rounds and not a set refreshed inside a run, why the mean, why a reserve: measured
+in :mod:`oga.robust.multi`'s doc.
 """
 
 from __future__ import annotations
@@ -53,7 +55,8 @@ __all__ = ["RobustResult", "design_machine", "robust_optimize"]
 
 @dataclass(frozen=True, eq=False)
 class RobustResult:
-    """What :func:`robust_optimize` found.
+    """What :func:`robust_optimize` found (``baseline_reserve`` and ``active`` added to the
+    prototype's fields).
 
     Attributes
     ----------
@@ -63,17 +66,23 @@ class RobustResult:
     schedule : GainSchedule
         The gains to export (the shrunk schedule, or the baseline's when failed).
     result : OptimizeResult
-        The last search, on the design machine.
+        The search on the nominal machine: baseline and exported table replayed there
+        (``searched_schedule`` is the exported one).
     certificate : Certificate
-        The searched schedule against the robust baseline on the whole set.
+        The exported schedule (before the fall-back to the baseline) against the robust
+        baseline on the whole set.
     reserve : float
-        The limit reserve ``r`` of the design machine.
+        The limit reserve of the kept round's search.
     kp_max : float
         The Kp bound common to every plant, (m/min)/mm.
     rounds : int
         Searches run.
     alpha : (float, float)
         Shares of the searched schedule's departure from the baseline that are kept, Kp and Kf.
+    baseline_reserve : float
+        The limit reserve of the design machine the baseline was found on.
+    active : tuple of str
+        Labels of the plants the kept round searched on besides the nominal one.
     """
 
     status: str
