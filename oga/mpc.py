@@ -397,13 +397,13 @@ def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
 @njit(cache=True)
 def _eq2_rows(m, s, k, wk, moving, var_lo, var_hi, vmax, amax, jmax, te, live, u0, su, u_hist,
               trust, amat, alo, ahi, col0, col1):
-    """Linearised eq. 2 rows (v, a, j at every live window sample) of plant ``s``, from row
-    ``m`` (kept where the trust region can reach a bound); returns the next free row."""
+    """Linearised eq. 2 rows (v, a, j at every live window sample) of plant ``s`` (its limits
+    ``vmax[s]`` ...), from row ``m`` (kept where the trust region can reach a bound); returns the next free row."""
     for a in range(3):
         if not moving[a] or var_lo[a] == var_hi[a]:
             continue
-        lims = (_LIN_MARGIN * vmax[a], _LIN_MARGIN * amax[a] * te,
-                _LIN_MARGIN * jmax[a] * te * te)
+        lims = (_LIN_MARGIN * vmax[s, a], _LIN_MARGIN * amax[s, a] * te,
+                _LIN_MARGIN * jmax[s, a] * te * te)
         for r in range(3):
             for i in range(wk):
                 if not live[k + i]:  # eq. 2 on every sample of the program
@@ -434,9 +434,9 @@ def _ferror_rows(m, s, k, wk, moving, var_lo, var_hi, ferror_max, live, pdT, p0,
     """Linearised following-error rows ``|pd - p0 - S d| <= margin * limit`` of plant ``s``
     (axes with a limit, live samples), from row ``m``; returns the next free row."""
     for a in range(3):
-        if not moving[a] or var_lo[a] == var_hi[a] or not np.isfinite(ferror_max[a]):
+        if not moving[a] or var_lo[a] == var_hi[a] or not np.isfinite(ferror_max[s, a]):
             continue
-        scale = 1.0 / ferror_max[a]
+        scale = 1.0 / ferror_max[s, a]
         for i in range(wk):
             if not live[k + i]:
                 continue
@@ -464,13 +464,19 @@ def mpc_chunk(
     there, ``params`` (3, P), ``states`` (3, Z), ``u_hist`` (3, 2) and ``u_out`` (N, 3)
     without the plant axis (C-contiguous: they are viewed, not copied).
     """
+    lims = np.empty((4, 1, 3))  # the limits as the one plant's
+    for a in range(3):
+        lims[0, 0, a] = vmax[a]
+        lims[1, 0, a] = amax[a]
+        lims[2, 0, a] = jmax[a]
+        lims[3, 0, a] = ferror_max[a]
     mpc_multi_chunk(
         k0, k1, pd, pdT, vdT, params.reshape((1,) + params.shape),
         states.reshape((1,) + states.shape), kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-        kp_base, kf_base, vmax, amax, jmax, te, u_hist.reshape((1,) + u_hist.shape), w, kspace,
-        commit, iters, trust_kp, trust_kf, lam, anchor, tree, win_lo, win_hi, moving, feed, live,
-        points, kp_out, kf_out, u_out.reshape((1,) + u_out.shape), stats, stop, settled,
-        ferror_max, restore, tail, np.ones(1),
+        kp_base, kf_base, lims[0], lims[1], lims[2], te, u_hist.reshape((1,) + u_hist.shape), w,
+        kspace, commit, iters, trust_kp, trust_kf, lam, anchor, tree, win_lo, win_hi, moving,
+        feed, live, points, kp_out, kf_out, u_out.reshape((1,) + u_out.shape), stats, stop,
+        settled, lims[3], restore, tail, np.ones(1),
     )
 
 
@@ -490,7 +496,8 @@ def mpc_multi_chunk(
     The window's cost is the ``weights`` (S,) weighted sum of the plants' squared contour
     errors (linearised on each plant around its own prediction, the Hessian and gradient
     summed), the smoothness and anchor terms once; eq. 2 and the following-error limit are
-    constraint rows per plant and, in the line search, the largest excess over the plants;
+    constraint rows per plant and, in the line search, the largest excess over the plants,
+    with each plant's own limits: ``vmax``, ``amax``, ``jmax``, ``ferror_max`` (S, 3);
     an axis is idle when it is on every plant. The gain bounds are the caller's (the range
     stable on every plant).
 
@@ -797,16 +804,16 @@ def mpc_multi_chunk(
                                       kpa, kfa, trial[s, a], tmp_u, scratch)
                             stats[STAT_WINDOWS] += 1
                         fk = live[k:k + wk]
-                        worst = max(worst, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[a],
-                                                       amax[a], jmax[a], te, wk, fk))
-                        worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[a],
-                                                           amax[a], jmax[a], te, n_next, fk))
-                        worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[a],
-                                                           amax[a], jmax[a], te, n_commit, fk))
-                        if np.isfinite(ferror_max[a]):  # the following-error limit, as an excess
+                        worst = max(worst, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[s, a],
+                                                       amax[s, a], jmax[s, a], te, wk, fk))
+                        worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[s, a],
+                                                           amax[s, a], jmax[s, a], te, n_next, fk))
+                        worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[s, a],
+                                                           amax[s, a], jmax[s, a], te, n_commit, fk))
+                        if np.isfinite(ferror_max[s, a]):  # the following-error limit, as an excess
                             pos = p0[s, a] if scale == 0.0 else trial[s, a]
                             for i in range(wk):
-                                ex = abs(pdT[a, k + i] - pos[i]) / ferror_max[a] - 1.0
+                                ex = abs(pdT[a, k + i] - pos[i]) / ferror_max[s, a] - 1.0
                                 if fk[i] and ex > 0.0:
                                     worst = max(worst, ex)
                                     if i < n_next:

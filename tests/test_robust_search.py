@@ -78,8 +78,9 @@ def test_two_copies_of_a_plant_search_as_that_plant_alone(short_xz):
     m, sp = short_xz
     nom = perturbed_machine(m, {}, 0, m.name)
     opt = options_from_dict(None)
-    one = multi_search(sp, (nom,), np.array([1e-12]), opt, 1.3, 0.9, (1.0, 2.5), 1.0)
-    two = multi_search(sp, (nom, nom), np.array([1e-12, 1e-12]), opt, 1.3, 0.9, (1.0, 2.5), 1.0)
+    base = verify(sp, nom, *_fixed(len(sp), 1.3, 0.9), {a: (1.0, 2.5) for a in ("x", "z")})
+    one = multi_search(sp, (nom,), (base,), opt, 1.3, 0.9, (1.0, 2.5), 1.0)
+    two = multi_search(sp, (nom, nom), (base, base), opt, 1.3, 0.9, (1.0, 2.5), 1.0)
     np.testing.assert_allclose(two.kp, one.kp, atol=1e-9)
     np.testing.assert_allclose(two.kf, one.kf, atol=1e-9)
 
@@ -93,11 +94,10 @@ def test_a_second_plant_in_the_search_serves_that_plant(short_xz):
     n = len(sp)
     bkp, bkf = _fixed(n, 1.3, 0.9)
     kb = {a: (1.0, 2.5) for a in ("x", "z")}
-    base = [verify(sp, p, bkp, bkf, kb) for p in (nom, late)]
-    mse = np.array([b.metrics.mse_m2 for b in base])
+    base = tuple(verify(sp, p, bkp, bkf, kb) for p in (nom, late))
     opt = options_from_dict(None)
-    alone = multi_search(sp, (nom,), mse[:1], opt, 1.3, 0.9, (1.0, 2.5), 1.0)
-    both = multi_search(sp, (nom, late), mse, opt, 1.3, 0.9, (1.0, 2.5), 1.0)
+    alone = multi_search(sp, (nom,), base[:1], opt, 1.3, 0.9, (1.0, 2.5), 1.0)
+    both = multi_search(sp, (nom, late), base, opt, 1.3, 0.9, (1.0, 2.5), 1.0)
     on_late = [verify(sp, late, s.kp, s.kf, kb) for s in (alone, both)]
     assert on_late[1].metrics.mse_m2 < on_late[0].metrics.mse_m2
     assert on_late[1].metrics.mse_m2 < base[1].metrics.mse_m2

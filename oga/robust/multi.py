@@ -48,6 +48,7 @@ from oga.contour import path_index
 from oga.machine import Machine
 from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_multi_chunk
 from oga.options import OptimizeOptions
+from oga.verify import Verification
 from oga.simulate import axis_params, rest_state
 
 __all__ = ["MultiSearch", "multi_search"]
@@ -78,7 +79,7 @@ class MultiSearch:
 def multi_search(
     setpoints: Setpoints,
     plants: tuple[Machine, ...],
-    base_mse: np.ndarray,
+    baselines: tuple[Verification, ...],
     options: OptimizeOptions,
     base_kp: float,
     base_kf: float,
@@ -93,8 +94,9 @@ def multi_search(
         The planned motion (N samples).
     plants : tuple of Machine
         The active plants; ``plants[0]`` is the nominal one (its limits are kept on all).
-    base_mse : ndarray, shape (S,)
-        The fixed baseline's MSE(CE) on each plant, m^2 (the cost's normalisation).
+    baselines : tuple of Verification
+        The fixed baseline's replay on each plant: its MSE(CE) normalises the plant's cost,
+        and its peaks floor the plant's limits (below).
     options : OptimizeOptions
         Full-mode options (window, knot, lam, anchor, adjusted axes and gains).
     base_kp, base_kf : float
@@ -102,7 +104,10 @@ def multi_search(
     kp_bounds : (float, float)
         Kp range stable on every plant, (m/min)/mm.
     reserve : float
-        Share of the acceleration, jerk and following-error limits the search may use.
+        Share of the acceleration, jerk and following-error limits the search may use on
+        each plant, but never less than the baseline's own peak there (the baseline's plan,
+        where every window starts, stays feasible; below it the line search would rank
+        every step by its excess, not its cost).
 
     Returns
     -------
@@ -139,10 +144,14 @@ def multi_search(
     kf_lo = np.full(3, nominal.gains.kf_range[0])
     kf_hi = np.full(3, nominal.gains.kf_range[1])
     lim = nominal.axis_limits()
-    vmax = np.asarray(lim.vmax_m_s, dtype=np.float64)
-    amax = np.asarray(lim.amax_m_s2, dtype=np.float64) * reserve
-    jmax = np.asarray(lim.jmax_m_s3, dtype=np.float64) * reserve
-    ferror_max = nominal.ferror_limits() * reserve
+    limits = np.stack([np.asarray(lim.vmax_m_s, dtype=np.float64),
+                       np.asarray(lim.amax_m_s2, dtype=np.float64),
+                       np.asarray(lim.jmax_m_s3, dtype=np.float64), nominal.ferror_limits()])
+    share = np.array([1.0, reserve, reserve, reserve])[:, None]
+    # per plant (S, 3): limit x max(share, the baseline's peak ratio there)
+    vmax, amax, jmax, ferror_max = (np.ascontiguousarray(x) for x in np.stack([
+        limits * np.maximum(share, np.vstack([b.command_ratio.T, np.nan_to_num(b.ferror_ratio)]))
+        for b in baselines], axis=1))
     wlen, kspace = options.np_value, options.knot_value
     commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
     pad = wlen + defaults.MPC_SETTLE_TAIL + 1
@@ -156,8 +165,9 @@ def multi_search(
     n_s = len(plants)
     weights = np.empty(n_s)
     weights[0] = defaults.ROBUST_NOMINAL_WEIGHT if n_s > 1 else 1.0
+    base_mse = np.array([b.metrics.mse_m2 for b in baselines])
     weights[1:] = (1.0 - defaults.ROBUST_NOMINAL_WEIGHT) / max(n_s - 1, 1) * (
-        base_mse[0] / np.asarray(base_mse[1:]))
+        base_mse[0] / base_mse[1:])
     kp, kf = kp0.copy(), kf0.copy()
     kp_out, kf_out = np.empty((n, 3)), np.empty((n, 3))
     u_out = np.empty((n_s, n, 3))

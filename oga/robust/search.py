@@ -201,13 +201,12 @@ def robust_optimize(
         arr.flags.writeable = False
     kp_bounds = {a: (kp_lo, kp_hi) for a in moving}
     base_nominal = verify(setpoints, nominal, bkp, bkf, kp_bounds)
-    base_mse = np.array([v.metrics.mse_m2 for v in base_replays])
     active: list[int] = []  # plants of the set searched on besides the nominal one
     reserve, best = base_reserve, None
     for rounds in range(1, defaults.ROBUST_ROUNDS + 1):
         found = multi_search(setpoints, (nominal,) + tuple(scenarios.plants[i] for i in active),
-                             np.concatenate([[base_nominal.metrics.mse_m2], base_mse[active]]),
-                             options, kp0, kf0, (kp_lo, kp_hi), reserve)
+                             (base_nominal,) + tuple(base_replays[i] for i in active), options,
+                             kp0, kf0, (kp_lo, kp_hi), reserve)
         cert = certify(setpoints, machine, found.kp, found.kf, bkp, bkf, scenarios, bounds,
                        base_replays)
         only = cert.breaks("schedule-only")
