@@ -35,6 +35,13 @@ p90 / worst, limit breaks of the schedule, which the baseline keeps everywhere):
   plant entering mid-run does so in a state the plan never constrained, and its eq. 2
   rows push the line search into its feasibility classes. The set is refreshed between
   runs instead (the caller's rounds).
+
+Not solved: on freeform_xz (baseline Kp 1.5, Kf 0.9) the nominal plant alone gives ratio
+0.002 on it, the corner friction-lo mass-lo kv-hi tn-lo dead-lo alone 0.001 on it, but the
+two together 1.64 and 4.14 (Kf pulled down to 0.07, Kp to both bounds, 95 um peaks), for
+any corner weight from 1.2 down to 0.06 (fine at 0.0025), with or without the restoring
+iterations: the receding windows walk away from both plants' optimum. The caller drops a
+plant whose joining makes the median ratio much worse.
 """
 
 from __future__ import annotations
