@@ -289,13 +289,19 @@ def _shrunk(schedule, bkp, bkf, alpha):
 def _shrink(setpoints, machine, schedule, bkp, bkf, scenarios, bounds, cert, base_replays):
     """The schedule ``Kb + alpha (Ks - Kb)`` (``alpha`` one share for Kp, one for Kf, on
     :data:`oga.defaults.ROBUST_KP_ALPHAS` x :data:`oga.defaults.ROBUST_ALPHAS`), chosen on a
-    small scenario set: the plants where the full schedule does worst (refreshed with those
-    where the chosen one does worst on the whole set) and the first Monte Carlo plants (typical
-    ones). Of the shares whose worst ratio on the worst plants is within
+    small scenario set: the plants where the full schedule does worst or breaks a check the
+    baseline keeps (refreshed with those of the chosen share on the whole set) and the first
+    Monte Carlo plants (typical ones). Of the shares whose worst ratio on the worst plants is within
     :data:`oga.defaults.ROBUST_WORST_GOAL` (and break no check the baseline keeps), the one of
     least median ratio on the typical plants; if none, the one of least worst ratio. Then
-    certified on the whole set. Returns (alpha, certificate)."""
-    worst = [int(i) for i in np.argsort(cert.ratio)[::-1][:defaults.ROBUST_SUBSET]]
+    certified on the whole set; the first share that passes, else the one of least worst
+    ratio. Returns (alpha, certificate)."""
+
+    def hard(c):  # the plants of largest ratio and those where the schedule alone breaks
+        return ([int(i) for i in np.argsort(c.ratio)[::-1][:defaults.ROBUST_SUBSET]]
+                + [i for i, p in enumerate(c.plants) if p.schedule_only_break])
+
+    worst = hard(cert)
     typical = list(range(min(defaults.ROBUST_SUBSET, scenarios.n_monte_carlo)))
     best = ((1.0, 1.0), cert)
     for _ in range(defaults.ROBUST_ROUNDS):
@@ -314,12 +320,12 @@ def _shrink(setpoints, machine, schedule, bkp, bkf, scenarios, bounds, cert, bas
         alpha = min(trials)[2]
         full = certify(setpoints, machine, *_shrunk(schedule, bkp, bkf, alpha), bkp, bkf,
                        scenarios, bounds, base_replays)
-        if full.worst < best[1].worst or best[1].status != "ok":
+        if (full.status != "ok", full.worst) < (best[1].status != "ok", best[1].worst):
             best = (alpha, full)
         if full.status == "ok":
             break
-        more = [int(i) for i in np.argsort(full.ratio)[::-1][:defaults.ROBUST_SUBSET]]
+        more = hard(full)
         if set(more) <= set(worst):
             break
-        worst += more
+        worst = list(dict.fromkeys(worst + more))
     return best
