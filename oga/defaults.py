@@ -347,3 +347,6 @@ ROBUST_NOMINAL_WEIGHT = 0.5
 #: ROBUST_WORST_GOAL): the rounds stop there.
 ROBUST_MEDIAN_GOAL = 0.3
 ROBUST_P90_GOAL = 0.5
+#: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
+#: on each searched plant that its limits keep, whatever the reserve (oga.robust.multi).
+ROBUST_BASELINE_FLOOR = 0.85

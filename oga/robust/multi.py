@@ -112,9 +112,13 @@ def multi_search(
         Kp range stable on every plant, (m/min)/mm.
     reserve : float
         Share of the acceleration, jerk and following-error limits the search may use on
-        each plant, but never less than the baseline's own peak there (the baseline's plan,
-        where every window starts, stays feasible; below it the line search would rank
-        every step by its excess, not its cost).
+        each plant, but never less than :data:`oga.defaults.ROBUST_BASELINE_FLOOR` of the
+        baseline's own peak there (the baseline's plan, where every window starts, must stay
+        nearly feasible: further below, the line search ranks every step by its excess, not
+        its cost, and the search collapses; measured on freeform_xz, nominal plant and the
+        corner friction-lo mass-lo kv-hi tn-lo dead-hi, no floor: reserve 0.78: ratios
+        0.227 / 0.437 / 0.725 and 2 schedule-only breaks, 0.72 (0.88 of the baseline's jerk
+        peak on x): 0.228 / 0.440 / 0.721 and none, 0.66 (0.80 of it): 1.68 / 3.38 / 6.29).
 
     Returns
     -------
@@ -155,9 +159,11 @@ def multi_search(
                        np.asarray(lim.amax_m_s2, dtype=np.float64),
                        np.asarray(lim.jmax_m_s3, dtype=np.float64), nominal.ferror_limits()])
     share = np.array([1.0, reserve, reserve, reserve])[:, None]
-    # per plant (S, 3): limit x max(share, the baseline's peak ratio there)
+    # per plant (S, 3): limit x max(share, a share of the baseline's peak ratio there)
+    floor = defaults.ROBUST_BASELINE_FLOOR
     vmax, amax, jmax, ferror_max = (np.ascontiguousarray(x) for x in np.stack([
-        limits * np.maximum(share, np.vstack([b.command_ratio.T, np.nan_to_num(b.ferror_ratio)]))
+        limits * np.maximum(share, floor * np.vstack([b.command_ratio.T,
+                                                      np.nan_to_num(b.ferror_ratio)]))
         for b in baselines], axis=1))
     wlen, kspace = options.np_value, options.knot_value
     commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
