@@ -47,16 +47,18 @@ plant whose joining makes the median ratio much worse.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
+
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.contour import path_index
 from oga.machine import Machine
 from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_multi_chunk
 from oga.options import OptimizeOptions
-from oga.verify import Verification
 from oga.simulate import axis_params, rest_state
+from oga.verify import Verification
 
 __all__ = ["MultiSearch", "multi_search"]
 
@@ -64,8 +66,9 @@ __all__ = ["MultiSearch", "multi_search"]
 _CHUNK = 2000
 
 
+@dataclass(frozen=True, eq=False)
 class MultiSearch:
-    """What :func:`multi_search` found (plain data).
+    """What :func:`multi_search` found (the schedule is judged by its certificate, not here).
 
     Attributes
     ----------
@@ -77,10 +80,11 @@ class MultiSearch:
         Wall time of the search.
     """
 
-    def __init__(self, kp, kf, fallbacks, windows, time_s):
-        self.kp, self.kf = kp, kf
-        self.fallbacks, self.windows = fallbacks, windows
-        self.time_s = time_s
+    kp: np.ndarray
+    kf: np.ndarray
+    fallbacks: int
+    windows: int
+    time_s: float
 
 
 def multi_search(

@@ -13,13 +13,14 @@
    (:func:`oga.robust.multi.multi_search`): the first on the nominal plant alone, each
    next one on the nominal plant and the plants of the set where the previous schedule
    did worst (the set refreshed round by round, :data:`oga.defaults.ROBUST_ACTIVE` plants
-   at most, the oldest leaving), limits times the baseline's reserve, cut further (the
-   same rule) while the schedule breaks a limit on a plant where the baseline keeps it.
-   Each schedule is certified on the whole set (:func:`oga.robust.certificate.certify`);
-   the rounds stop at the first that breaks no such limit and meets the goals
-   (:data:`oga.defaults.ROBUST_MEDIAN_GOAL`, ``ROBUST_P90_GOAL``, ``ROBUST_WORST_GOAL``:
-   the issue's 0.3, 0.5, 0.9); else the best round is kept (no break first, then goals
-   met, then the least worst ratio).
+   at most, the oldest leaving; a plant whose joining doubled the median ratio leaves for
+   good), limits times the baseline's reserve, cut further (the same rule, floored on each
+   searched plant near the baseline's own peak there) while the schedule breaks a limit on
+   a plant where the baseline keeps it. Each schedule is certified on the whole set
+   (:func:`oga.robust.certificate.certify`); the rounds stop at the first that breaks no
+   such limit and meets the goals (:data:`oga.defaults.ROBUST_MEDIAN_GOAL`,
+   ``ROBUST_P90_GOAL``, ``ROBUST_WORST_GOAL``: the issue's 0.3, 0.5, 0.9); else the best
+   round is kept (goals met first, then the fewest such breaks, then the least worst ratio).
 4. **Shrink** (the prototype's safety net, used only when the kept schedule's worst
    ratio exceeds its goal or it breaks a limit the baseline keeps): ``K = Kb + alpha (Ks -
    Kb)``, one share for Kp, one for Kf, chosen on a small set of plants (:func:`_shrink`).
@@ -42,7 +43,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import OptionError
 from oga.machine import Machine, machine_from_dict
-from oga.optimize import GainSchedule, OptimizeResult, optimize
+from oga.optimize import GainSchedule, OptimizeResult
 from oga.ranges import best_fixed_gains
 from oga.options import OptimizeOptions, options_from_dict
 from oga.robust.certificate import Certificate, certify, plant_bounds
