@@ -69,6 +69,12 @@ Planning a whole window and committing a part of it costs a few window
 simulations per sample where re-planning every sample cost about fifty, and the
 iterations converge the plan where a single linearised step per sample could not.
 Every figure a user sees still comes from the replay in :mod:`oga.verify`.
+
+Several plants at once (:func:`mpc_multi_chunk`, the robust search's kernel,
+:mod:`oga.robust.multi`): every plant's true state is carried along the one plan; steps 1-2
+are made on every plant (the weighted Hessians and gradients summed), step 3 has every
+plant's limit rows, step 4 the weighted exact cost and the largest excess over the plants.
+:func:`mpc_chunk` is its one-plant case, with the arithmetic of the one-plant search.
 """
 
 from __future__ import annotations
@@ -462,7 +468,8 @@ def mpc_chunk(
     :func:`mpc_multi_chunk` with that plant alone (weight 1; the same arithmetic, so the
     same schedule bit for bit as before the scenario dimension existed); the arguments as
     there, ``params`` (3, P), ``states`` (3, Z), ``u_hist`` (3, 2) and ``u_out`` (N, 3)
-    without the plant axis (C-contiguous: they are viewed, not copied).
+    without the plant axis (C-contiguous: they are viewed, not copied), the limits
+    ``vmax``, ``amax``, ``jmax``, ``ferror_max`` (3,).
     """
     lims = np.empty((4, 1, 3))  # the limits as the one plant's
     for a in range(3):
@@ -521,7 +528,7 @@ def mpc_multi_chunk(
     those where eq. 2 and the following-error limit apply: every sample of the program,
     rapids included, as in :mod:`oga.verify` (not the padding); ``stop`` is
     :data:`oga.defaults.MPC_STOP`,
-    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (3,) the machine's
+    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (S, 3) each plant's
     following-error limit per axis (m, ``inf``: none), kept at the window's live samples
     like eq. 2 (linearised rows, then the exact check of the line search); ``restore``
     is :data:`oga.defaults.MPC_RESTORE`; ``tail`` the samples a window whose adjusted
