@@ -11,10 +11,15 @@ median / p90 / worst, the plants where the schedule, the baseline, and the sched
 break a check (eq. 2, the following-error limit, the plant's stable Kp range), and the
 largest contour error of both over the set. RT = motion time / CPU time (one thread,
 after a warm-up) of the nominal ``optimize``, and of the certificate.
-Then the robust search prototype (:func:`oga.robust.search.robust_optimize`): its certificate
-against the robust baseline, and the price on the nominal plant: MSE(CE) of the robust
-table over that of the nominal best fixed gains (the "nominal" column's denominator), with
-its RT (search, shrink and certificate included).
+Then the robust search (:func:`oga.robust.search.robust_optimize`: rounds of the
+multi-scenario window search on the nominal plant and the plants where the last schedule did
+worst): its certificate against the robust baseline, and the price on the nominal plant:
+MSE(CE) of the robust table over that of the nominal best fixed gains (the "nominal"
+column's denominator; the nominal schedule's own figure is that column), with its RT (the
+set's stable ranges, the baseline, every round's search and certificate, the shrink
+included: the whole robust optimize). The tail gives the rounds, the shares kept
+(``alpha``, 1: no shrink), the baseline, the limit reserve and the plants searched on
+besides the nominal one.
 
 Programs: reference_xz, freeform_xz, helix_r20, circle_r50_f3000 and cncjs_toolpath (MIT,
 tests/data), and LinuxCNC's arcspiral (GPL: read from ../shared/toolpaths/external, never
@@ -114,8 +119,9 @@ def main(argv: list[str] | None = None) -> int:
                        res.kp_bounds).metrics.mse_m2 / res.baseline.metrics.mse_m2
         a = "xyz"[sp.moving_axes[0]]
         _row("  robust", f"{'':8s}", price, rob.certificate, sp.duration / (t1 - t0), f"{'':7s}",
-             f"{rob.status} alpha {rob.alpha} base Kp {rob.result.baseline_kp[a]} "
-             f"Kf {rob.result.baseline_kf[a]} reserve {rob.reserve:.3f}")
+             f"{rob.status} rounds {rob.rounds} alpha {rob.alpha} base Kp "
+             f"{rob.result.baseline_kp[a]} Kf {rob.result.baseline_kf[a]} reserve "
+             f"{rob.reserve:.3f} on {', '.join(x.removeprefix('corner ') for x in rob.active)}")
     return 0
 
 

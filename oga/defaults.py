@@ -339,3 +339,17 @@ ROBUST_SUBSET = 8
 #: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
 #: be chosen by its median ratio on the typical ones.
 ROBUST_WORST_GOAL = 0.9
+
+# robust search -------------------------------------------------------------------------------
+#: Multi-scenario search (:mod:`oga.robust.multi`): plants searched at once at most (the
+#: nominal one included; the plants where the schedule did worst join it round by round).
+ROBUST_ACTIVE = 4
+#: Weight of the nominal plant in the window cost (the worst active plants share the rest).
+ROBUST_NOMINAL_WEIGHT = 0.5
+#: The certificate's median and 90th percentile of the MSE ratio a round aims for (with
+#: ROBUST_WORST_GOAL): the rounds stop there.
+ROBUST_MEDIAN_GOAL = 0.3
+ROBUST_P90_GOAL = 0.5
+#: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
+#: on each searched plant that its limits keep, whatever the reserve (oga.robust.multi).
+ROBUST_BASELINE_FLOOR = 0.85

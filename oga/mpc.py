@@ -69,6 +69,12 @@ Planning a whole window and committing a part of it costs a few window
 simulations per sample where re-planning every sample cost about fifty, and the
 iterations converge the plan where a single linearised step per sample could not.
 Every figure a user sees still comes from the replay in :mod:`oga.verify`.
+
+Several plants at once (:func:`mpc_multi_chunk`, the robust search's kernel,
+:mod:`oga.robust.multi`): every plant's true state is carried along the one plan; steps 1-2
+are made on every plant (the weighted Hessians and gradients summed), step 3 has every
+plant's limit rows, step 4 the weighted exact cost and the largest excess over the plants.
+:func:`mpc_chunk` is its one-plant case, with the arithmetic of the one-plant search.
 """
 
 from __future__ import annotations
@@ -83,7 +89,7 @@ from oga.search import apply_gains
 from oga.simulate import run
 from oga.tangent import run_tangent
 
-__all__ = ["mpc_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
+__all__ = ["mpc_chunk", "mpc_multi_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
 
 STAT_FALLBACK = 0  # iterations where no step kept eq. 2 on the samples to be committed
 STAT_WINDOWS = 1  # window simulations
@@ -395,13 +401,112 @@ def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
 
 
 @njit(cache=True)
+def _eq2_rows(m, s, k, wk, moving, var_lo, var_hi, vmax, amax, jmax, te, live, u0, su, u_hist,
+              trust, amat, alo, ahi, col0, col1):
+    """Linearised eq. 2 rows (v, a, j at every live window sample) of plant ``s`` (its limits
+    ``vmax[s]`` ...), from row ``m`` (kept where the trust region can reach a bound); returns the next free row."""
+    for a in range(3):
+        if not moving[a] or var_lo[a] == var_hi[a]:
+            continue
+        lims = (_LIN_MARGIN * vmax[s, a], _LIN_MARGIN * amax[s, a] * te,
+                _LIN_MARGIN * jmax[s, a] * te * te)
+        for r in range(3):
+            for i in range(wk):
+                if not live[k + i]:  # eq. 2 on every sample of the program
+                    continue
+                nominal = u0[s, a, i]
+                if r >= 1:
+                    nominal -= (1.0 if r == 1 else 2.0) * (u0[s, a, i - 1] if i >= 1 else u_hist[s, a, 0])
+                if r == 2:
+                    nominal += u0[s, a, i - 2] if i >= 2 else u_hist[s, a, 1 - i]
+                scale = 1.0 / lims[r]
+                reach = 0.0
+                for v in range(var_lo[a], var_hi[a]):
+                    cv = su[s, i, v]
+                    if r >= 1 and i >= 1:
+                        cv -= (1.0 if r == 1 else 2.0) * su[s, i - 1, v]
+                    if r == 2 and i >= 2:
+                        cv += su[s, i - 2, v]
+                    amat[m, v] = cv * scale
+                    reach += abs(cv * scale) * trust[v]
+                m = _keep_row(m, -1.0 - nominal * scale, 1.0 - nominal * scale, reach,
+                              var_lo[a], var_hi[a], alo, ahi, col0, col1)
+    return m
+
+
+@njit(cache=True)
+def _ferror_rows(m, s, k, wk, moving, var_lo, var_hi, ferror_max, live, pdT, p0, sp, trust, amat,
+                 alo, ahi, col0, col1):
+    """Linearised following-error rows ``|pd - p0 - S d| <= margin * limit`` of plant ``s``
+    (axes with a limit, live samples), from row ``m``; returns the next free row."""
+    for a in range(3):
+        if not moving[a] or var_lo[a] == var_hi[a] or not np.isfinite(ferror_max[s, a]):
+            continue
+        scale = 1.0 / ferror_max[s, a]
+        for i in range(wk):
+            if not live[k + i]:
+                continue
+            nominal = (pdT[a, k + i] - p0[s, a, i]) * scale
+            reach = 0.0
+            for v in range(var_lo[a], var_hi[a]):
+                amat[m, v] = sp[s, i, v] * scale
+                reach += abs(sp[s, i, v] * scale) * trust[v]
+            m = _keep_row(m, nominal - _LIN_MARGIN, nominal + _LIN_MARGIN, reach,
+                          var_lo[a], var_hi[a], alo, ahi, col0, col1)
+    return m
+
+
+@njit(cache=True)
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
     lam, anchor, tree, win_lo, win_hi, moving, feed, live, points, kp_out, kf_out, u_out, stats,
     stop, settled, ferror_max, restore, tail,
 ):
-    """Run the windowed full-mode search over samples k0 .. k1-1 in place.
+    """Run the windowed full-mode search over samples k0 .. k1-1 in place, on one plant.
+
+    :func:`mpc_multi_chunk` with that plant alone (weight 1; the same arithmetic, so the
+    same schedule bit for bit as before the scenario dimension existed); the arguments as
+    there, ``params`` (3, P), ``states`` (3, Z), ``u_hist`` (3, 2) and ``u_out`` (N, 3)
+    without the plant axis (C-contiguous: they are viewed, not copied), the limits
+    ``vmax``, ``amax``, ``jmax``, ``ferror_max`` (3,).
+    """
+    lims = np.empty((4, 1, 3))  # the limits as the one plant's
+    for a in range(3):
+        lims[0, 0, a] = vmax[a]
+        lims[1, 0, a] = amax[a]
+        lims[2, 0, a] = jmax[a]
+        lims[3, 0, a] = ferror_max[a]
+    mpc_multi_chunk(
+        k0, k1, pd, pdT, vdT, params.reshape((1,) + params.shape),
+        states.reshape((1,) + states.shape), kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
+        kp_base, kf_base, lims[0], lims[1], lims[2], te, u_hist.reshape((1,) + u_hist.shape), w,
+        kspace, commit, iters, trust_kp, trust_kf, lam, anchor, tree, win_lo, win_hi, moving,
+        feed, live, points, kp_out, kf_out, u_out.reshape((1,) + u_out.shape), stats, stop,
+        settled, lims[3], restore, tail, np.ones(1),
+    )
+
+
+@njit(cache=True)
+def mpc_multi_chunk(
+    k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
+    kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
+    lam, anchor, tree, win_lo, win_hi, moving, feed, live, points, kp_out, kf_out, u_out, stats,
+    stop, settled, ferror_max, restore, tail, weights,
+):
+    """Run the windowed full-mode search over samples k0 .. k1-1 in place, on S plants at once.
+
+    One gain plan is searched for S scenario plants of the same axes (the schedule is
+    open-loop: every plant runs the same table). ``params`` (S, 3, P), ``states`` (S, 3, Z),
+    ``u_hist`` (S, 3, 2) and ``u_out`` (S, N, 3) hold each plant's packed parameters, true
+    states, command history and commands; ``kp_out``, ``kf_out`` (N, 3) the one schedule.
+    The window's cost is the ``weights`` (S,) weighted sum of the plants' squared contour
+    errors (linearised on each plant around its own prediction, the Hessian and gradient
+    summed), the smoothness and anchor terms once; eq. 2 and the following-error limit are
+    constraint rows per plant and, in the line search, the largest excess over the plants,
+    with each plant's own limits: ``vmax``, ``amax``, ``jmax``, ``ferror_max`` (S, 3);
+    an axis is idle when it is on every plant. The gain bounds are the caller's (the range
+    stable on every plant).
 
     ``k1 - k0`` must be a multiple of ``commit`` unless ``k1`` is the program's end
     (ValueError otherwise): the plan carried to the next call is shifted by whole
@@ -423,13 +528,14 @@ def mpc_chunk(
     those where eq. 2 and the following-error limit apply: every sample of the program,
     rapids included, as in :mod:`oga.verify` (not the padding); ``stop`` is
     :data:`oga.defaults.MPC_STOP`,
-    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (3,) the machine's
+    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (S, 3) each plant's
     following-error limit per axis (m, ``inf``: none), kept at the window's live samples
     like eq. 2 (linearised rows, then the exact check of the line search); ``restore``
     is :data:`oga.defaults.MPC_RESTORE`; ``tail`` the samples a window whose adjusted
     axis comes to rest inside it looks further (:data:`oga.defaults.MPC_SETTLE_TAIL`,
     0: none).
     """
+    n_s = params.shape[0]
     if (k1 - k0) % commit != 0 and k1 < pd.shape[0]:
         # a call ending inside a commit would carry the plan shifted by part of an interval
         raise ValueError("mpc_chunk: k1 - k0 must be a multiple of commit, except at the end")
@@ -479,19 +585,19 @@ def mpc_chunk(
     mq = np.empty((3, wmax))
     spp_buf = np.empty(wmax * nv)  # sp's columns weighted by P's entries for one row axis
     proj = np.empty((3, 3, wmax))  # P = I - t t' per window sample
-    p0 = np.empty((3, wmax))
-    u0 = np.empty((3, wmax))
-    sp = np.zeros((wmax, nv))  # d p0 / d point, m per unit, per window sample and variable
-    su = np.zeros((wmax, nv))  # d u0 / d point, m/s per unit
+    p0 = np.empty((n_s, 3, wmax))
+    u0 = np.empty((n_s, 3, wmax))
+    sp = np.zeros((n_s, wmax, nv))  # d p0 / d point, m per unit, per plant, window sample, variable
+    su = np.zeros((n_s, wmax, nv))  # d u0 / d point, m/s per unit
     kpa = np.empty(wmax)
     kfa = np.empty(wmax)
-    scratch = np.empty(states.shape[1])
+    scratch = np.empty(states.shape[2])
     tmp_u = np.empty(wmax)
     dq = np.empty((wmax, 3))
     tang = np.empty((wmax, 3))
     pmat = np.empty((nv, nv))
     qvec = np.empty(nv)
-    max_rows = nv + 4 * 3 * wmax  # bounds, eq. 2 (v, a, j) and following error per sample
+    max_rows = nv + 4 * 3 * wmax * n_s  # bounds; eq. 2 (v, a, j), following error per sample, plant
     amat = np.zeros((max_rows, nv))
     alo = np.empty(max_rows)
     ahi = np.empty(max_rows)
@@ -499,14 +605,15 @@ def mpc_chunk(
     col1 = np.empty(max_rows, dtype=np.int64)
     x = np.zeros(nv)
     trust = np.empty(nv)
-    trial = np.empty((3, wmax))
+    trial = np.empty((n_s, 3, wmax))
     plan_kp = np.empty((3, wmax))
     plan_kf = np.empty((3, wmax))
     trial_points = points.copy()
     nominal_points = np.empty_like(points)  # per axis, the plan of its nominal p0, u0
-    for a in range(3):
-        if not moving[a]:
-            trial[a, :] = states[a, 0]
+    for s in range(n_s):
+        for a in range(3):
+            if not moving[a]:
+                trial[s, a, :] = states[s, a, 0]
     idle = np.ones(3, dtype=np.bool_)
     k = k0
     while k < k1:
@@ -520,8 +627,12 @@ def mpc_chunk(
                         wk = wmax
                         break
         for a in range(3):
-            # idle: its setpoint stands over the window and the axis has settled on it
-            idle[a] = abs(states[a, 0] - pdT[a, k]) <= settled
+            # idle: its setpoint stands over the window and the axis has settled on it (on
+            # every plant)
+            idle[a] = True
+            for s in range(n_s):
+                if abs(states[s, a, 0] - pdT[a, k]) > settled:
+                    idle[a] = False
             if moving[a]:
                 for i in range(wk):
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
@@ -535,73 +646,86 @@ def mpc_chunk(
             #    with respect to every free control point of the axis (forward mode)
             for a in range(3):
                 if not moving[a]:
-                    for i in range(wk):
-                        p0[a, i] = states[a, 0]
-                        u0[a, i] = 0.0
+                    for s in range(n_s):
+                        for i in range(wk):
+                            p0[s, a, i] = states[s, a, 0]
+                            u0[s, a, i] = 0.0
                     continue
                 if _same_plan(points, nominal_points, a):
                     continue  # p0, u0 and the axis's columns of sp, su still hold
                 nominal_points[a] = points[a]
-                stats[STAT_WINDOWS] += 1
                 lo_v, hi_v = var_lo[a], var_hi[a]
-                if idle[a] or lo_v == hi_v:
-                    _sim_plan(states, params, pdT, vdT, k, wk, points, a, kspace, kpa, kfa, p0[a],
-                              u0[a], scratch)
-                    sp[:, lo_v:hi_v] = 0.0
-                    su[:, lo_v:hi_v] = 0.0
-                    continue
-                _plan_gains(points, a, wk, kspace, kpa, kfa)
-                scratch[:] = states[a]
-                run_tangent(scratch, params[a], pdT[a, k:k + wk], vdT[a, k:k + wk], kpa, kfa,
-                            dir_kp[:, lo_v:hi_v], dir_kf[:, lo_v:hi_v], var_start[lo_v:hi_v],
-                            p0[a], u0[a], sp[:, lo_v:hi_v], su[:, lo_v:hi_v])
-            # 2: linearised contour error around the nominal prediction
-            j = -1
+                for s in range(n_s):
+                    stats[STAT_WINDOWS] += 1
+                    if idle[a] or lo_v == hi_v:
+                        _sim_plan(states[s], params[s], pdT, vdT, k, wk, points, a, kspace, kpa,
+                                  kfa, p0[s, a], u0[s, a], scratch)
+                        sp[s, :, lo_v:hi_v] = 0.0
+                        su[s, :, lo_v:hi_v] = 0.0
+                        continue
+                    _plan_gains(points, a, wk, kspace, kpa, kfa)
+                    scratch[:] = states[s, a]
+                    run_tangent(scratch, params[s, a], pdT[a, k:k + wk], vdT[a, k:k + wk], kpa,
+                                kfa, dir_kp[:, lo_v:hi_v], dir_kf[:, lo_v:hi_v],
+                                var_start[lo_v:hi_v], p0[s, a], u0[s, a], sp[s, :, lo_v:hi_v],
+                                su[s, :, lo_v:hi_v])
+            # 2: linearised contour error around each plant's nominal prediction, weighted
             nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
-            for i in range(wk):
-                if not feed[k + i]:  # weight 0, as in the metric
-                    for a in range(3):
-                        dq[i, a] = 0.0
-                        tang[i, a] = 0.0
-                    continue
-                c = k + i  # a feed sample: inside the program
-                j, t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, p0[0, i], p0[1, i],
-                                      p0[2, i], j)
-                if j < 0:
-                    for a in range(3):
-                        dq[i, a] = p0[a, i] - pd[c, a]
-                        tang[i, a] = 0.0
-                        nominal_d2 += dq[i, a] ** 2
-                    continue
-                nominal_d2 += d2
-                sx = pd[j + 1, 0] - pd[j, 0]
-                sy = pd[j + 1, 1] - pd[j, 1]
-                sz = pd[j + 1, 2] - pd[j, 2]
-                inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
-                tang[i, 0], tang[i, 1], tang[i, 2] = sx * inv, sy * inv, sz * inv
-                dq[i, 0] = p0[0, i] - (pd[j, 0] + t * sx)
-                dq[i, 1] = p0[1, i] - (pd[j, 1] + t * sy)
-                dq[i, 2] = p0[2, i] - (pd[j, 2] + t * sz)
-            # cost |P (dq + S d)|^2 with P = I - t t' per sample: Hessian 2 S' P S and gradient
-            # 2 S' P dq, one small matrix product per axis's block of rows
-            for a in range(3):
-                for b in range(3):
+            for s in range(n_s):
+                p0s = p0[s]
+                sps = sp[s]
+                wt = weights[s]
+                j = -1
+                d2_s = 0.0
+                for i in range(wk):
+                    if not feed[k + i]:  # weight 0, as in the metric
+                        for a in range(3):
+                            dq[i, a] = 0.0
+                            tang[i, a] = 0.0
+                        continue
+                    c = k + i  # a feed sample: inside the program
+                    j, t, d2 = nearest_at(pd, tree, win_lo[c], win_hi[c], c, p0s[0, i], p0s[1, i],
+                                          p0s[2, i], j)
+                    if j < 0:
+                        for a in range(3):
+                            dq[i, a] = p0s[a, i] - pd[c, a]
+                            tang[i, a] = 0.0
+                            d2_s += dq[i, a] ** 2
+                        continue
+                    d2_s += d2
+                    sx = pd[j + 1, 0] - pd[j, 0]
+                    sy = pd[j + 1, 1] - pd[j, 1]
+                    sz = pd[j + 1, 2] - pd[j, 2]
+                    inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
+                    tang[i, 0], tang[i, 1], tang[i, 2] = sx * inv, sy * inv, sz * inv
+                    dq[i, 0] = p0s[0, i] - (pd[j, 0] + t * sx)
+                    dq[i, 1] = p0s[1, i] - (pd[j, 1] + t * sy)
+                    dq[i, 2] = p0s[2, i] - (pd[j, 2] + t * sz)
+                # cost |P (dq + S d)|^2 with P = I - t t' per sample: Hessian 2 S' P S and gradient
+                # 2 S' P dq, one small matrix product per axis's block of rows
+                for a in range(3):
+                    for b in range(3):
+                        for i in range(wk):
+                            eye = 1.0 if a == b and feed[k + i] else 0.0
+                            proj[a, b, i] = eye - tang[i, a] * tang[i, b]
                     for i in range(wk):
-                        eye = 1.0 if a == b and feed[k + i] else 0.0
-                        proj[a, b, i] = eye - tang[i, a] * tang[i, b]
-                for i in range(wk):
-                    mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
-            for a in range(3):  # axis a's rows, from its own columns on: S_a' (P_a. o S_b)
-                lo_v, hi_v = var_lo[a], var_hi[a]
-                if lo_v == hi_v:
-                    continue
-                spp = spp_buf[:wk * (nv - lo_v)].reshape((wk, nv - lo_v))
-                for i in range(wk):
-                    for u_ in range(lo_v, nv):
-                        spp[i, u_ - lo_v] = sp[i, u_] * proj[a, var_axis[u_], i]
-                s_a = np.ascontiguousarray(sp[:wk, lo_v:hi_v].T)
-                pmat[lo_v:hi_v, lo_v:] = np.dot(s_a, spp)
-                qvec[lo_v:hi_v] = np.dot(s_a, mq[a, :wk])
+                        mq[a, i] = proj[a, 0, i] * dq[i, 0] + proj[a, 1, i] * dq[i, 1] + proj[a, 2, i] * dq[i, 2]
+                for a in range(3):  # axis a's rows, from its own columns on: S_a' (P_a. o S_b)
+                    lo_v, hi_v = var_lo[a], var_hi[a]
+                    if lo_v == hi_v:
+                        continue
+                    spp = spp_buf[:wk * (nv - lo_v)].reshape((wk, nv - lo_v))
+                    for i in range(wk):
+                        for u_ in range(lo_v, nv):
+                            spp[i, u_ - lo_v] = sps[i, u_] * proj[a, var_axis[u_], i]
+                    s_a = np.ascontiguousarray(sps[:wk, lo_v:hi_v].T)
+                    if s == 0:
+                        pmat[lo_v:hi_v, lo_v:] = wt * np.dot(s_a, spp)
+                        qvec[lo_v:hi_v] = wt * np.dot(s_a, mq[a, :wk])
+                    else:
+                        pmat[lo_v:hi_v, lo_v:] += wt * np.dot(s_a, spp)
+                        qvec[lo_v:hi_v] += wt * np.dot(s_a, mq[a, :wk])
+                nominal_d2 += wt * d2_s
             for v in range(nv):
                 qvec[v] *= 2.0 * _M2_TO_UM2
                 for u_ in range(v, nv):
@@ -642,46 +766,12 @@ def mpc_chunk(
                 col1[m] = v + 1
                 trust[v] = tr
                 m += 1
-            for a in range(3):
-                if not moving[a] or var_lo[a] == var_hi[a]:
-                    continue
-                lims = (_LIN_MARGIN * vmax[a], _LIN_MARGIN * amax[a] * te,
-                        _LIN_MARGIN * jmax[a] * te * te)
-                for r in range(3):
-                    for i in range(wk):
-                        if not live[k + i]:  # eq. 2 on every sample of the program
-                            continue
-                        nominal = u0[a, i]
-                        if r >= 1:
-                            nominal -= (1.0 if r == 1 else 2.0) * (u0[a, i - 1] if i >= 1 else u_hist[a, 0])
-                        if r == 2:
-                            nominal += u0[a, i - 2] if i >= 2 else u_hist[a, 1 - i]
-                        scale = 1.0 / lims[r]
-                        reach = 0.0
-                        for v in range(var_lo[a], var_hi[a]):
-                            cv = su[i, v]
-                            if r >= 1 and i >= 1:
-                                cv -= (1.0 if r == 1 else 2.0) * su[i - 1, v]
-                            if r == 2 and i >= 2:
-                                cv += su[i - 2, v]
-                            amat[m, v] = cv * scale
-                            reach += abs(cv * scale) * trust[v]
-                        m = _keep_row(m, -1.0 - nominal * scale, 1.0 - nominal * scale, reach,
-                                      var_lo[a], var_hi[a], alo, ahi, col0, col1)
-            for a in range(3):  # following error |pd - p0 - S d| <= margin * limit
-                if not moving[a] or var_lo[a] == var_hi[a] or not np.isfinite(ferror_max[a]):
-                    continue
-                scale = 1.0 / ferror_max[a]
-                for i in range(wk):
-                    if not live[k + i]:
-                        continue
-                    nominal = (pdT[a, k + i] - p0[a, i]) * scale
-                    reach = 0.0
-                    for v in range(var_lo[a], var_hi[a]):
-                        amat[m, v] = sp[i, v] * scale
-                        reach += abs(sp[i, v] * scale) * trust[v]
-                    m = _keep_row(m, nominal - _LIN_MARGIN, nominal + _LIN_MARGIN, reach,
-                                  var_lo[a], var_hi[a], alo, ahi, col0, col1)
+            for s in range(n_s):
+                m = _eq2_rows(m, s, k, wk, moving, var_lo, var_hi, vmax, amax, jmax, te, live,
+                              u0, su, u_hist, trust, amat, alo, ahi, col0, col1)
+            for s in range(n_s):  # following error |pd - p0 - S d| <= margin * limit
+                m = _ferror_rows(m, s, k, wk, moving, var_lo, var_hi, ferror_max, live, pdT, p0,
+                                 sp, trust, amat, alo, ahi, col0, col1)
             for v in range(nv):
                 x[v] = 0.0
             if not _qp_active_set(pmat, qvec, amat, alo, ahi, m, col0, col1, x):
@@ -707,39 +797,43 @@ def mpc_chunk(
                 worst = 0.0  # over the window
                 worst_n = 0.0  # over this commit and the next
                 worst_c = 0.0  # over the samples to be committed
-                for a in range(3):
-                    if not moving[a]:
-                        continue
-                    if scale == 0.0:  # the plan itself: its nominal prediction
-                        tmp_u[:] = u0[a]
-                    elif _same_plan(trial_points, points, a):  # the step leaves the axis as is
-                        trial[a, :wk] = p0[a, :wk]
-                        tmp_u[:wk] = u0[a, :wk]
-                    else:
-                        _sim_plan(states, params, pdT, vdT, k, wk, trial_points, a, kspace, kpa,
-                                  kfa, trial[a], tmp_u, scratch)
-                        stats[STAT_WINDOWS] += 1
-                    fk = live[k:k + wk]
-                    worst = max(worst, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
-                                                   amax[a], jmax[a], te, wk, fk))
-                    worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
-                                                       amax[a], jmax[a], te, n_next, fk))
-                    worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[a, 0], u_hist[a, 1], vmax[a],
-                                                       amax[a], jmax[a], te, n_commit, fk))
-                    if np.isfinite(ferror_max[a]):  # the following-error limit, as an excess
-                        pos = p0[a] if scale == 0.0 else trial[a]
-                        for i in range(wk):
-                            ex = abs(pdT[a, k + i] - pos[i]) / ferror_max[a] - 1.0
-                            if fk[i] and ex > 0.0:
-                                worst = max(worst, ex)
-                                if i < n_next:
-                                    worst_n = max(worst_n, ex)
-                                if i < n_commit:
-                                    worst_c = max(worst_c, ex)
+                for s in range(n_s):  # every plant: the largest excess
+                    for a in range(3):
+                        if not moving[a]:
+                            continue
+                        if scale == 0.0:  # the plan itself: its nominal prediction
+                            tmp_u[:] = u0[s, a]
+                        elif _same_plan(trial_points, points, a):  # the step leaves the axis as is
+                            trial[s, a, :wk] = p0[s, a, :wk]
+                            tmp_u[:wk] = u0[s, a, :wk]
+                        else:
+                            _sim_plan(states[s], params[s], pdT, vdT, k, wk, trial_points, a, kspace,
+                                      kpa, kfa, trial[s, a], tmp_u, scratch)
+                            stats[STAT_WINDOWS] += 1
+                        fk = live[k:k + wk]
+                        worst = max(worst, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[s, a],
+                                                       amax[s, a], jmax[s, a], te, wk, fk))
+                        worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[s, a],
+                                                           amax[s, a], jmax[s, a], te, n_next, fk))
+                        worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], vmax[s, a],
+                                                           amax[s, a], jmax[s, a], te, n_commit, fk))
+                        if np.isfinite(ferror_max[s, a]):  # the following-error limit, as an excess
+                            pos = p0[s, a] if scale == 0.0 else trial[s, a]
+                            for i in range(wk):
+                                ex = abs(pdT[a, k + i] - pos[i]) / ferror_max[s, a] - 1.0
+                                if fk[i] and ex > 0.0:
+                                    worst = max(worst, ex)
+                                    if i < n_next:
+                                        worst_n = max(worst_n, ex)
+                                    if i < n_commit:
+                                        worst_c = max(worst_c, ex)
                 if scale == 0.0:
                     cost = nominal_d2 * _M2_TO_UM2
                 else:
-                    cost = _window_cost(pd, tree, win_lo, win_hi, k, wk, trial, feed)
+                    cost = 0.0
+                    for s in range(n_s):
+                        cost += weights[s] * _window_cost(pd, tree, win_lo, win_hi, k, wk,
+                                                          trial[s], feed)
                 for a in range(3):
                     if moving[a]:
                         for jk in range(2, nk + 2):
@@ -787,7 +881,9 @@ def mpc_chunk(
                 if moving[a]:
                     kp[a] = plan_kp[a, i]
                     kf[a] = plan_kf[a, i]
-            apply_gains(k + i, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hist)
+            for s in range(n_s):
+                apply_gains(k + i, states[s], params[s], pdT, vdT, kp, kf, kp_out, kf_out,
+                            u_out[s], u_hist[s])
         # the rest of the plan, shifted by the committed samples, starts the next window
         sh = stride // kspace
         trial_points[:] = points

@@ -168,7 +168,8 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
     """
     key = (machine.digest(), axis, lifted)
     if key not in _PARAMS:
-        if len(_PARAMS) >= 64:  # a server sees many machines: keep the memo small
+        if len(_PARAMS) >= 1024:  # a server sees many machines: keep the memo small (a robust
+            # certificate alone asks for 3 axes of ~100 plants; an entry is ~0.5 kB)
             _PARAMS.clear()
         _PARAMS[key] = _pack(machine, axis, lifted)
     return _PARAMS[key].copy()

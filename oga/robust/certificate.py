@@ -168,6 +168,7 @@ def certify(
     baseline_kf: np.ndarray,
     scenarios: ScenarioSet | None = None,
     bounds: tuple[dict[str, tuple[float, float]], ...] | None = None,
+    baseline_replays: tuple[Verification, ...] | None = None,
 ) -> Certificate:
     """Replay a schedule and the fixed baseline on every plant of ``machine``'s set.
 
@@ -186,6 +187,9 @@ def certify(
         seed and corners).
     bounds : tuple of dict, optional
         :func:`plant_bounds` of ``scenarios`` over the moving axes (computed when omitted).
+    baseline_replays : tuple of Verification, optional
+        The baseline's replays on ``scenarios`` (one per plant, with ``bounds``), when
+        already made: a search certifying several tables against one baseline replays it once.
 
     Returns
     -------
@@ -197,12 +201,13 @@ def certify(
     if bounds is None:
         bounds = plant_bounds(scenarios, moving)
     replays = []
-    for label, plant, bnd in zip(scenarios.labels, scenarios.plants, bounds):
+    for i, (label, plant, bnd) in enumerate(zip(scenarios.labels, scenarios.plants, bounds)):
         replays.append(PlantReplay(
             label=label,
             kp_bounds=bnd,
             schedule=verify(setpoints, plant, kp_m_min_per_mm, kf, bnd),
-            baseline=verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bnd),
+            baseline=(verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bnd)
+                      if baseline_replays is None else baseline_replays[i]),
         ))
     ratio = np.array([p.ratio for p in replays])
     reasons = []
