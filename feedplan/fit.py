@@ -29,11 +29,14 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
-from feedplan.check import point_segment_distance
+from feedplan.blend import corner_blend
+from feedplan.check import point_segment_distance, segment_table
 from feedplan.path import PLANES, Arc, Line, Path
 
 __all__ = [
     "CORNER_ANGLE_RAD",
+    "BLEND_MIN_TURN_RAD",
+    "BLEND_MAX_TURN_RAD",
     "MICRO_SEGMENT_M",
     "MICRO_RUN_MIN",
     "FIT_KNOT_SPACING_M",
@@ -52,6 +55,10 @@ MICRO_SEGMENT_M = 1e-3
 MICRO_RUN_MIN = 4
 #: Largest knot spacing of a micro-segment fit before refinement, metres.
 FIT_KNOT_SPACING_M = 0.5e-3
+#: Corners turning more than this are blended (G64); smaller kinks are passed as kinks.
+BLEND_MIN_TURN_RAD = 1e-3
+#: Corners turning more than this are exact stops whatever the path control (a reversal).
+BLEND_MAX_TURN_RAD = 0.95 * np.pi
 #: Largest number of knot refinements of one fit.
 _FIT_ROUNDS = 12
 
@@ -77,8 +84,10 @@ class Curve:
         Arc end correction per metre of ``u`` (the programmed end minus the
         exact circle end, spread linearly; below the reader's arc tolerance).
     splines : tuple of scipy.interpolate.BSpline
-        Cubic splines of the pieces of kind 2 (``org[p, 0]`` indexes them);
-        their parameter starts at 0.
+        Splines of the pieces of kind 2 (``org[p, 0]`` indexes them): cubic fits of
+        micro-segments, quintic corner blends; their parameter starts at 0.
+    dev : ndarray, shape (P,)
+        Largest distance of each piece from the programmed moves, m (0 for lines and arcs).
     """
 
     u0: np.ndarray
@@ -91,6 +100,7 @@ class Curve:
     w: np.ndarray
     corr: np.ndarray
     splines: tuple
+    dev: np.ndarray
 
     @property
     def length(self) -> float:
@@ -329,14 +339,24 @@ def _turn(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class _CurveBuilder:
+    """Pieces of one curve (rows of :class:`Curve`'s columns, then its deviation), and the
+    programmed moves along it: their indices, where each starts (u, m), the fits' deviation."""
+
     def __init__(self) -> None:
-        self.rows: list[tuple] = []
+        self.rows: list[list] = []
         self.splines: list[BSpline] = []
+        self.seg_ids: list[int] = []
+        self.seg_u: list[float] = [0.0]
+        self.fit_dev = 0.0
+
+    @property
+    def length(self) -> float:
+        return float(sum(r[0] for r in self.rows))
 
     def line(self, a: np.ndarray, b: np.ndarray) -> None:
         L = float(np.linalg.norm(b - a))
         z = np.zeros(3)
-        self.rows.append((L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z))
+        self.rows.append([L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z, 0.0])
 
     def arc(self, seg: Arc) -> None:
         i, j, n = PLANES[seg.plane]
@@ -346,13 +366,48 @@ class _CurveBuilder:
         center = seg.center.copy()
         exact_end = seg.point(1.0)
         corr = (seg.end - exact_end) / L
-        self.rows.append((L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr))
+        self.rows.append([L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr,
+                          0.0])
 
-    def spline(self, spl: BSpline, L: float) -> None:
+    def spline(self, spl: BSpline, L: float, dev: float) -> None:
         z = np.zeros(3)
         org = np.array([len(self.splines), 0.0, 0.0])
         self.splines.append(spl)
-        self.rows.append((L, _SPLINE, org, z, z, z, 0.0, 0.0, z))
+        self.rows.append([L, _SPLINE, org, z, z, z, 0.0, 0.0, z, dev])
+
+    def trim_start(self, cut: float) -> None:
+        """Drop the first ``cut`` metres of parameter of the first piece."""
+        row = self.rows[0]
+        row[0] -= cut
+        if row[1] == _LINE:
+            row[2] = row[2] + cut * row[3]
+        elif row[1] == _ARC:
+            row[6] += row[7] * cut
+            row[2] = row[2] + cut * (row[5] + row[8])
+        else:
+            k = int(row[2][0])
+            spl = self.splines[k]
+            self.splines[k] = BSpline(spl.t - cut, spl.c, spl.k)
+
+    def end_curve(self) -> Curve:
+        """A curve of the last piece alone (for its end point and derivatives)."""
+        last = _CurveBuilder()
+        row = list(self.rows[-1])
+        if row[1] == _SPLINE:
+            last.splines = [self.splines[int(row[2][0])]]
+            row[2] = np.zeros(3)
+        last.rows = [row]
+        return last.build()
+
+    def start_curve(self) -> Curve:
+        """A curve of the first piece alone."""
+        first = _CurveBuilder()
+        row = list(self.rows[0])
+        if row[1] == _SPLINE:
+            first.splines = [self.splines[int(row[2][0])]]
+            row[2] = np.zeros(3)
+        first.rows = [row]
+        return first.build()
 
     def build(self) -> Curve:
         cols = list(zip(*self.rows))
@@ -367,76 +422,157 @@ class _CurveBuilder:
             w=np.array(cols[7]),
             corr=np.array(cols[8]),
             splines=tuple(self.splines),
+            dev=np.array(cols[9], dtype=np.float64),
         )
+
+    def block(self) -> Block:
+        return Block(self.build(), False, np.array(self.seg_ids, dtype=np.int64),
+                     np.array(self.seg_u), self.fit_dev)
 
 
 def _is_micro(seg) -> bool:
     return isinstance(seg, Line) and not seg.rapid and seg.length < MICRO_SEGMENT_M
 
 
-def _feed_chains(path: Path, idx: list[int]) -> list[list[int]]:
-    """Split consecutive feed moves at corners (exact stops)."""
+def _blendable(path: Path, k: int, blend_tol_m: float) -> bool:
+    """Whether the corner at the end of feed move ``k`` may be blended (not G61, a tolerance)."""
+    return blend_tol_m > 0 and path.segments[k].blend_tol_m != 0
+
+
+def _corner_turn(path: Path, k: int) -> float:
+    """Tangent turn from move ``k - 1`` to move ``k``, rad."""
+    return _turn(_tangents(path.segments[k - 1])[1], _tangents(path.segments[k])[0])
+
+
+def _feed_chains(path: Path, idx: list[int], blend_tol_m: float) -> list[list[int]]:
+    """Split consecutive feed moves at exact stops: corners above :data:`CORNER_ANGLE_RAD`
+    where blending is off (G61) or the turn exceeds :data:`BLEND_MAX_TURN_RAD`."""
     chains: list[list[int]] = []
     for k in idx:
         if chains and chains[-1][-1] == k - 1:
-            t_end = _tangents(path.segments[k - 1])[1]
-            t_start = _tangents(path.segments[k])[0]
-            if _turn(t_end, t_start) <= CORNER_ANGLE_RAD:
+            turn = _corner_turn(path, k)
+            if turn <= CORNER_ANGLE_RAD or (
+                turn <= BLEND_MAX_TURN_RAD and _blendable(path, k - 1, blend_tol_m)
+            ):
                 chains[-1].append(k)
                 continue
         chains.append([k])
     return chains
 
 
-def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float) -> list[Block]:
-    """Blocks of one corner-free chain of feed moves (more if a fit splits it)."""
+def _pieces(path: Path, ids: list[int], fit_tol_m: float) -> list[_CurveBuilder]:
+    """Curves of consecutive moves without a blended corner; more than one where a fit of
+    micro-segments splits (exact stops between them)."""
     segs = path.segments
-    blocks: list[Block] = []
-    b = _CurveBuilder()
-    seg_ids: list[int] = []
-    seg_u: list[float] = [0.0]
-    fit_dev = 0.0
-
-    def close() -> None:
-        nonlocal b, seg_ids, seg_u, fit_dev
-        if seg_ids:
-            blocks.append(
-                Block(b.build(), False, np.array(seg_ids, dtype=np.int64), np.array(seg_u), fit_dev)
-            )
-        b, seg_ids, seg_u, fit_dev = _CurveBuilder(), [], [0.0], 0.0
-
+    out = [_CurveBuilder()]
     k = 0
-    while k < len(chain):
+    while k < len(ids):
+        b = out[-1]
         run = k
-        while run < len(chain) and _is_micro(segs[chain[run]]):
+        while run < len(ids) and _is_micro(segs[ids[run]]):
             run += 1
         if run - k >= MICRO_RUN_MIN:
-            ids = chain[k:run]
-            verts = np.vstack([segs[ids[0]].start] + [segs[i].end for i in ids])
+            run_ids = ids[k:run]
+            verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
             for first, last, spl, dev in fit_polyline(verts, fit_tol_m):
                 if first > 0:
-                    close()
+                    out.append(_CurveBuilder())
+                    b = out[-1]
                 chord = np.linalg.norm(np.diff(verts[first : last + 1], axis=0), axis=1)
-                base = seg_u[-1]
-                b.spline(spl, float(chord.sum()))
-                seg_ids.extend(ids[first:last])
-                seg_u.extend(base + np.cumsum(chord))
-                fit_dev = max(fit_dev, dev)
+                base = b.seg_u[-1]
+                b.spline(spl, float(chord.sum()), dev)
+                b.seg_ids.extend(run_ids[first:last])
+                b.seg_u.extend(base + np.cumsum(chord))
+                b.fit_dev = max(b.fit_dev, dev)
             k = run
             continue
-        seg = segs[chain[k]]
+        seg = segs[ids[k]]
         if isinstance(seg, Line):
             b.line(seg.start, seg.end)
         else:
             b.arc(seg)
-        seg_ids.append(chain[k])
-        seg_u.append(seg_u[-1] + seg.length)
+        b.seg_ids.append(ids[k])
+        b.seg_u.append(b.seg_u[-1] + seg.length)
         k += 1
-    close()
+    return out
+
+
+def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, tol_m: float) -> bool:
+    """Blend the end of ``a`` into the start of ``b`` (appended to ``a``); False if no blend
+    keeps within ``tol_m`` (``a`` unchanged)."""
+    end, start = a.end_curve(), b.start_curve()
+    cut_max = 0.5 * min(end.length, start.length)
+    if not cut_max > 0:
+        return False
+    near = [i for i, u in zip(a.seg_ids, a.seg_u[1:]) if u > a.seg_u[-1] - cut_max]
+    near += [i for i, u in zip(b.seg_ids, b.seg_u[:-1]) if u < cut_max]
+    table = segment_table([path.segments[i] for i in near])
+
+    def left(cut):
+        p, d1, d2, _ = end.evaluate(np.array([end.length - cut]))
+        return p[0], d1[0], d2[0]
+
+    def right(cut):
+        p, d1, d2, _ = start.evaluate(np.array([cut]))
+        return p[0], d1[0], d2[0]
+
+    blend = corner_blend(left, right, cut_max, table, tol_m)
+    if blend is None:
+        return False
+    a.rows[-1][0] -= blend.cut_m
+    base = a.length
+    mid = base + 0.5 * blend.length
+    a.spline(blend.curve, blend.length, blend.deviation_m)
+    b.trim_start(blend.cut_m)
+    offset = base + blend.length - blend.cut_m
+    index = len(a.splines)
+    for row in b.rows:
+        if row[1] == _SPLINE:
+            row[2] = row[2] + np.array([index, 0.0, 0.0])
+        a.rows.append(row)
+    a.splines.extend(b.splines)
+    # programmed moves meet at the blend's middle (moves shorter than the cut end there)
+    a.seg_u = [min(u, mid) for u in a.seg_u[:-1]] + [mid]
+    a.seg_u += [max(u + offset, mid) for u in b.seg_u[1:]]
+    a.seg_ids += b.seg_ids
+    a.fit_dev = max(a.fit_dev, b.fit_dev, blend.deviation_m)
+    return True
+
+
+def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
+                  blend_tol_m: float) -> list[Block]:
+    """Blocks of one chain of feed moves: corners above :data:`BLEND_MIN_TURN_RAD` blended
+    (unless both moves are fitted micro-segments), exact stops where a fit splits or no
+    blend keeps within ``blend_tol_m``."""
+    segs = path.segments
+    runs: list[list[int]] = [[chain[0]]]
+    for k in chain[1:]:
+        turn = _corner_turn(path, k)
+        if turn > CORNER_ANGLE_RAD or (
+            turn > BLEND_MIN_TURN_RAD
+            and _blendable(path, k - 1, blend_tol_m)
+            and not (_is_micro(segs[k - 1]) and _is_micro(segs[k]))
+        ):
+            runs.append([k])
+        else:
+            runs[-1].append(k)
+    blocks: list[Block] = []
+    cur: _CurveBuilder | None = None
+    for run in runs:
+        parts = _pieces(path, run, fit_tol_m)
+        if cur is not None and not _join(cur, parts[0], path, blend_tol_m):
+            blocks.append(cur.block())
+            cur = parts[0]
+        elif cur is None:
+            cur = parts[0]
+        for part in parts[1:]:
+            blocks.append(cur.block())
+            cur = part
+    blocks.append(cur.block())
     return blocks
 
 
-def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
+def blocks_of(path: Path, fit_tol_m: float, blend_tol_m: float = 0.0) -> list[Block]:
     """Cut a path into rest-to-rest blocks of smooth geometry.
 
     Parameters
@@ -445,6 +581,9 @@ def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
         The programmed moves; moves of zero length are skipped.
     fit_tol_m : float
         Deviation allowed to the spline fits of micro-segment runs, metres.
+    blend_tol_m : float
+        Deviation allowed to corner blends, metres (0: every corner above
+        :data:`CORNER_ANGLE_RAD` an exact stop, as under G61).
 
     Returns
     -------
@@ -453,18 +592,21 @@ def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
     """
     out: list[Block] = []
     feed: list[int] = []
+
+    def flush() -> None:
+        for chain in _feed_chains(path, feed, blend_tol_m):
+            out.extend(_chain_blocks(path, chain, fit_tol_m, blend_tol_m))
+
     for k, seg in enumerate(path.segments):
         if seg.length <= 1e-12:
             continue
         if not seg.rapid:
             feed.append(k)
             continue
-        for chain in _feed_chains(path, feed):
-            out.extend(_chain_blocks(path, chain, fit_tol_m))
+        flush()
         feed = []
         b = _CurveBuilder()
         b.line(seg.start, seg.end)
         out.append(Block(b.build(), True, np.array([k]), np.array([0.0, seg.length]), 0.0))
-    for chain in _feed_chains(path, feed):
-        out.extend(_chain_blocks(path, chain, fit_tol_m))
+    flush()
     return out

@@ -1,0 +1,109 @@
+"""Corner blends: a curvature-continuous quintic through a kink, within a tolerance.
+
+Where two pieces of a feed chain meet at a kink (G64), the last ``l`` metres of the
+first piece and the first ``l`` of the second are replaced by a quintic that matches
+position, unit tangent and curvature vector (``r``, ``dr/du``, ``d2r/du2``) of both
+pieces at the cut points: the blended curve is G2 (no step of the centripetal
+acceleration at either end), so the path speed need not drop to zero at the corner,
+only to what the blend's curvature and the jerk limit allow. Between two lines the
+quintic's control points lie three on each line (zero curvature at both ends), as in
+Beckhoff's fifth-order Bezier blending; the same construction joins arcs and fitted
+splines. ``l`` is at most half of either piece (two blends of one piece never
+overlap) and shrunk until the blend keeps within the tolerance of the programmed moves
+(exact distance to their lines and arcs, :func:`feedplan.check.deviation_m`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import BSpline
+
+from feedplan.check import deviation_m
+
+__all__ = ["Blend", "quintic", "corner_blend", "BLEND_SAMPLES"]
+
+#: Points of a blend measured against the programmed moves.
+BLEND_SAMPLES = 129
+#: Shrinks of the cut length tried before a corner is left an exact stop.
+_SHRINKS = 30
+
+
+@dataclass(frozen=True, eq=False)
+class Blend:
+    """A corner blend.
+
+    Attributes
+    ----------
+    curve : BSpline
+        Quintic of parameter ``u`` in [0, ``length``] (metres; ``|dr/du| = 1`` at both ends).
+    length : float
+        Its parameter length, m.
+    cut_m : float
+        Parameter length cut from the end of the first piece and the start of the second, m.
+    deviation_m : float
+        Largest distance of the blend from the programmed moves, m.
+    """
+
+    curve: BSpline
+    length: float
+    cut_m: float
+    deviation_m: float
+
+
+def quintic(p0, d0, k0, p1, d1, k1, length: float) -> BSpline:
+    """The quintic with ``r, dr/du, d2r/du2`` = (p0, d0, k0) at u = 0 and (p1, d1, k1) at
+    u = ``length``; all (3,) arrays, metres (d unitless, k 1/m)."""
+    L = length
+    c = np.empty((6, 3))
+    c[0], c[5] = p0, p1
+    c[1] = p0 + L * d0 / 5.0
+    c[4] = p1 - L * d1 / 5.0
+    c[2] = 2.0 * c[1] - c[0] + L * L * k0 / 20.0
+    c[3] = 2.0 * c[4] - c[5] + L * L * k1 / 20.0
+    return BSpline(np.r_[[0.0] * 6, [L] * 6], c, 5)
+
+
+def corner_blend(
+    left: Callable[[float], tuple],
+    right: Callable[[float], tuple],
+    cut_max_m: float,
+    table: tuple,
+    tol_m: float,
+) -> Blend | None:
+    """The longest blend (cut length at most ``cut_max_m``) within ``tol_m`` of ``table``.
+
+    Parameters
+    ----------
+    left, right : callable
+        ``left(l)``: position, dr/du, d2r/du2 (each (3,)) ``l`` metres of parameter before
+        the end of the first piece; ``right(l)``: the same ``l`` after the start of the second.
+    cut_max_m : float
+        Largest cut, metres (half of the shorter piece).
+    table : tuple
+        :func:`feedplan.check.segment_table` of the programmed moves the blend replaces.
+    tol_m : float
+        Largest distance of the blend from them, metres.
+
+    Returns
+    -------
+    Blend or None
+        None when no cut of at least 1e-4 ``cut_max_m`` keeps within ``tol_m``.
+    """
+    cut = cut_max_m
+    for _ in range(_SHRINKS):
+        p0, d0, k0 = left(cut)
+        p1, d1, k1 = right(cut)
+        length = 0.5 * (2.0 * cut + float(np.linalg.norm(p1 - p0)))
+        curve = quintic(p0, d0, k0, p1, d1, k1, length)
+        pts = curve(np.linspace(0.0, length, BLEND_SAMPLES))
+        dev = float(np.max(deviation_m(pts, table)[0]))
+        if dev <= tol_m:
+            return Blend(curve, length, cut, dev)
+        # the deviation grows about linearly with the cut (exactly so between lines)
+        cut *= max(min(0.95 * tol_m / dev, 0.9), 0.1)
+        if cut < 1e-4 * cut_max_m:
+            break
+    return None
