@@ -29,9 +29,11 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
-from feedplan.blend import corner_blend
+from feedplan.blend import corner_blend, corner_speed_m_s
 from feedplan.check import point_segment_distance, segment_table
+from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
+from oga.defaults import BLEND_MIN_SPEED_SHARE
 
 __all__ = [
     "CORNER_ANGLE_RAD",
@@ -42,6 +44,7 @@ __all__ = [
     "FIT_KNOT_SPACING_M",
     "Curve",
     "Block",
+    "Blending",
     "fit_polyline",
     "polyline_fit_deviation",
     "blocks_of",
@@ -434,9 +437,33 @@ def _is_micro(seg) -> bool:
     return isinstance(seg, Line) and not seg.rapid and seg.length < MICRO_SEGMENT_M
 
 
-def _blendable(path: Path, k: int, blend_tol_m: float) -> bool:
+@dataclass(frozen=True, eq=False)
+class Blending:
+    """How corners are blended (:mod:`feedplan.blend`).
+
+    Attributes
+    ----------
+    tol_m : float
+        Largest distance of a blend from the programmed moves, m.
+    limits : AxisLimits, optional
+        Axis limits: a corner whose blend cannot be passed at
+        :data:`~oga.defaults.BLEND_MIN_SPEED_SHARE` of the feed stays an exact stop (none:
+        every blend within ``tol_m`` is kept).
+    feeds : ndarray, shape (n_segments,), optional
+        Feed of every move, m/s (default: as programmed).
+    """
+
+    tol_m: float
+    limits: AxisLimits | None = None
+    feeds: np.ndarray | None = None
+
+    def feed(self, path: Path, k: int) -> float:
+        return float(path.segments[k].feed_m_s if self.feeds is None else self.feeds[k])
+
+
+def _blendable(path: Path, k: int, blending: Blending | None) -> bool:
     """Whether the corner at the end of feed move ``k`` may be blended (not G61, a tolerance)."""
-    return blend_tol_m > 0 and path.segments[k].blend_tol_m != 0
+    return blending is not None and blending.tol_m > 0 and path.segments[k].blend_tol_m != 0
 
 
 def _corner_turn(path: Path, k: int) -> float:
@@ -444,16 +471,18 @@ def _corner_turn(path: Path, k: int) -> float:
     return _turn(_tangents(path.segments[k - 1])[1], _tangents(path.segments[k])[0])
 
 
-def _feed_chains(path: Path, idx: list[int], blend_tol_m: float) -> list[list[int]]:
-    """Split consecutive feed moves at exact stops: corners above :data:`CORNER_ANGLE_RAD`
-    where blending is off (G61) or the turn exceeds :data:`BLEND_MAX_TURN_RAD`."""
+def _feed_chains(path: Path, idx: list[int], blending: Blending | None) -> list[list[int]]:
+    """Split consecutive feed moves at exact stops: every kink above
+    :data:`BLEND_MIN_TURN_RAD` at the end of a move under G61, corners above
+    :data:`CORNER_ANGLE_RAD` without blending or turning more than :data:`BLEND_MAX_TURN_RAD`."""
     chains: list[list[int]] = []
     for k in idx:
         if chains and chains[-1][-1] == k - 1:
             turn = _corner_turn(path, k)
-            if turn <= CORNER_ANGLE_RAD or (
-                turn <= BLEND_MAX_TURN_RAD and _blendable(path, k - 1, blend_tol_m)
-            ):
+            if turn <= BLEND_MIN_TURN_RAD or (path.segments[k - 1].blend_tol_m != 0 and (
+                turn <= CORNER_ANGLE_RAD
+                or (turn <= BLEND_MAX_TURN_RAD and _blendable(path, k - 1, blending))
+            )):
                 chains[-1].append(k)
                 continue
         chains.append([k])
@@ -497,9 +526,9 @@ def _pieces(path: Path, ids: list[int], fit_tol_m: float) -> list[_CurveBuilder]
     return out
 
 
-def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, tol_m: float) -> bool:
+def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -> bool:
     """Blend the end of ``a`` into the start of ``b`` (appended to ``a``); False if no blend
-    keeps within ``tol_m`` (``a`` unchanged)."""
+    keeps within the tolerance or is fast enough (``a`` unchanged)."""
     end, start = a.end_curve(), b.start_curve()
     cut_max = 0.5 * min(end.length, start.length)
     if not cut_max > 0:
@@ -516,9 +545,14 @@ def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, tol_m: float) -> bool:
         p, d1, d2, _ = start.evaluate(np.array([cut]))
         return p[0], d1[0], d2[0]
 
-    blend = corner_blend(left, right, cut_max, table, tol_m)
+    blend = corner_blend(left, right, cut_max, table, blending.tol_m)
     if blend is None:
         return False
+    if blending.limits is not None:
+        lim = blending.limits
+        feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]))
+        if corner_speed_m_s(blend, lim.amax_m_s2, lim.jmax_m_s3) < BLEND_MIN_SPEED_SHARE * feed:
+            return False
     a.rows[-1][0] -= blend.cut_m
     base = a.length
     mid = base + 0.5 * blend.length
@@ -540,17 +574,17 @@ def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, tol_m: float) -> bool:
 
 
 def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
-                  blend_tol_m: float) -> list[Block]:
+                  blending: Blending | None) -> list[Block]:
     """Blocks of one chain of feed moves: corners above :data:`BLEND_MIN_TURN_RAD` blended
     (unless both moves are fitted micro-segments), exact stops where a fit splits or no
-    blend keeps within ``blend_tol_m``."""
+    blend keeps within the tolerance at speed."""
     segs = path.segments
     runs: list[list[int]] = [[chain[0]]]
     for k in chain[1:]:
         turn = _corner_turn(path, k)
         if turn > CORNER_ANGLE_RAD or (
             turn > BLEND_MIN_TURN_RAD
-            and _blendable(path, k - 1, blend_tol_m)
+            and _blendable(path, k - 1, blending)
             and not (_is_micro(segs[k - 1]) and _is_micro(segs[k]))
         ):
             runs.append([k])
@@ -560,7 +594,7 @@ def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
     cur: _CurveBuilder | None = None
     for run in runs:
         parts = _pieces(path, run, fit_tol_m)
-        if cur is not None and not _join(cur, parts[0], path, blend_tol_m):
+        if cur is not None and not _join(cur, parts[0], path, blending):
             blocks.append(cur.block())
             cur = parts[0]
         elif cur is None:
@@ -572,7 +606,7 @@ def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
     return blocks
 
 
-def blocks_of(path: Path, fit_tol_m: float, blend_tol_m: float = 0.0) -> list[Block]:
+def blocks_of(path: Path, fit_tol_m: float, blending: Blending | None = None) -> list[Block]:
     """Cut a path into rest-to-rest blocks of smooth geometry.
 
     Parameters
@@ -581,9 +615,9 @@ def blocks_of(path: Path, fit_tol_m: float, blend_tol_m: float = 0.0) -> list[Bl
         The programmed moves; moves of zero length are skipped.
     fit_tol_m : float
         Deviation allowed to the spline fits of micro-segment runs, metres.
-    blend_tol_m : float
-        Deviation allowed to corner blends, metres (0: every corner above
-        :data:`CORNER_ANGLE_RAD` an exact stop, as under G61).
+    blending : Blending, optional
+        How corners are blended; none: every corner above :data:`CORNER_ANGLE_RAD` is an
+        exact stop, as under G61.
 
     Returns
     -------
@@ -594,8 +628,8 @@ def blocks_of(path: Path, fit_tol_m: float, blend_tol_m: float = 0.0) -> list[Bl
     feed: list[int] = []
 
     def flush() -> None:
-        for chain in _feed_chains(path, feed, blend_tol_m):
-            out.extend(_chain_blocks(path, chain, fit_tol_m, blend_tol_m))
+        for chain in _feed_chains(path, feed, blending):
+            out.extend(_chain_blocks(path, chain, fit_tol_m, blending))
 
     for k, seg in enumerate(path.segments):
         if seg.length <= 1e-12:

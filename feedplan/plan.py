@@ -66,13 +66,15 @@ import numpy as np
 from numba import njit
 from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
+from feedplan.blend import BLEND_CENTRIPETAL_SHARE
 from feedplan.check import SPEED_MARGIN, deviation_m, finite_differences, segment_table
-from feedplan.fit import Block, blocks_of
+from feedplan.fit import Block, Blending, blocks_of
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
 from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import (
     DT_RANGE_S,
+    BLEND_TOL_FRACTION,
     DT_S,
     MAX_COORD_M,
     MAX_MOTION_S,
@@ -83,14 +85,12 @@ from oga.defaults import (
 from oga.errors import OptionError, PlanError, ToolpathError
 
 __all__ = ["plan", "least_motion_s", "move_times_s", "program_tolerance_m", "GRID_M",
-           "FIT_TOL_FRACTION", "BLEND_TOL_FRACTION"]
+           "FIT_TOL_FRACTION"]
 
 #: Spacing of the speed-profile grid along the path, metres.
 GRID_M = 0.25e-3
 #: Share of the tolerance given to the spline fits of micro-segments.
 FIT_TOL_FRACTION = 0.5
-#: Share of the tolerance given to corner blends (:mod:`feedplan.blend`; the rest to the filter).
-BLEND_TOL_FRACTION = 0.5
 #: Filter lengths tried, as fractions of the 1-D jerk-optimal sqrt(F / J).
 _T_FRACTIONS = (1.0, 0.75, 0.55, 0.4, 0.3, 0.22)
 #: Limits are met with this relative margin (float noise of the checks).
@@ -103,7 +103,7 @@ _MARGIN = 1e-3
 _VARIANTS = ((0.98, False), (2.0, True), (2.5, True), (3.0, True))
 #: Largest share of an axis's acceleration limit taken by the centripetal acceleration
 #: (the speed ceiling on curves); the rest, at least, is left to the tangential one.
-_CENTRIPETAL_SHARE = 0.8
+_CENTRIPETAL_SHARE = BLEND_CENTRIPETAL_SHARE
 #: Tangential acceleration limit as a share of J T (the rest is left to curvature changes).
 _AT_SHARE = 0.9
 #: Share of J T left to the tangential acceleration within reach of a curvature jump (the
@@ -833,7 +833,8 @@ def plan(
     seg_time = _estimate(path, seg_feed, allowed, dt)
     budget = int(min(MAX_SAMPLES, MAX_MOTION_S / dt))
     tol_m = program_tolerance_m(path, tol_m)
-    blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION, tol_m * BLEND_TOL_FRACTION)
+    blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION, Blending(tol_m * BLEND_TOL_FRACTION,
+                                                               limits, seg_feed))
     done, whole = 0.0, float(np.sum(seg_time))
     report = progress if progress is not None else (lambda fraction: None)
     pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]
