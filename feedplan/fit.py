@@ -23,6 +23,7 @@ fitted splines (``|dr/du|`` within a few per mille of 1).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -549,8 +550,13 @@ def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) ->
     if blend is None:
         return False
     if blending.limits is not None:
+        # the speed a stop there would cost: the feed, or what the shorter piece lets the
+        # axes reach from rest (about sqrt(A L), (J L^2)^(1/3) for the least limits)
         lim = blending.limits
-        feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]))
+        amax, jmax = lim.amax_m_s2[lim.present], lim.jmax_m_s3[lim.present]
+        L = min(end.length, start.length)
+        reach = min(math.sqrt(float(np.min(amax)) * L), math.cbrt(float(np.min(jmax)) * L * L))
+        feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]), reach)
         if corner_speed_m_s(blend, lim.amax_m_s2, lim.jmax_m_s3) < BLEND_MIN_SPEED_SHARE * feed:
             return False
     a.rows[-1][0] -= blend.cut_m
