@@ -3,9 +3,16 @@
 A :class:`~feedplan.path.Path` is cut into :class:`Block` s, each planned from
 rest to rest:
 
-* every rapid (G0) line is a block of its own (rapid/feed transitions are exact stops);
-* feed moves are chained while the tangent turns by at most :data:`CORNER_ANGLE_RAD`
-  from one move to the next; a sharper corner is an exact stop (a new block);
+* every rapid (G0) line is a block of its own (rapid/feed transitions are exact stops:
+  a rapid is planned time-optimally on its own, and the approach to the part is not cut);
+* feed moves are chained through their corners: a kink of more than
+  :data:`BLEND_MIN_TURN_RAD` is replaced by a curvature-continuous blend within the
+  tolerance (:mod:`feedplan.blend`, G64), unless the move ending there was programmed
+  under G61 (every kink an exact stop), the turn exceeds :data:`BLEND_MAX_TURN_RAD`, no
+  blend keeps within the tolerance, or the blend would be passed slower than
+  :data:`~oga.defaults.BLEND_MIN_SPEED_SHARE` of the speed a stop costs (then it is no
+  faster than the stop); without blending (no :class:`Blending`), corners up to
+  :data:`CORNER_ANGLE_RAD` are passed as kinks and sharper ones are exact stops;
 * runs of at least :data:`MICRO_RUN_MIN` consecutive short G1 lines (each shorter than
   :data:`MICRO_SEGMENT_M`), as CAM posts write freeform surfaces, are replaced by a
   least-squares cubic B-spline (curvature-continuous). Every fit is measured both ways
@@ -16,7 +23,7 @@ rest to rest:
   :data:`FIT_KNOT_SPACING_M` apart and are refined only where the deviation requires),
   so a sharp feature never produces the overshoot of a global interpolating spline.
 
-Lines and arcs are kept exact. A block's :class:`Curve` is parametrised by ``u`` in
+Lines and arcs are kept exact (but for the ends a blend replaces). A block's :class:`Curve` is parametrised by ``u`` in
 metres: arc length for lines and arcs, chord length of the programmed vertices for
 fitted splines (``|dr/du|`` within a few per mille of 1).
 """
@@ -30,7 +37,7 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
-from feedplan.blend import corner_blend, corner_speed_m_s
+from feedplan.blend import Blend, corner_blend, corner_speed_m_s
 from feedplan.check import point_segment_distance, segment_table
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
@@ -527,13 +534,13 @@ def _pieces(path: Path, ids: list[int], fit_tol_m: float) -> list[_CurveBuilder]
     return out
 
 
-def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -> bool:
-    """Blend the end of ``a`` into the start of ``b`` (appended to ``a``); False if no blend
-    keeps within the tolerance or is fast enough (``a`` unchanged)."""
+def _blend(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -> Blend | None:
+    """The blend of the end of ``a`` into the start of ``b``, or None if none keeps within
+    the tolerance or is fast enough."""
     end, start = a.end_curve(), b.start_curve()
     cut_max = 0.5 * min(end.length, start.length)
     if not cut_max > 0:
-        return False
+        return None
     near = [i for i, u in zip(a.seg_ids, a.seg_u[1:]) if u > a.seg_u[-1] - cut_max]
     near += [i for i, u in zip(b.seg_ids, b.seg_u[:-1]) if u < cut_max]
     table = segment_table([path.segments[i] for i in near])
@@ -547,24 +554,31 @@ def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) ->
         return p[0], d1[0], d2[0]
 
     blend = corner_blend(left, right, cut_max, table, blending.tol_m)
-    if blend is None:
-        return False
-    if blending.limits is not None:
-        # the speed a stop there would cost: the feed, or what the shorter piece lets the
-        # axes reach from rest (about sqrt(A L), (J L^2)^(1/3) for the least limits)
-        lim = blending.limits
-        amax, jmax = lim.amax_m_s2[lim.present], lim.jmax_m_s3[lim.present]
-        L = min(end.length, start.length)
-        reach = min(math.sqrt(float(np.min(amax)) * L), math.cbrt(float(np.min(jmax)) * L * L))
-        feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]), reach)
-        if corner_speed_m_s(blend, lim.amax_m_s2, lim.jmax_m_s3) < BLEND_MIN_SPEED_SHARE * feed:
-            return False
-    a.rows[-1][0] -= blend.cut_m
-    base = a.length
-    mid = base + 0.5 * blend.length
-    a.spline(blend.curve, blend.length, blend.deviation_m)
-    b.trim_start(blend.cut_m)
-    offset = base + blend.length - blend.cut_m
+    if blend is None or blending.limits is None:
+        return blend
+    # the speed a stop there would cost: the feed, or what the shorter piece lets the axes
+    # reach from rest (about sqrt(A L), (J L^2)^(1/3) for the least limits)
+    lim = blending.limits
+    amax, jmax = lim.amax_m_s2[lim.present], lim.jmax_m_s3[lim.present]
+    L = 2.0 * cut_max
+    reach = min(math.sqrt(float(np.min(amax)) * L), math.cbrt(float(np.min(jmax)) * L * L))
+    feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]), reach)
+    if corner_speed_m_s(blend, lim.amax_m_s2, lim.jmax_m_s3) < BLEND_MIN_SPEED_SHARE * feed:
+        return None
+    return blend
+
+
+def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
+    """Append ``b`` to ``a``, through ``blend`` (None: as they meet)."""
+    cut = 0.0 if blend is None else blend.cut_m
+    a.rows[-1][0] -= cut
+    base = mid = offset = a.length
+    if blend is not None:
+        mid = base + 0.5 * blend.length
+        a.spline(blend.curve, blend.length, blend.deviation_m)
+        b.trim_start(cut)
+        offset = base + blend.length - cut
+        a.fit_dev = max(a.fit_dev, blend.deviation_m)
     index = len(a.splines)
     for row in b.rows:
         if row[1] == _SPLINE:
@@ -575,15 +589,18 @@ def _join(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) ->
     a.seg_u = [min(u, mid) for u in a.seg_u[:-1]] + [mid]
     a.seg_u += [max(u + offset, mid) for u in b.seg_u[1:]]
     a.seg_ids += b.seg_ids
-    a.fit_dev = max(a.fit_dev, b.fit_dev, blend.deviation_m)
-    return True
+    a.fit_dev = max(a.fit_dev, b.fit_dev)
 
 
 def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
                   blending: Blending | None) -> list[Block]:
-    """Blocks of one chain of feed moves: corners above :data:`BLEND_MIN_TURN_RAD` blended
-    (unless both moves are fitted micro-segments), exact stops where a fit splits or no
-    blend keeps within the tolerance at speed."""
+    """Blocks of one chain of feed moves.
+
+    Corners above :data:`BLEND_MIN_TURN_RAD` are blended (unless both moves are fitted
+    micro-segments); where no blend keeps within the tolerance at speed, a kink up to
+    :data:`CORNER_ANGLE_RAD` is passed as it is, a sharper corner is an exact stop (as is
+    a vertex where a fit splits).
+    """
     segs = path.segments
     runs: list[list[int]] = [[chain[0]]]
     for k in chain[1:]:
@@ -600,11 +617,15 @@ def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
     cur: _CurveBuilder | None = None
     for run in runs:
         parts = _pieces(path, run, fit_tol_m)
-        if cur is not None and not _join(cur, parts[0], path, blending):
-            blocks.append(cur.block())
+        if cur is None:
             cur = parts[0]
-        elif cur is None:
-            cur = parts[0]
+        else:
+            blend = _blend(cur, parts[0], path, blending)
+            if blend is not None or _corner_turn(path, run[0]) <= CORNER_ANGLE_RAD:
+                _merge(cur, parts[0], blend)
+            else:
+                blocks.append(cur.block())
+                cur = parts[0]
         for part in parts[1:]:
             blocks.append(cur.block())
             cur = part

@@ -3,7 +3,11 @@
 Method
 ------
 The path is cut into rest-to-rest blocks (:func:`feedplan.fit.blocks_of`: rapids,
-corner-free chains of lines, arcs and fitted micro-segment splines).
+chains of lines, arcs, fitted micro-segment splines and the corner blends between them;
+exact stops only where G61 asks or a blend would not be faster). The tolerance is
+``tol_m``, or the smallest ``G64 P`` of the program if smaller
+(:func:`program_tolerance_m`); blends get :data:`~oga.defaults.BLEND_TOL_FRACTION` of it,
+the filter's rounding the rest.
 
 *Straight blocks* (rapids, and feed blocks of one line) are planned exactly: the
 per-axis limits are projected on the line, the path speed capped at the feed (at
@@ -23,8 +27,9 @@ plus FIR filter" of industrial interpolators:
    centripetal acceleration, the arc rounding of stage 2, and jerk-derived
    ceilings where the curvature jumps or the tangent kinks between pieces), then
    compiled forward/backward passes with a tangential acceleration limit ``A_t``
-   (a share of ``J T``, small near curvature jumps; up to the whole acceleration
-   limit on straight stretches, half of it on curves). Cells are crossed at
+   (a share of ``J T``, small near curvature jumps; on each axis what the centripetal
+   acceleration at the ceiling leaves of its limit, projected on the tangent: the whole
+   limit on straight stretches, at least ``1 - _CENTRIPETAL_SHARE`` of it on curves). Cells are crossed at
    constant acceleration, those starting or ending at rest time-optimally (so a
    slow feed pays no cell's worth of time per block). The positions ``r(u(t))`` are
    sampled every ``dt``;
