@@ -19,11 +19,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import BSpline
-
 from feedplan.check import deviation_m
 
-__all__ = ["Blend", "quintic", "corner_blend", "corner_speed_m_s", "BLEND_SAMPLES",
+__all__ = ["Blend", "quintic", "bezier", "corner_blend", "corner_speed_m_s", "BLEND_SAMPLES",
            "BLEND_CENTRIPETAL_SHARE"]
 
 #: Points of a blend measured against the programmed moves.
@@ -44,8 +42,9 @@ class Blend:
 
     Attributes
     ----------
-    curve : BSpline
-        Quintic of parameter ``u`` in [0, ``length``] (metres; ``|dr/du| = 1`` at both ends).
+    ctrl : ndarray, shape (6, 3)
+        Bezier control points of the quintic, of parameter ``u`` in [0, ``length``]
+        (metres; ``|dr/du| = 1`` at both ends).
     length : float
         Its parameter length, m.
     cut_m : float
@@ -54,15 +53,20 @@ class Blend:
         Largest distance of the blend from the programmed moves, m.
     """
 
-    curve: BSpline
+    ctrl: np.ndarray
     length: float
+
+    def evaluate(self, u: np.ndarray) -> tuple:
+        """:func:`bezier` of this blend at parameters ``u`` (N,), m."""
+        n = len(u)
+        return bezier(np.broadcast_to(self.ctrl, (n, 6, 3)), np.full(n, self.length), u)
     cut_m: float
     deviation_m: float
 
 
-def quintic(p0, d0, k0, p1, d1, k1, length: float) -> BSpline:
-    """The quintic with ``r, dr/du, d2r/du2`` = (p0, d0, k0) at u = 0 and (p1, d1, k1) at
-    u = ``length``; all (3,) arrays, metres (d unitless, k 1/m)."""
+def quintic(p0, d0, k0, p1, d1, k1, length: float) -> np.ndarray:
+    """Bezier control points (6, 3) of the quintic with ``r, dr/du, d2r/du2`` = (p0, d0, k0)
+    at u = 0 and (p1, d1, k1) at u = ``length``; all (3,) arrays, metres (d unitless, k 1/m)."""
     L = length
     c = np.empty((6, 3))
     c[0], c[5] = p0, p1
@@ -70,7 +74,42 @@ def quintic(p0, d0, k0, p1, d1, k1, length: float) -> BSpline:
     c[4] = p1 - L * d1 / 5.0
     c[2] = 2.0 * c[1] - c[0] + L * L * k0 / 20.0
     c[3] = 2.0 * c[4] - c[5] + L * L * k1 / 20.0
-    return BSpline(np.r_[[0.0] * 6, [L] * 6], c, 5)
+    return c
+
+
+#: Binomial coefficients and derivative factors of the quintic Bezier and its hodographs.
+_BINOM = (np.array([1, 5, 10, 10, 5, 1.0]), np.array([1, 4, 6, 4, 1.0]),
+          np.array([1, 3, 3, 1.0]), np.array([1, 2, 1.0]))
+_FACTOR = (1.0, 5.0, 20.0, 60.0)
+
+
+def bezier(ctrl: np.ndarray, length: np.ndarray, u: np.ndarray) -> tuple:
+    """Quintics at parameters ``u``: position and first three derivatives along ``u``.
+
+    Parameters
+    ----------
+    ctrl : ndarray, shape (N, 6, 3)
+        Control points of the quintic of each point, metres.
+    length : ndarray, shape (N,)
+        Its parameter length, metres.
+    u : ndarray, shape (N,)
+        Parameter in [0, length], metres.
+
+    Returns
+    -------
+    p, d1, d2, d3 : ndarray, shape (N, 3)
+        m, 1, 1/m, 1/m^2.
+    """
+    t = (u / length)[:, None]
+    out = []
+    c = ctrl
+    for order in range(4):
+        deg = 5 - order
+        k = np.arange(deg + 1)
+        basis = _BINOM[order] * t**k * (1.0 - t) ** (deg - k)  # (N, deg + 1)
+        out.append(_FACTOR[order] * np.einsum("nk,nkd->nd", basis, c) / length[:, None] ** order)
+        c = np.diff(c, axis=1)
+    return tuple(out)
 
 
 def corner_speed_m_s(blend: Blend, amax: np.ndarray, jmax: np.ndarray) -> float:
@@ -81,10 +120,9 @@ def corner_speed_m_s(blend: Blend, amax: np.ndarray, jmax: np.ndarray) -> float:
     constant-speed jerk bound ``(J_i / |d3r_i/du3|)^(1/3)``. ``amax``, ``jmax``: per axis,
     shape (3,), SI; an axis with a 0 limit (absent) is not counted.
     """
-    u = np.linspace(0.0, blend.length, BLEND_SAMPLES)
+    _, _, d2, d3 = blend.evaluate(np.linspace(0.0, blend.length, BLEND_SAMPLES))
     present = (amax > 0) & (jmax > 0)
-    d2 = np.abs(blend.curve(u, 2))[:, present]
-    d3 = np.abs(blend.curve(u, 3))[:, present]
+    d2, d3 = np.abs(d2[:, present]), np.abs(d3[:, present])
     with np.errstate(divide="ignore"):
         v_a = np.sqrt(np.min(BLEND_CENTRIPETAL_SHARE * amax[present] / d2))
         v_j = _FILTER_GAIN * np.cbrt(np.min(jmax[present] / d3))
@@ -122,11 +160,11 @@ def corner_blend(
         p0, d0, k0 = left(cut)
         p1, d1, k1 = right(cut)
         length = 0.5 * (2.0 * cut + float(np.linalg.norm(p1 - p0)))
-        curve = quintic(p0, d0, k0, p1, d1, k1, length)
-        pts = curve(np.linspace(0.0, length, BLEND_SAMPLES))
+        blend = Blend(quintic(p0, d0, k0, p1, d1, k1, length), length, cut, 0.0)
+        pts = blend.evaluate(np.linspace(0.0, length, BLEND_SAMPLES))[0]
         dev = float(np.max(deviation_m(pts, table)[0]))
         if dev <= tol_m:
-            return Blend(curve, length, cut, dev)
+            return Blend(blend.ctrl, length, cut, dev)
         # the deviation grows about linearly with the cut (exactly so between lines)
         cut *= max(min(0.95 * tol_m / dev, 0.9), 0.1)
         if cut < 1e-4 * cut_max_m:

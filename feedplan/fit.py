@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
-from feedplan.blend import Blend, corner_blend, corner_speed_m_s
+from feedplan.blend import Blend, bezier, corner_blend, corner_speed_m_s
 from feedplan.check import point_segment_distance, segment_table
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
@@ -73,7 +73,7 @@ BLEND_MAX_TURN_RAD = 0.95 * np.pi
 #: Largest number of knot refinements of one fit.
 _FIT_ROUNDS = 12
 
-_LINE, _ARC, _SPLINE = 0, 1, 2
+_LINE, _ARC, _SPLINE, _QUINTIC = 0, 1, 2, 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,7 +85,7 @@ class Curve:
     u0 : ndarray, shape (P + 1,)
         Parameter (metres) where each piece starts; ``u0[-1]`` is the total.
     kind : ndarray of int, shape (P,)
-        0 line, 1 arc, 2 spline.
+        0 line, 1 arc, 2 spline, 3 corner blend (a quintic Bezier).
     org, e1, e2, e3 : ndarray, shape (P, 3)
         Line: start, unit direction, 0, 0. Arc: centre, ``R`` times the plane's
         first and second axis, helical rise per metre of ``u`` along the normal.
@@ -95,8 +95,10 @@ class Curve:
         Arc end correction per metre of ``u`` (the programmed end minus the
         exact circle end, spread linearly; below the reader's arc tolerance).
     splines : tuple of scipy.interpolate.BSpline
-        Splines of the pieces of kind 2 (``org[p, 0]`` indexes them): cubic fits of
-        micro-segments, quintic corner blends; their parameter starts at 0.
+        Cubic splines of the pieces of kind 2 (``org[p, 0]`` indexes them); their
+        parameter starts at 0.
+    ctrl : ndarray, shape (Q, 6, 3)
+        Control points of the quintics of the pieces of kind 3 (``org[p, 0]`` indexes them).
     dev : ndarray, shape (P,)
         Largest distance of each piece from the programmed moves, m (0 for lines and arcs).
     """
@@ -111,6 +113,7 @@ class Curve:
     w: np.ndarray
     corr: np.ndarray
     splines: tuple
+    ctrl: np.ndarray
     dev: np.ndarray
 
     @property
@@ -159,12 +162,22 @@ class Curve:
             d1[m] = w * (c * e2 - s * e1) + self.e3[i] + self.corr[i]
             d2[m] = -w * w * (c * e1 + s * e2)
             d3[m] = -w**3 * (c * e2 - s * e1)
-        m = kind == _SPLINE
+        m = kind == _QUINTIC
         if m.any():
-            sid = self.org[idx, 0].astype(np.int64)
-            for k in np.unique(sid[m]):
-                mk = m & (sid == k)
-                spl, x = self.splines[k], ul[mk, 0]
+            i = idx[m]
+            q = self.org[i, 0].astype(np.int64)
+            p[m], d1[m], d2[m], d3[m] = bezier(self.ctrl[q], self.u0[i + 1] - self.u0[i],
+                                               ul[m, 0])
+        at = np.flatnonzero(kind == _SPLINE)
+        if at.size:
+            # the points of each spline together (one call per spline, O(N log N) in all)
+            sid = self.org[idx[at], 0].astype(np.int64)
+            order = np.argsort(sid, kind="stable")
+            at, sid = at[order], sid[order]
+            cuts = np.flatnonzero(np.diff(sid)) + 1
+            for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, at.size]):
+                mk, spl = at[lo:hi], self.splines[sid[lo]]
+                x = ul[mk, 0]
                 p[mk], d1[mk], d2[mk], d3[mk] = spl(x), spl(x, 1), spl(x, 2), spl(x, 3)
         return p, d1, d2, d3
 
@@ -356,6 +369,7 @@ class _CurveBuilder:
     def __init__(self) -> None:
         self.rows: list[list] = []
         self.splines: list[BSpline] = []
+        self.quintics: list[np.ndarray] = []
         self.seg_ids: list[int] = []
         self.seg_u: list[float] = [0.0]
         self.fit_dev = 0.0
@@ -385,6 +399,12 @@ class _CurveBuilder:
         org = np.array([len(self.splines), 0.0, 0.0])
         self.splines.append(spl)
         self.rows.append([L, _SPLINE, org, z, z, z, 0.0, 0.0, z, dev])
+
+    def quintic(self, blend: Blend) -> None:
+        z = np.zeros(3)
+        org = np.array([len(self.quintics), 0.0, 0.0])
+        self.quintics.append(blend.ctrl)
+        self.rows.append([blend.length, _QUINTIC, org, z, z, z, 0.0, 0.0, z, blend.deviation_m])
 
     def trim_start(self, cut: float) -> None:
         """Drop the first ``cut`` metres of parameter of the first piece."""
@@ -433,6 +453,7 @@ class _CurveBuilder:
             w=np.array(cols[7]),
             corr=np.array(cols[8]),
             splines=tuple(self.splines),
+            ctrl=np.array(self.quintics).reshape(-1, 6, 3),
             dev=np.array(cols[9], dtype=np.float64),
         )
 
@@ -575,16 +596,17 @@ def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
     base = mid = offset = a.length
     if blend is not None:
         mid = base + 0.5 * blend.length
-        a.spline(blend.curve, blend.length, blend.deviation_m)
+        a.quintic(blend)
         b.trim_start(cut)
         offset = base + blend.length - cut
         a.fit_dev = max(a.fit_dev, blend.deviation_m)
-    index = len(a.splines)
+    first = {_SPLINE: len(a.splines), _QUINTIC: len(a.quintics)}
     for row in b.rows:
-        if row[1] == _SPLINE:
-            row[2] = row[2] + np.array([index, 0.0, 0.0])
+        if row[1] in first:
+            row[2] = row[2] + np.array([first[row[1]], 0.0, 0.0])
         a.rows.append(row)
     a.splines.extend(b.splines)
+    a.quintics.extend(b.quintics)
     # programmed moves meet at the blend's middle (moves shorter than the cut end there)
     a.seg_u = [min(u, mid) for u in a.seg_u[:-1]] + [mid]
     a.seg_u += [max(u + offset, mid) for u in b.seg_u[1:]]

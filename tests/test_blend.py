@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from feedplan.blend import quintic
+from feedplan.blend import Blend, quintic
 from feedplan.fit import BLEND_MAX_TURN_RAD, Blending, blocks_of
 from feedplan.gcode import parse_gcode
 from feedplan.limits import AxisLimits
@@ -165,7 +165,7 @@ def test_blend_is_curvature_continuous():
     path = parse_gcode(kink(40, "G64"))
     (blk,) = [b for b in blocks_of(path, 0.5 * TOL_M, Blending(0.5 * TOL_M)) if not b.rapid]
     curve = blk.curve
-    assert list(curve.kind) == [0, 2, 0]
+    assert list(curve.kind) == [0, 3, 0]  # line, blend, line
     h = 1e-7
     for u in curve.u0[1:-1]:
         p = curve.evaluate(np.array([u - 2 * h, u - h, u, u + h, u + 2 * h]))[0]
@@ -183,10 +183,20 @@ def test_blend_is_curvature_continuous():
 def test_quintic_matches_its_end_conditions():
     rng = np.random.default_rng(5)
     p0, d0, k0, p1, d1, k1 = rng.normal(size=(6, 3))
-    spl = quintic(p0, d0, k0, p1, d1, k1, 2.0)
-    for u, want in ((0.0, (p0, d0, k0)), (2.0, (p1, d1, k1))):
+    blend = Blend(quintic(p0, d0, k0, p1, d1, k1, 2.0), 2.0, 0.0, 0.0)
+    got = blend.evaluate(np.array([0.0, 2.0]))
+    for end, want in enumerate(((p0, d0, k0), (p1, d1, k1))):
         for nu, w in enumerate(want):
-            assert np.allclose(spl(u, nu), w, atol=1e-12)
+            assert np.allclose(got[nu][end], w, atol=1e-12)
+    # its derivatives are those of its positions (finite differences)
+    u = np.linspace(0.3, 1.7, 8)
+    h = 1e-4
+    p, d1, d2, d3 = blend.evaluate(u)
+    pm, pp = blend.evaluate(u - h)[0], blend.evaluate(u + h)[0]
+    assert np.allclose((pp - pm) / (2 * h), d1, atol=1e-6)
+    assert np.allclose((pp - 2 * p + pm) / h**2, d2, atol=1e-5)
+    d2m, d2p = blend.evaluate(u - h)[2], blend.evaluate(u + h)[2]
+    assert np.allclose((d2p - d2m) / (2 * h), d3, atol=1e-5)
 
 
 def test_blend_shorter_than_half_of_a_short_line():
@@ -194,7 +204,7 @@ def test_blend_shorter_than_half_of_a_short_line():
     text = "G21 G90 G17\nG0 X0 Y0\nG1 X10 F3000\nX10.1 Y0.02\nX20 Y0.5\nM2\n"
     path = parse_gcode(text)
     (blk,) = [b for b in blocks_of(path, 0.5 * TOL_M, Blending(0.5 * TOL_M)) if not b.rapid]
-    assert list(blk.curve.kind) == [0, 2, 0, 2, 0]
+    assert list(blk.curve.kind) == [0, 3, 0, 3, 0]
     assert np.all(np.diff(blk.curve.u0) > 0) and np.all(np.diff(blk.seg_u0) > 0)
     sp = plan(path, UCP)
     assert_within(sp, path, UCP, TOL_M)
