@@ -23,9 +23,10 @@ rest to rest:
   :data:`FIT_KNOT_SPACING_M` apart and are refined only where the deviation requires),
   so a sharp feature never produces the overshoot of a global interpolating spline.
 
-Lines and arcs are kept exact (but for the ends a blend replaces). A block's :class:`Curve` is parametrised by ``u`` in
-metres: arc length for lines and arcs, chord length of the programmed vertices for
-fitted splines (``|dr/du|`` within a few per mille of 1).
+Lines and arcs are kept exact (but for the ends a blend replaces). A block's
+:class:`Curve` is parametrised by ``u`` in metres: arc length for lines and arcs, chord
+length of the programmed vertices for fitted splines (``|dr/du|`` within a few per mille
+of 1); a blend's ``|dr/du|`` is 1 at both ends.
 """
 
 from __future__ import annotations
@@ -373,15 +374,16 @@ class _CurveBuilder:
         self.seg_ids: list[int] = []
         self.seg_u: list[float] = [0.0]
         self.fit_dev = 0.0
+        self.length = 0.0  # parameter length of the rows, m
 
-    @property
-    def length(self) -> float:
-        return float(sum(r[0] for r in self.rows))
+    def _append(self, row: list) -> None:
+        self.rows.append(row)
+        self.length += row[0]
 
     def line(self, a: np.ndarray, b: np.ndarray) -> None:
         L = float(np.linalg.norm(b - a))
         z = np.zeros(3)
-        self.rows.append([L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z, 0.0])
+        self._append([L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z, 0.0])
 
     def arc(self, seg: Arc) -> None:
         i, j, n = PLANES[seg.plane]
@@ -391,25 +393,25 @@ class _CurveBuilder:
         center = seg.center.copy()
         exact_end = seg.point(1.0)
         corr = (seg.end - exact_end) / L
-        self.rows.append([L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr,
-                          0.0])
+        self._append([L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr, 0.0])
 
     def spline(self, spl: BSpline, L: float, dev: float) -> None:
         z = np.zeros(3)
         org = np.array([len(self.splines), 0.0, 0.0])
         self.splines.append(spl)
-        self.rows.append([L, _SPLINE, org, z, z, z, 0.0, 0.0, z, dev])
+        self._append([L, _SPLINE, org, z, z, z, 0.0, 0.0, z, dev])
 
     def quintic(self, blend: Blend) -> None:
         z = np.zeros(3)
         org = np.array([len(self.quintics), 0.0, 0.0])
         self.quintics.append(blend.ctrl)
-        self.rows.append([blend.length, _QUINTIC, org, z, z, z, 0.0, 0.0, z, blend.deviation_m])
+        self._append([blend.length, _QUINTIC, org, z, z, z, 0.0, 0.0, z, blend.deviation_m])
 
     def trim_start(self, cut: float) -> None:
         """Drop the first ``cut`` metres of parameter of the first piece."""
         row = self.rows[0]
         row[0] -= cut
+        self.length -= cut
         if row[1] == _LINE:
             row[2] = row[2] + cut * row[3]
         elif row[1] == _ARC:
@@ -420,25 +422,16 @@ class _CurveBuilder:
             spl = self.splines[k]
             self.splines[k] = BSpline(spl.t - cut, spl.c, spl.k)
 
-    def end_curve(self) -> Curve:
-        """A curve of the last piece alone (for its end point and derivatives)."""
-        last = _CurveBuilder()
-        row = list(self.rows[-1])
+    def piece_curve(self, index: int) -> Curve:
+        """A curve of one piece alone (the last, -1, or the first, 0: for its end points
+        and derivatives)."""
+        one = _CurveBuilder()
+        row = list(self.rows[index])
         if row[1] == _SPLINE:
-            last.splines = [self.splines[int(row[2][0])]]
+            one.splines = [self.splines[int(row[2][0])]]
             row[2] = np.zeros(3)
-        last.rows = [row]
-        return last.build()
-
-    def start_curve(self) -> Curve:
-        """A curve of the first piece alone."""
-        first = _CurveBuilder()
-        row = list(self.rows[0])
-        if row[1] == _SPLINE:
-            first.splines = [self.splines[int(row[2][0])]]
-            row[2] = np.zeros(3)
-        first.rows = [row]
-        return first.build()
+        one._append(row)
+        return one.build()
 
     def build(self) -> Curve:
         cols = list(zip(*self.rows))
@@ -558,12 +551,19 @@ def _pieces(path: Path, ids: list[int], fit_tol_m: float) -> list[_CurveBuilder]
 def _blend(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -> Blend | None:
     """The blend of the end of ``a`` into the start of ``b``, or None if none keeps within
     the tolerance or is fast enough."""
-    end, start = a.end_curve(), b.start_curve()
+    end, start = a.piece_curve(-1), b.piece_curve(0)
     cut_max = 0.5 * min(end.length, start.length)
     if not cut_max > 0:
         return None
-    near = [i for i, u in zip(a.seg_ids, a.seg_u[1:]) if u > a.seg_u[-1] - cut_max]
-    near += [i for i, u in zip(b.seg_ids, b.seg_u[:-1]) if u < cut_max]
+    # the programmed moves within the cut on either side (walking from the corner)
+    k = len(a.seg_ids) - 1
+    while k > 0 and a.seg_u[k] > a.length - cut_max:
+        k -= 1
+    near = a.seg_ids[k:]
+    k = 0
+    while k < len(b.seg_ids) and b.seg_u[k] < cut_max:
+        k += 1
+    near += b.seg_ids[:max(k, 1)]
     table = segment_table([path.segments[i] for i in near])
 
     def left(cut):
@@ -593,6 +593,7 @@ def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
     """Append ``b`` to ``a``, through ``blend`` (None: as they meet)."""
     cut = 0.0 if blend is None else blend.cut_m
     a.rows[-1][0] -= cut
+    a.length -= cut
     base = mid = offset = a.length
     if blend is not None:
         mid = base + 0.5 * blend.length
@@ -604,11 +605,15 @@ def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
     for row in b.rows:
         if row[1] in first:
             row[2] = row[2] + np.array([first[row[1]], 0.0, 0.0])
-        a.rows.append(row)
+        a._append(row)
     a.splines.extend(b.splines)
     a.quintics.extend(b.quintics)
     # programmed moves meet at the blend's middle (moves shorter than the cut end there)
-    a.seg_u = [min(u, mid) for u in a.seg_u[:-1]] + [mid]
+    a.seg_u[-1] = mid
+    k = len(a.seg_u) - 2
+    while k >= 0 and a.seg_u[k] > mid:
+        a.seg_u[k] = mid
+        k -= 1
     a.seg_u += [max(u + offset, mid) for u in b.seg_u[1:]]
     a.seg_ids += b.seg_ids
     a.fit_dev = max(a.fit_dev, b.fit_dev)

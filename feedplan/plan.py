@@ -29,9 +29,9 @@ plus FIR filter" of industrial interpolators:
    compiled forward/backward passes with a tangential acceleration limit ``A_t``
    (a share of ``J T``, small near curvature jumps; on each axis what the centripetal
    acceleration at the ceiling leaves of its limit, projected on the tangent: the whole
-   limit on straight stretches, at least ``1 - _CENTRIPETAL_SHARE`` of it on curves). Cells are crossed at
-   constant acceleration, those starting or ending at rest time-optimally (so a
-   slow feed pays no cell's worth of time per block). The positions ``r(u(t))`` are
+   limit on straight stretches, at least ``1 - _CENTRIPETAL_SHARE`` of it on curves).
+   Cells are crossed at constant acceleration, those starting or ending at rest
+   time-optimally (so a slow feed pays no cell's worth of time per block). The positions ``r(u(t))`` are
    sampled every ``dt``;
 2. a moving average of ``M`` samples (``T = M dt``) over these positions, the same
    on every axis so the axes stay synchronised. In finite differences the filtered
@@ -78,8 +78,8 @@ from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
 from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import (
-    DT_RANGE_S,
     BLEND_TOL_FRACTION,
+    DT_RANGE_S,
     DT_S,
     MAX_COORD_M,
     MAX_MOTION_S,
