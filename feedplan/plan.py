@@ -5,8 +5,8 @@ Method
 The path is cut into rest-to-rest blocks (:func:`feedplan.fit.blocks_of`: rapids,
 chains of lines, arcs, fitted micro-segment splines and the corner blends between them;
 exact stops only where G61 asks or a blend would not be faster). The tolerance is
-``tol_m``, or the smallest ``G64 P`` of the program if smaller
-(:func:`program_tolerance_m`); blends get :data:`~oga.defaults.BLEND_TOL_FRACTION` of it,
+``G64 P`` where the program sets one, ``tol_m`` elsewhere, the least of them for the
+whole plan (:func:`program_tolerance_m`); blends get :data:`~oga.defaults.BLEND_TOL_FRACTION` of it,
 the filter's rounding the rest.
 
 *Straight blocks* (rapids, and feed blocks of one line) are planned exactly: the
@@ -723,10 +723,11 @@ def _estimate(path: Path, feeds: np.ndarray, allowed: np.ndarray, dt: float) -> 
 
 
 def program_tolerance_m(path: Path, tol_m: float) -> float:
-    """The plan's tolerance, metres: ``tol_m``, or the smallest ``G64 P`` of the program's
-    feed moves if smaller (every sample is held to it; a larger P is held to ``tol_m``)."""
-    given = [s.blend_tol_m for s in path.segments if not s.rapid and s.blend_tol_m]
-    return min([tol_m, *given])
+    """The plan's tolerance, metres: the least, over the feed moves, of their ``G64 P``
+    where one is programmed and ``tol_m`` elsewhere (every sample is held to it), within
+    :data:`~oga.defaults.TOL_RANGE_M`."""
+    each = [s.blend_tol_m or tol_m for s in path.segments if not s.rapid]
+    return float(np.clip(min(each, default=tol_m), *TOL_RANGE_M))
 
 
 def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float) -> None:
@@ -802,7 +803,8 @@ def plan(
         Path speed (m/s) for every feed move, overriding the programmed feeds.
     tol_m : float
         Largest distance of a feed setpoint to the programmed geometry, metres
-        (within :data:`~oga.defaults.TOL_RANGE_M`).
+        (within :data:`~oga.defaults.TOL_RANGE_M`), where the program sets no ``G64 P``
+        (see :func:`program_tolerance_m`; a warning says when P changes it).
     dt : float
         Sample period, seconds (within :data:`~oga.defaults.DT_RANGE_S`).
     progress : callable, optional
@@ -837,7 +839,10 @@ def plan(
     seg_feed, allowed, warnings = _feeds(path, limits, feed_m_s)
     seg_time = _estimate(path, seg_feed, allowed, dt)
     budget = int(min(MAX_SAMPLES, MAX_MOTION_S / dt))
-    tol_m = program_tolerance_m(path, tol_m)
+    given, tol_m = tol_m, program_tolerance_m(path, tol_m)
+    if tol_m != given:
+        warnings.append(f"the program's G64 P sets the tolerance to {tol_m * 1e3:.6g} mm "
+                        f"(instead of {given * 1e3:.6g} mm)")
     blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION, Blending(tol_m * BLEND_TOL_FRACTION,
                                                                limits, seg_feed))
     done, whole = 0.0, float(np.sum(seg_time))

@@ -107,13 +107,18 @@ def test_g61_stops_exactly_at_the_corner(mode):
 
 
 def test_g64_p_sets_the_tolerance_of_the_plan():
-    for p_mm, want in ((0.005, 0.005 * MM), (0.5, TOL_M)):  # a larger P is held to tol_m
+    for p_mm in (0.005, 0.5):  # tighter and looser than tol_m (0.02 mm)
         path = parse_gcode(kink(8, f"G64 P{p_mm}"))
-        assert program_tolerance_m(path, TOL_M) == pytest.approx(want)
+        assert program_tolerance_m(path, TOL_M) == pytest.approx(p_mm * MM)
         sp = plan(path, UCP)
-        dev = assert_within(sp, path, UCP, want)
+        dev = assert_within(sp, path, UCP, p_mm * MM)
+        assert dev > 0.2 * p_mm * MM
         assert speed_at(sp, CORNER) > 0.0
-    assert dev > 0.2 * TOL_M
+        assert any("G64 P sets the tolerance" in w for w in sp.warnings)
+    # a move without P keeps tol_m: the least of the moves' tolerances holds
+    mixed = parse_gcode("G21 G90 G17\nG0 X0 Y0\nG1 X20 F3000\nG64 P0.5 X40 Y3\nX60\nM2\n")
+    assert program_tolerance_m(mixed, TOL_M) == TOL_M
+    assert not plan(mixed, UCP).warnings
     tight = plan(parse_gcode(kink(8, "G64 P0.002")), UCP)
     loose = plan(parse_gcode(kink(8, "G64")), UCP)
     assert tight.duration > loose.duration  # a tighter blend is slower
