@@ -493,21 +493,26 @@ def _corner_turn(path: Path, k: int) -> float:
     return _turn(_tangents(path.segments[k - 1])[1], _tangents(path.segments[k])[0])
 
 
-def _feed_chains(path: Path, idx: list[int], blending: Blending | None) -> list[list[int]]:
+def _feed_chains(path: Path, idx: list[int], blending: Blending | None) -> list[tuple]:
     """Split consecutive feed moves at exact stops: every kink above
     :data:`BLEND_MIN_TURN_RAD` at the end of a move under G61, corners above
-    :data:`CORNER_ANGLE_RAD` without blending or turning more than :data:`BLEND_MAX_TURN_RAD`."""
-    chains: list[list[int]] = []
+    :data:`CORNER_ANGLE_RAD` without blending or turning more than :data:`BLEND_MAX_TURN_RAD`.
+
+    Returns a list of (moves, turns): the move indices of each chain and the tangent turn
+    (rad) into each of them from the previous one (0 for the first).
+    """
+    chains: list[tuple] = []
     for k in idx:
-        if chains and chains[-1][-1] == k - 1:
+        if chains and chains[-1][0][-1] == k - 1:
             turn = _corner_turn(path, k)
             if turn <= BLEND_MIN_TURN_RAD or (path.segments[k - 1].blend_tol_m != 0 and (
                 turn <= CORNER_ANGLE_RAD
                 or (turn <= BLEND_MAX_TURN_RAD and _blendable(path, k - 1, blending))
             )):
-                chains[-1].append(k)
+                chains[-1][0].append(k)
+                chains[-1][1].append(turn)
                 continue
-        chains.append([k])
+        chains.append(([k], [0.0]))
     return chains
 
 
@@ -619,7 +624,7 @@ def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
     a.fit_dev = max(a.fit_dev, b.fit_dev)
 
 
-def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
+def _chain_blocks(path: Path, chain: list[int], turns: list[float], fit_tol_m: float,
                   blending: Blending | None) -> list[Block]:
     """Blocks of one chain of feed moves.
 
@@ -630,25 +635,26 @@ def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float,
     """
     segs = path.segments
     runs: list[list[int]] = [[chain[0]]]
-    for k in chain[1:]:
-        turn = _corner_turn(path, k)
+    into: list[float] = [0.0]  # turn into each run
+    for k, turn in zip(chain[1:], turns[1:]):
         if turn > CORNER_ANGLE_RAD or (
             turn > BLEND_MIN_TURN_RAD
             and _blendable(path, k - 1, blending)
             and not (_is_micro(segs[k - 1]) and _is_micro(segs[k]))
         ):
             runs.append([k])
+            into.append(turn)
         else:
             runs[-1].append(k)
     blocks: list[Block] = []
     cur: _CurveBuilder | None = None
-    for run in runs:
+    for run, turn in zip(runs, into):
         parts = _pieces(path, run, fit_tol_m)
         if cur is None:
             cur = parts[0]
         else:
             blend = _blend(cur, parts[0], path, blending)
-            if blend is not None or _corner_turn(path, run[0]) <= CORNER_ANGLE_RAD:
+            if blend is not None or turn <= CORNER_ANGLE_RAD:
                 _merge(cur, parts[0], blend)
             else:
                 blocks.append(cur.block())
@@ -682,8 +688,8 @@ def blocks_of(path: Path, fit_tol_m: float, blending: Blending | None = None) ->
     feed: list[int] = []
 
     def flush() -> None:
-        for chain in _feed_chains(path, feed, blending):
-            out.extend(_chain_blocks(path, chain, fit_tol_m, blending))
+        for chain, turns in _feed_chains(path, feed, blending):
+            out.extend(_chain_blocks(path, chain, turns, fit_tol_m, blending))
 
     for k, seg in enumerate(path.segments):
         if seg.length <= 1e-12:
