@@ -10,7 +10,8 @@ quintic's control points lie three on each line (zero curvature at both ends), a
 Beckhoff's fifth-order Bezier blending; the same construction joins arcs and fitted
 splines. ``l`` is at most half of either piece (two blends of one piece never
 overlap) and shrunk until the blend keeps within the tolerance of the programmed moves
-(exact distance to their lines and arcs, :func:`feedplan.check.deviation_m`).
+(exact distance of :data:`BLEND_SAMPLES` points of it to their lines and arcs,
+:func:`feedplan.check.deviation_m`; the planner then checks every setpoint exactly).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
 from feedplan.check import deviation_m
 
 __all__ = ["Blend", "quintic", "bezier", "corner_blend", "corner_speed_m_s", "BLEND_SAMPLES",
