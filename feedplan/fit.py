@@ -3,9 +3,16 @@
 A :class:`~feedplan.path.Path` is cut into :class:`Block` s, each planned from
 rest to rest:
 
-* every rapid (G0) line is a block of its own (rapid/feed transitions are exact stops);
-* feed moves are chained while the tangent turns by at most :data:`CORNER_ANGLE_RAD`
-  from one move to the next; a sharper corner is an exact stop (a new block);
+* every rapid (G0) line is a block of its own (rapid/feed transitions are exact stops:
+  a rapid is planned time-optimally on its own, and the approach to the part is not cut);
+* feed moves are chained through their corners: a kink of more than
+  :data:`BLEND_MIN_TURN_RAD` is replaced by a curvature-continuous blend within the
+  tolerance (:mod:`feedplan.blend`, G64), unless the move ending there was programmed
+  under G61 (every kink an exact stop), the turn exceeds :data:`BLEND_MAX_TURN_RAD`, no
+  blend keeps within the tolerance, or the blend would be passed slower than
+  :data:`~oga.defaults.BLEND_MIN_SPEED_SHARE` of the speed a stop costs (then it is no
+  faster than the stop); without blending (no :class:`Blending`), corners up to
+  :data:`CORNER_ANGLE_RAD` are passed as kinks and sharper ones are exact stops;
 * runs of at least :data:`MICRO_RUN_MIN` consecutive short G1 lines (each shorter than
   :data:`MICRO_SEGMENT_M`), as CAM posts write freeform surfaces, are replaced by a
   least-squares cubic B-spline (curvature-continuous). Every fit is measured both ways
@@ -16,29 +23,37 @@ rest to rest:
   :data:`FIT_KNOT_SPACING_M` apart and are refined only where the deviation requires),
   so a sharp feature never produces the overshoot of a global interpolating spline.
 
-Lines and arcs are kept exact. A block's :class:`Curve` is parametrised by ``u`` in
-metres: arc length for lines and arcs, chord length of the programmed vertices for
-fitted splines (``|dr/du|`` within a few per mille of 1).
+Lines and arcs are kept exact (but for the ends a blend replaces). A block's
+:class:`Curve` is parametrised by ``u`` in metres: arc length for lines and arcs, chord
+length of the programmed vertices for fitted splines (``|dr/du|`` within a few per mille
+of 1); a blend's ``|dr/du|`` is 1 at both ends.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
-from feedplan.check import point_segment_distance
+from feedplan.blend import Blend, bezier, corner_blend, corner_speed_m_s
+from feedplan.check import point_segment_distance, segment_table
+from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
+from oga.defaults import BLEND_MIN_SPEED_SHARE
 
 __all__ = [
     "CORNER_ANGLE_RAD",
+    "BLEND_MIN_TURN_RAD",
+    "BLEND_MAX_TURN_RAD",
     "MICRO_SEGMENT_M",
     "MICRO_RUN_MIN",
     "FIT_KNOT_SPACING_M",
     "Curve",
     "Block",
+    "Blending",
     "fit_polyline",
     "polyline_fit_deviation",
     "blocks_of",
@@ -52,10 +67,14 @@ MICRO_SEGMENT_M = 1e-3
 MICRO_RUN_MIN = 4
 #: Largest knot spacing of a micro-segment fit before refinement, metres.
 FIT_KNOT_SPACING_M = 0.5e-3
+#: Corners turning more than this are blended (G64); smaller kinks are passed as kinks.
+BLEND_MIN_TURN_RAD = 1e-3
+#: Corners turning more than this are exact stops whatever the path control (a reversal).
+BLEND_MAX_TURN_RAD = 0.95 * np.pi
 #: Largest number of knot refinements of one fit.
 _FIT_ROUNDS = 12
 
-_LINE, _ARC, _SPLINE = 0, 1, 2
+_LINE, _ARC, _SPLINE, _QUINTIC = 0, 1, 2, 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,7 +86,7 @@ class Curve:
     u0 : ndarray, shape (P + 1,)
         Parameter (metres) where each piece starts; ``u0[-1]`` is the total.
     kind : ndarray of int, shape (P,)
-        0 line, 1 arc, 2 spline.
+        0 line, 1 arc, 2 spline, 3 corner blend (a quintic Bezier).
     org, e1, e2, e3 : ndarray, shape (P, 3)
         Line: start, unit direction, 0, 0. Arc: centre, ``R`` times the plane's
         first and second axis, helical rise per metre of ``u`` along the normal.
@@ -77,8 +96,12 @@ class Curve:
         Arc end correction per metre of ``u`` (the programmed end minus the
         exact circle end, spread linearly; below the reader's arc tolerance).
     splines : tuple of scipy.interpolate.BSpline
-        Cubic splines of the pieces of kind 2 (``org[p, 0]`` indexes them);
-        their parameter starts at 0.
+        Cubic splines of the pieces of kind 2 (``org[p, 0]`` indexes them); their
+        parameter starts at 0.
+    ctrl : ndarray, shape (Q, 6, 3)
+        Control points of the quintics of the pieces of kind 3 (``org[p, 0]`` indexes them).
+    dev : ndarray, shape (P,)
+        Largest distance of each piece from the programmed moves, m (0 for lines and arcs).
     """
 
     u0: np.ndarray
@@ -91,6 +114,8 @@ class Curve:
     w: np.ndarray
     corr: np.ndarray
     splines: tuple
+    ctrl: np.ndarray
+    dev: np.ndarray
 
     @property
     def length(self) -> float:
@@ -138,12 +163,22 @@ class Curve:
             d1[m] = w * (c * e2 - s * e1) + self.e3[i] + self.corr[i]
             d2[m] = -w * w * (c * e1 + s * e2)
             d3[m] = -w**3 * (c * e2 - s * e1)
-        m = kind == _SPLINE
+        m = kind == _QUINTIC
         if m.any():
-            sid = self.org[idx, 0].astype(np.int64)
-            for k in np.unique(sid[m]):
-                mk = m & (sid == k)
-                spl, x = self.splines[k], ul[mk, 0]
+            i = idx[m]
+            q = self.org[i, 0].astype(np.int64)
+            p[m], d1[m], d2[m], d3[m] = bezier(self.ctrl[q], self.u0[i + 1] - self.u0[i],
+                                               ul[m, 0])
+        at = np.flatnonzero(kind == _SPLINE)
+        if at.size:
+            # the points of each spline together (one call per spline, O(N log N) in all)
+            sid = self.org[idx[at], 0].astype(np.int64)
+            order = np.argsort(sid, kind="stable")
+            at, sid = at[order], sid[order]
+            cuts = np.flatnonzero(np.diff(sid)) + 1
+            for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, at.size]):
+                mk, spl = at[lo:hi], self.splines[sid[lo]]
+                x = ul[mk, 0]
                 p[mk], d1[mk], d2[mk], d3[mk] = spl(x), spl(x, 1), spl(x, 2), spl(x, 3)
         return p, d1, d2, d3
 
@@ -329,14 +364,26 @@ def _turn(a: np.ndarray, b: np.ndarray) -> float:
 
 
 class _CurveBuilder:
+    """Pieces of one curve (rows of :class:`Curve`'s columns, then its deviation), and the
+    programmed moves along it: their indices, where each starts (u, m), the fits' deviation."""
+
     def __init__(self) -> None:
-        self.rows: list[tuple] = []
+        self.rows: list[list] = []
         self.splines: list[BSpline] = []
+        self.quintics: list[np.ndarray] = []
+        self.seg_ids: list[int] = []
+        self.seg_u: list[float] = [0.0]
+        self.fit_dev = 0.0
+        self.length = 0.0  # parameter length of the rows, m
+
+    def _append(self, row: list) -> None:
+        self.rows.append(row)
+        self.length += row[0]
 
     def line(self, a: np.ndarray, b: np.ndarray) -> None:
         L = float(np.linalg.norm(b - a))
         z = np.zeros(3)
-        self.rows.append((L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z))
+        self._append([L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z, 0.0])
 
     def arc(self, seg: Arc) -> None:
         i, j, n = PLANES[seg.plane]
@@ -346,13 +393,45 @@ class _CurveBuilder:
         center = seg.center.copy()
         exact_end = seg.point(1.0)
         corr = (seg.end - exact_end) / L
-        self.rows.append((L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr))
+        self._append([L, _ARC, center, e1, e2, e3, seg.start_angle, seg.sweep_rad / L, corr, 0.0])
 
-    def spline(self, spl: BSpline, L: float) -> None:
+    def spline(self, spl: BSpline, L: float, dev: float) -> None:
         z = np.zeros(3)
         org = np.array([len(self.splines), 0.0, 0.0])
         self.splines.append(spl)
-        self.rows.append((L, _SPLINE, org, z, z, z, 0.0, 0.0, z))
+        self._append([L, _SPLINE, org, z, z, z, 0.0, 0.0, z, dev])
+
+    def quintic(self, blend: Blend) -> None:
+        z = np.zeros(3)
+        org = np.array([len(self.quintics), 0.0, 0.0])
+        self.quintics.append(blend.ctrl)
+        self._append([blend.length, _QUINTIC, org, z, z, z, 0.0, 0.0, z, blend.deviation_m])
+
+    def trim_start(self, cut: float) -> None:
+        """Drop the first ``cut`` metres of parameter of the first piece."""
+        row = self.rows[0]
+        row[0] -= cut
+        self.length -= cut
+        if row[1] == _LINE:
+            row[2] = row[2] + cut * row[3]
+        elif row[1] == _ARC:
+            row[6] += row[7] * cut
+            row[2] = row[2] + cut * (row[5] + row[8])
+        else:
+            k = int(row[2][0])
+            spl = self.splines[k]
+            self.splines[k] = BSpline(spl.t - cut, spl.c, spl.k)
+
+    def piece_curve(self, index: int) -> Curve:
+        """A curve of one piece alone (the last, -1, or the first, 0: for its end points
+        and derivatives)."""
+        one = _CurveBuilder()
+        row = list(self.rows[index])
+        if row[1] == _SPLINE:
+            one.splines = [self.splines[int(row[2][0])]]
+            row[2] = np.zeros(3)
+        one._append(row)
+        return one.build()
 
     def build(self) -> Curve:
         cols = list(zip(*self.rows))
@@ -367,76 +446,227 @@ class _CurveBuilder:
             w=np.array(cols[7]),
             corr=np.array(cols[8]),
             splines=tuple(self.splines),
+            ctrl=np.array(self.quintics).reshape(-1, 6, 3),
+            dev=np.array(cols[9], dtype=np.float64),
         )
+
+    def block(self) -> Block:
+        return Block(self.build(), False, np.array(self.seg_ids, dtype=np.int64),
+                     np.array(self.seg_u), self.fit_dev)
 
 
 def _is_micro(seg) -> bool:
     return isinstance(seg, Line) and not seg.rapid and seg.length < MICRO_SEGMENT_M
 
 
-def _feed_chains(path: Path, idx: list[int]) -> list[list[int]]:
-    """Split consecutive feed moves at corners (exact stops)."""
-    chains: list[list[int]] = []
+@dataclass(frozen=True, eq=False)
+class Blending:
+    """How corners are blended (:mod:`feedplan.blend`).
+
+    Attributes
+    ----------
+    tol_m : float
+        Largest distance of a blend from the programmed moves, m.
+    limits : AxisLimits, optional
+        Axis limits: a corner whose blend cannot be passed at
+        :data:`~oga.defaults.BLEND_MIN_SPEED_SHARE` of the feed stays an exact stop (none:
+        every blend within ``tol_m`` is kept).
+    feeds : ndarray, shape (n_segments,), optional
+        Feed of every move, m/s (default: as programmed).
+    """
+
+    tol_m: float
+    limits: AxisLimits | None = None
+    feeds: np.ndarray | None = None
+
+    def feed(self, path: Path, k: int) -> float:
+        return float(path.segments[k].feed_m_s if self.feeds is None else self.feeds[k])
+
+
+def _blendable(path: Path, k: int, blending: Blending | None) -> bool:
+    """Whether the corner at the end of feed move ``k`` may be blended (not G61, a tolerance)."""
+    return blending is not None and blending.tol_m > 0 and path.segments[k].blend_tol_m != 0
+
+
+def _corner_turn(path: Path, k: int) -> float:
+    """Tangent turn from move ``k - 1`` to move ``k``, rad."""
+    return _turn(_tangents(path.segments[k - 1])[1], _tangents(path.segments[k])[0])
+
+
+def _feed_chains(path: Path, idx: list[int], blending: Blending | None) -> list[tuple]:
+    """Split consecutive feed moves at exact stops: every kink above
+    :data:`BLEND_MIN_TURN_RAD` at the end of a move under G61, corners above
+    :data:`CORNER_ANGLE_RAD` without blending or turning more than :data:`BLEND_MAX_TURN_RAD`.
+
+    Returns a list of (moves, turns): the move indices of each chain and the tangent turn
+    (rad) into each of them from the previous one (0 for the first).
+    """
+    chains: list[tuple] = []
     for k in idx:
-        if chains and chains[-1][-1] == k - 1:
-            t_end = _tangents(path.segments[k - 1])[1]
-            t_start = _tangents(path.segments[k])[0]
-            if _turn(t_end, t_start) <= CORNER_ANGLE_RAD:
-                chains[-1].append(k)
+        if chains and chains[-1][0][-1] == k - 1:
+            turn = _corner_turn(path, k)
+            if turn <= BLEND_MIN_TURN_RAD or (path.segments[k - 1].blend_tol_m != 0 and (
+                turn <= CORNER_ANGLE_RAD
+                or (turn <= BLEND_MAX_TURN_RAD and _blendable(path, k - 1, blending))
+            )):
+                chains[-1][0].append(k)
+                chains[-1][1].append(turn)
                 continue
-        chains.append([k])
+        chains.append(([k], [0.0]))
     return chains
 
 
-def _chain_blocks(path: Path, chain: list[int], fit_tol_m: float) -> list[Block]:
-    """Blocks of one corner-free chain of feed moves (more if a fit splits it)."""
+def _pieces(path: Path, ids: list[int], fit_tol_m: float) -> list[_CurveBuilder]:
+    """Curves of consecutive moves without a blended corner; more than one where a fit of
+    micro-segments splits (exact stops between them)."""
     segs = path.segments
-    blocks: list[Block] = []
-    b = _CurveBuilder()
-    seg_ids: list[int] = []
-    seg_u: list[float] = [0.0]
-    fit_dev = 0.0
-
-    def close() -> None:
-        nonlocal b, seg_ids, seg_u, fit_dev
-        if seg_ids:
-            blocks.append(
-                Block(b.build(), False, np.array(seg_ids, dtype=np.int64), np.array(seg_u), fit_dev)
-            )
-        b, seg_ids, seg_u, fit_dev = _CurveBuilder(), [], [0.0], 0.0
-
+    out = [_CurveBuilder()]
     k = 0
-    while k < len(chain):
+    while k < len(ids):
+        b = out[-1]
         run = k
-        while run < len(chain) and _is_micro(segs[chain[run]]):
+        while run < len(ids) and _is_micro(segs[ids[run]]):
             run += 1
         if run - k >= MICRO_RUN_MIN:
-            ids = chain[k:run]
-            verts = np.vstack([segs[ids[0]].start] + [segs[i].end for i in ids])
+            run_ids = ids[k:run]
+            verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
             for first, last, spl, dev in fit_polyline(verts, fit_tol_m):
                 if first > 0:
-                    close()
+                    out.append(_CurveBuilder())
+                    b = out[-1]
                 chord = np.linalg.norm(np.diff(verts[first : last + 1], axis=0), axis=1)
-                base = seg_u[-1]
-                b.spline(spl, float(chord.sum()))
-                seg_ids.extend(ids[first:last])
-                seg_u.extend(base + np.cumsum(chord))
-                fit_dev = max(fit_dev, dev)
+                base = b.seg_u[-1]
+                b.spline(spl, float(chord.sum()), dev)
+                b.seg_ids.extend(run_ids[first:last])
+                b.seg_u.extend(base + np.cumsum(chord))
+                b.fit_dev = max(b.fit_dev, dev)
             k = run
             continue
-        seg = segs[chain[k]]
+        seg = segs[ids[k]]
         if isinstance(seg, Line):
             b.line(seg.start, seg.end)
         else:
             b.arc(seg)
-        seg_ids.append(chain[k])
-        seg_u.append(seg_u[-1] + seg.length)
+        b.seg_ids.append(ids[k])
+        b.seg_u.append(b.seg_u[-1] + seg.length)
         k += 1
-    close()
+    return out
+
+
+def _blend(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -> Blend | None:
+    """The blend of the end of ``a`` into the start of ``b``, or None if none keeps within
+    the tolerance or is fast enough."""
+    end, start = a.piece_curve(-1), b.piece_curve(0)
+    cut_max = 0.5 * min(end.length, start.length)
+    if not cut_max > 0:
+        return None
+    # the programmed moves within the cut on either side (walking from the corner)
+    k = len(a.seg_ids) - 1
+    while k > 0 and a.seg_u[k] > a.length - cut_max:
+        k -= 1
+    near = a.seg_ids[k:]
+    k = 0
+    while k < len(b.seg_ids) and b.seg_u[k] < cut_max:
+        k += 1
+    near += b.seg_ids[:max(k, 1)]
+    table = segment_table([path.segments[i] for i in near])
+
+    def left(cut):
+        p, d1, d2, _ = end.evaluate(np.array([end.length - cut]))
+        return p[0], d1[0], d2[0]
+
+    def right(cut):
+        p, d1, d2, _ = start.evaluate(np.array([cut]))
+        return p[0], d1[0], d2[0]
+
+    blend = corner_blend(left, right, cut_max, table, blending.tol_m)
+    if blend is None or blending.limits is None:
+        return blend
+    # the speed a stop there would cost: the feed, or what the shorter piece lets the axes
+    # reach from rest (about sqrt(A L), (J L^2)^(1/3) for the least limits)
+    lim = blending.limits
+    amax, jmax = lim.amax_m_s2[lim.present], lim.jmax_m_s3[lim.present]
+    L = 2.0 * cut_max
+    reach = min(math.sqrt(float(np.min(amax)) * L), math.cbrt(float(np.min(jmax)) * L * L))
+    feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]), reach)
+    if corner_speed_m_s(blend, lim.amax_m_s2, lim.jmax_m_s3) < BLEND_MIN_SPEED_SHARE * feed:
+        return None
+    return blend
+
+
+def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
+    """Append ``b`` to ``a``, through ``blend`` (None: as they meet)."""
+    cut = 0.0 if blend is None else blend.cut_m
+    a.rows[-1][0] -= cut
+    a.length -= cut
+    base = mid = offset = a.length
+    if blend is not None:
+        mid = base + 0.5 * blend.length
+        a.quintic(blend)
+        b.trim_start(cut)
+        offset = base + blend.length - cut
+        a.fit_dev = max(a.fit_dev, blend.deviation_m)
+    first = {_SPLINE: len(a.splines), _QUINTIC: len(a.quintics)}
+    for row in b.rows:
+        if row[1] in first:
+            row[2] = row[2] + np.array([first[row[1]], 0.0, 0.0])
+        a._append(row)
+    a.splines.extend(b.splines)
+    a.quintics.extend(b.quintics)
+    # programmed moves meet at the blend's middle (moves shorter than the cut end there)
+    a.seg_u[-1] = mid
+    k = len(a.seg_u) - 2
+    while k >= 0 and a.seg_u[k] > mid:
+        a.seg_u[k] = mid
+        k -= 1
+    a.seg_u += [max(u + offset, mid) for u in b.seg_u[1:]]
+    a.seg_ids += b.seg_ids
+    a.fit_dev = max(a.fit_dev, b.fit_dev)
+
+
+def _chain_blocks(path: Path, chain: list[int], turns: list[float], fit_tol_m: float,
+                  blending: Blending | None) -> list[Block]:
+    """Blocks of one chain of feed moves.
+
+    Corners above :data:`BLEND_MIN_TURN_RAD` are blended (unless both moves are fitted
+    micro-segments); where no blend keeps within the tolerance at speed, a kink up to
+    :data:`CORNER_ANGLE_RAD` is passed as it is, a sharper corner is an exact stop (as is
+    a vertex where a fit splits).
+    """
+    segs = path.segments
+    runs: list[list[int]] = [[chain[0]]]
+    into: list[float] = [0.0]  # turn into each run
+    for k, turn in zip(chain[1:], turns[1:]):
+        if turn > CORNER_ANGLE_RAD or (
+            turn > BLEND_MIN_TURN_RAD
+            and _blendable(path, k - 1, blending)
+            and not (_is_micro(segs[k - 1]) and _is_micro(segs[k]))
+        ):
+            runs.append([k])
+            into.append(turn)
+        else:
+            runs[-1].append(k)
+    blocks: list[Block] = []
+    cur: _CurveBuilder | None = None
+    for run, turn in zip(runs, into):
+        parts = _pieces(path, run, fit_tol_m)
+        if cur is None:
+            cur = parts[0]
+        else:
+            blend = _blend(cur, parts[0], path, blending)
+            if blend is not None or turn <= CORNER_ANGLE_RAD:
+                _merge(cur, parts[0], blend)
+            else:
+                blocks.append(cur.block())
+                cur = parts[0]
+        for part in parts[1:]:
+            blocks.append(cur.block())
+            cur = part
+    blocks.append(cur.block())
     return blocks
 
 
-def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
+def blocks_of(path: Path, fit_tol_m: float, blending: Blending | None = None) -> list[Block]:
     """Cut a path into rest-to-rest blocks of smooth geometry.
 
     Parameters
@@ -445,6 +675,9 @@ def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
         The programmed moves; moves of zero length are skipped.
     fit_tol_m : float
         Deviation allowed to the spline fits of micro-segment runs, metres.
+    blending : Blending, optional
+        How corners are blended; none: every corner above :data:`CORNER_ANGLE_RAD` is an
+        exact stop, as under G61.
 
     Returns
     -------
@@ -453,18 +686,21 @@ def blocks_of(path: Path, fit_tol_m: float) -> list[Block]:
     """
     out: list[Block] = []
     feed: list[int] = []
+
+    def flush() -> None:
+        for chain, turns in _feed_chains(path, feed, blending):
+            out.extend(_chain_blocks(path, chain, turns, fit_tol_m, blending))
+
     for k, seg in enumerate(path.segments):
         if seg.length <= 1e-12:
             continue
         if not seg.rapid:
             feed.append(k)
             continue
-        for chain in _feed_chains(path, feed):
-            out.extend(_chain_blocks(path, chain, fit_tol_m))
+        flush()
         feed = []
         b = _CurveBuilder()
         b.line(seg.start, seg.end)
         out.append(Block(b.build(), True, np.array([k]), np.array([0.0, seg.length]), 0.0))
-    for chain in _feed_chains(path, feed):
-        out.extend(_chain_blocks(path, chain, fit_tol_m))
+    flush()
     return out

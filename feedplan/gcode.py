@@ -24,8 +24,15 @@ Supported
   case, spaces and TABs inside words (``X- .992`` is X-0.992), leading- and
   trailing-dot numbers, ``%`` lines (a second one ends the program), M2 / M30
   (what follows is ignored).
+- Path control, modal, as LinuxCNC means it, on the end of every move programmed
+  while it is in effect (``blend_tol_m`` of :class:`~feedplan.path.Line` and
+  :class:`~feedplan.path.Arc`): G61 and G61.1 stop exactly at every corner (0); G64
+  blends corners within the plan's tolerance (None; also before any G61/G64); G64 P
+  blends within P program units (P0 is G64 without P, as in LinuxCNC). Q (LinuxCNC's
+  naive-CAM tolerance) is read and not used: runs of short lines are always fitted
+  within a share of the tolerance (:mod:`feedplan.fit`).
 - Skipped (no motion): S, T, M0 M1 M3-M9, G4 P (dwell), G8 (lathe radius
-  mode), G40, G49, G54, G61, G61.1, G64 P Q.
+  mode), G40, G49, G54.
 - G28 / G30 / G53 (moves to machine positions) after the last feed move end
   the program with a warning; before it they are refused.
 
@@ -209,6 +216,7 @@ class _Reader:
         self.unit_m: float | None = None  # None until G20/G21
         self.motion: int | None = None  # 0, 10, 20, 30 (G0..G3) or None
         self.feed_m_s: float | None = None
+        self.blend_tol_m: float | None = None  # path control: None G64, 0 G61, > 0 G64 P
         self.pos: np.ndarray | None = None  # None until the first motion block
         self.start: np.ndarray | None = None
         self.segments: list[Line | Arc] = []
@@ -302,7 +310,16 @@ class _Reader:
                 raise self.error(f"F {f.value:g}: the feed must be positive", n, f.column)
             self.feed_m_s = f.value * self._unit(n) / 60.0
         dwell = gcodes.get("non-modal", (None,))[0] == 40
-        blend = gcodes.get("path control", (None,))[0] == 640
+        control = gcodes.get("path control", (None,))[0]
+        blend = control == 640
+        if control in (610, 611):
+            self.blend_tol_m = 0.0
+        elif blend:
+            p = args.get("P")
+            if p is not None and not p.value >= 0:
+                raise self.error(f"P {p.value:g}: the blending tolerance of G64 must not be "
+                                 "negative", n, p.column)
+            self.blend_tol_m = p.value * self._unit(n) if p is not None and p.value > 0 else None
         if dwell and "P" not in args:
             raise self.error("G4 (dwell) needs a P word", n, gcodes["non-modal"][1].column)
         for letter, used in (("P", dwell or blend), ("Q", blend)):
@@ -371,7 +388,7 @@ class _Reader:
         elif (start != end).any():
             rapid = self.motion == 0
             self.segments.append(Line(start, end, math.inf if rapid else self.feed_m_s,
-                                      rapid=rapid, line=n))
+                                      rapid=rapid, line=n, blend_tol_m=self.blend_tol_m))
         if self.motion != 0:
             self.feed_plane = self.plane
 
@@ -428,7 +445,7 @@ class _Reader:
         center = start.copy()
         center[[i, j]] = c
         return Arc(start, end, center, self.plane, _arc_sweep(a, b, c, ccw),
-                   self.feed_m_s, line=n)
+                   self.feed_m_s, line=n, blend_tol_m=self.blend_tol_m)
 
     def path(self) -> Path:
         if self.machine_move is not None:

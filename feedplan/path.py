@@ -55,6 +55,9 @@ class Line:
         True for G0 moves (not part of the contour).
     line : int
         1-based source line (block) of the move; 0 when not from a text source.
+    blend_tol_m : float or None
+        Path control at the end of the move: None blends the corner within the plan's
+        tolerance (G64), 0 stops exactly (G61), > 0 blends within that (G64 P), metres.
     """
 
     start: np.ndarray
@@ -62,6 +65,7 @@ class Line:
     feed_m_s: float
     rapid: bool = False
     line: int = 0
+    blend_tol_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "start", _vec(self.start))
@@ -98,6 +102,8 @@ class Arc:
         Programmed feed (path speed) in m/s.
     line : int
         1-based source line of the move.
+    blend_tol_m : float or None
+        Path control at the end of the move, as :attr:`Line.blend_tol_m`.
     """
 
     start: np.ndarray
@@ -107,6 +113,7 @@ class Arc:
     sweep_rad: float
     feed_m_s: float
     line: int = 0
+    blend_tol_m: float | None = None
     rapid: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:

@@ -3,7 +3,11 @@
 Method
 ------
 The path is cut into rest-to-rest blocks (:func:`feedplan.fit.blocks_of`: rapids,
-corner-free chains of lines, arcs and fitted micro-segment splines).
+chains of lines, arcs, fitted micro-segment splines and the corner blends between them;
+exact stops only where G61 asks or a blend would not be faster). The tolerance is
+``G64 P`` where the program sets one, ``tol_m`` elsewhere, the least of them for the
+whole plan (:func:`program_tolerance_m`); blends get :data:`~oga.defaults.BLEND_TOL_FRACTION` of it,
+the filter's rounding the rest.
 
 *Straight blocks* (rapids, and feed blocks of one line) are planned exactly: the
 per-axis limits are projected on the line, the path speed capped at the feed (at
@@ -23,10 +27,11 @@ plus FIR filter" of industrial interpolators:
    centripetal acceleration, the arc rounding of stage 2, and jerk-derived
    ceilings where the curvature jumps or the tangent kinks between pieces), then
    compiled forward/backward passes with a tangential acceleration limit ``A_t``
-   (a share of ``J T``, small near curvature jumps; up to the whole acceleration
-   limit on straight stretches, half of it on curves). Cells are crossed at
-   constant acceleration, those starting or ending at rest time-optimally (so a
-   slow feed pays no cell's worth of time per block). The positions ``r(u(t))`` are
+   (a share of ``J T``, small near curvature jumps; on each axis what the centripetal
+   acceleration at the ceiling leaves of its limit, projected on the tangent: the whole
+   limit on straight stretches, at least ``1 - _CENTRIPETAL_SHARE`` of it on curves).
+   Cells are crossed at constant acceleration, those starting or ending at rest
+   time-optimally (so a slow feed pays no cell's worth of time per block). The positions ``r(u(t))`` are
    sampled every ``dt``;
 2. a moving average of ``M`` samples (``T = M dt``) over these positions, the same
    on every axis so the axes stay synchronised. In finite differences the filtered
@@ -66,12 +71,14 @@ import numpy as np
 from numba import njit
 from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
+from feedplan.blend import BLEND_CENTRIPETAL_SHARE
 from feedplan.check import SPEED_MARGIN, deviation_m, finite_differences, segment_table
-from feedplan.fit import Block, blocks_of
+from feedplan.fit import Block, Blending, blocks_of
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
 from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import (
+    BLEND_TOL_FRACTION,
     DT_RANGE_S,
     DT_S,
     MAX_COORD_M,
@@ -82,7 +89,8 @@ from oga.defaults import (
 )
 from oga.errors import OptionError, PlanError, ToolpathError
 
-__all__ = ["plan", "least_motion_s", "move_times_s", "GRID_M", "FIT_TOL_FRACTION"]
+__all__ = ["plan", "least_motion_s", "move_times_s", "program_tolerance_m", "GRID_M",
+           "FIT_TOL_FRACTION"]
 
 #: Spacing of the speed-profile grid along the path, metres.
 GRID_M = 0.25e-3
@@ -98,11 +106,17 @@ _MARGIN = 1e-3
 #: is cancelled (the check-and-slow-down loop handles the rest). Short arcs between kinks
 #: fare better without it.
 _VARIANTS = ((0.98, False), (2.0, True), (2.5, True), (3.0, True))
+#: Largest share of an axis's acceleration limit taken by the centripetal acceleration
+#: (the speed ceiling on curves); the rest, at least, is left to the tangential one.
+_CENTRIPETAL_SHARE = BLEND_CENTRIPETAL_SHARE
 #: Tangential acceleration limit as a share of J T (the rest is left to curvature changes).
 _AT_SHARE = 0.9
 #: Share of J T left to the tangential acceleration within reach of a curvature jump (the
 #: rest goes to the step of centripetal acceleration there; > 0 so that speed can change).
 _JUMP_AT_SHARE = 0.1
+#: Smallest curvature jump treated as one, 1/m (a 1 km radius; below, the float noise of a
+#: corner blend's curvature where it meets a line: a step of v^2 / 1 km is nothing).
+_JUMP_MIN_PER_M = 1e-3
 #: Largest ceiling factor applied where a sample fails: 2 % slower per round, 5 % after
 #: :data:`_GENTLE_ROUNDS` rounds (the last stubborn samples).
 _STEP = (0.98, 0.95)
@@ -339,11 +353,13 @@ def _grid(block: Block) -> tuple[np.ndarray, float]:
 
 
 def _static_limits(fb: _Feed):
-    """Speed ceiling (m/s) independent of T, |unit tangent| per axis, curvature (1/m) per node."""
+    """Per node: speed ceiling (m/s) independent of T, |unit tangent| per axis, curvature
+    (1/m), feed (m/s), and the largest |d2r/du2| per axis (1/m; shape (G, 3))."""
     nodes, seg_u0 = fb.nodes, fb.block.seg_u0
     ceil = np.full(nodes.size, np.inf)
     tan = np.zeros((nodes.size, 3))
     kappa = np.zeros(nodes.size)
+    curv = np.zeros((nodes.size, 3))
     last = len(fb.seg_feed) - 1
     k_right = np.clip(np.searchsorted(seg_u0, nodes, side="right") - 1, 0, last)
     k_left = np.clip(np.searchsorted(seg_u0, nodes, side="left") - 1, 0, last)
@@ -356,10 +372,12 @@ def _static_limits(fb: _Feed):
             speed = np.linalg.norm(d1, axis=1)
             ceil = np.minimum(ceil, feed / speed)
             ceil = np.minimum(ceil, np.min(vmax / np.abs(d1[:, ax]), axis=1))
-            ceil = np.minimum(ceil, np.sqrt(np.min(0.5 * amax / np.abs(d2[:, ax]), axis=1)))
+            ceil = np.minimum(
+                ceil, np.sqrt(np.min(_CENTRIPETAL_SHARE * amax / np.abs(d2[:, ax]), axis=1)))
             tan = np.maximum(tan, np.abs(d1 / speed[:, None]))
             kappa = np.maximum(kappa, np.linalg.norm(d2, axis=1) / speed**2)
-    return ceil, tan, kappa, feed
+            curv = np.maximum(curv, np.abs(d2))
+    return ceil, tan, kappa, feed, curv
 
 
 def _centred_mean(x: np.ndarray, m: int) -> np.ndarray:
@@ -484,7 +502,7 @@ def _joints(curve):
     d_kappa = right[2] - left[2]
     d_tan = right[1] / np.linalg.norm(right[1], axis=1)[:, None]
     d_tan -= left[1] / np.linalg.norm(left[1], axis=1)[:, None]
-    jumps = np.linalg.norm(d_kappa, axis=1) > 1e-9
+    jumps = np.linalg.norm(d_kappa, axis=1) > _JUMP_MIN_PER_M
     kinks = np.linalg.norm(d_tan, axis=1) > 1e-9
     return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
 
@@ -520,27 +538,34 @@ def _plan_feed(
         budget=budget,
         spacing=spacing,
     )
-    ceil0, tan, kappa, _ = _static_limits(fb)
+    ceil0, tan, kappa, _, curv = _static_limits(fb)
     ax = limits.present
     jmax, amax = limits.jmax_m_s3[ax], limits.amax_m_s2[ax]
-    # the whole acceleration along straight stretches, half of it where the centripetal
-    # acceleration (in the ceiling) takes the other half
-    a_share = np.where(kappa > 0.0, 0.5, 1.0)[:, None]
+    # each axis's acceleration left by the centripetal one at the ceiling (a bound of it at
+    # any speed the profile reaches), projected on the tangent: the whole limit on straight
+    # stretches, at least 1 - _CENTRIPETAL_SHARE of it on curves
+    with np.errstate(invalid="ignore"):  # inf * 0 where no ceiling binds on a line
+        centripetal = np.nan_to_num(ceil0[:, None] ** 2 * curv[:, ax], nan=0.0)
+    spare = np.maximum(amax - centripetal, (1.0 - _CENTRIPETAL_SHARE) * amax)
     with np.errstate(divide="ignore", over="ignore"):  # a tangent component of 0 or ~1e-300
         j_path = np.min(jmax / tan[:, ax], axis=1)
-        a_path = np.min(a_share * amax / tan[:, ax], axis=1)
+        a_path = np.min(spare / tan[:, ax], axis=1)
     moving = np.any(tan[:, ax] > 1e-12, axis=0)
     # the filter's length from the speed the block can reach, not from the programmed feed
     v_top = float(np.max(_forward_backward(nodes, ceil0, np.minimum(a_path[:-1], a_path[1:]))))
     t_opt = math.sqrt(v_top / float(np.min(jmax[moving])))
     u_jump, d_kappa, u_kink, d_tan = _joints(block.curve)
+    # the geometry's own deviation (fits, blends) at each node, the rest left to the filter
+    piece = np.clip(np.searchsorted(block.curve.u0, nodes, side="right") - 1, 0,
+                    len(block.curve.dev) - 1)
+    dev_node = block.curve.dev[piece]
     best = None
     lengths = sorted({max(1, round(t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
     variants = list(itertools.product(lengths, _VARIANTS))
     for tried, (m, (share, compensate)) in enumerate(variants):
         progress(tried / len(variants))
         T = m * dt
-        rounding_m = (tol_m - block.fit_deviation_m) * share
+        rounding_m = (tol_m - dev_node) * share
         with np.errstate(divide="ignore"):
             v_round = np.sqrt(24.0 * rounding_m / (kappa * T * T))
         if (share, compensate) != _VARIANTS[0] and np.all(
@@ -697,6 +722,14 @@ def _estimate(path: Path, feeds: np.ndarray, allowed: np.ndarray, dt: float) -> 
     return t
 
 
+def program_tolerance_m(path: Path, tol_m: float) -> float:
+    """The plan's tolerance, metres: the least, over the feed moves, of their ``G64 P``
+    where one is programmed and ``tol_m`` elsewhere (every sample is held to it), within
+    :data:`~oga.defaults.TOL_RANGE_M`."""
+    each = [s.blend_tol_m or tol_m for s in path.segments if not s.rapid]
+    return float(np.clip(min(each, default=tol_m), *TOL_RANGE_M))
+
+
 def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float) -> None:
     if feed_m_s is not None and not (math.isfinite(feed_m_s) and feed_m_s > 0):
         raise OptionError(f"feed_m_s must be a positive finite number, got {feed_m_s!r}")
@@ -770,7 +803,8 @@ def plan(
         Path speed (m/s) for every feed move, overriding the programmed feeds.
     tol_m : float
         Largest distance of a feed setpoint to the programmed geometry, metres
-        (within :data:`~oga.defaults.TOL_RANGE_M`).
+        (within :data:`~oga.defaults.TOL_RANGE_M`), where the program sets no ``G64 P``
+        (see :func:`program_tolerance_m`; a warning says when P changes it).
     dt : float
         Sample period, seconds (within :data:`~oga.defaults.DT_RANGE_S`).
     progress : callable, optional
@@ -805,7 +839,12 @@ def plan(
     seg_feed, allowed, warnings = _feeds(path, limits, feed_m_s)
     seg_time = _estimate(path, seg_feed, allowed, dt)
     budget = int(min(MAX_SAMPLES, MAX_MOTION_S / dt))
-    blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION)
+    given, tol_m = tol_m, program_tolerance_m(path, tol_m)
+    if tol_m != given:
+        warnings.append(f"the program's G64 P sets the tolerance to {tol_m * 1e3:.6g} mm "
+                        f"(instead of {given * 1e3:.6g} mm)")
+    blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION, Blending(tol_m * BLEND_TOL_FRACTION,
+                                                               limits, seg_feed))
     done, whole = 0.0, float(np.sum(seg_time))
     report = progress if progress is not None else (lambda fraction: None)
     pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]

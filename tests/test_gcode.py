@@ -264,7 +264,7 @@ REFERENCE = "G21 G90 G17\nG0 X0 Y0 Z1\nG1 Z-0.1 F24\nG1 X-0.992 Y25\nG2 X24.008 
     "G21 G90 G17\nG 0 X0. Y0. Z1.\nG1\tZ - .1 F 24.\nG1 X- .992 Y\t25\nG2 X2 4.008 Y5 0 I25. J0.\n",
     # % lines, modal motion on coordinate-only lines, G00 alone on a line
     "%\nG21 G90 G17\nG00\nX0 Y0 Z1\nG01 F24\nZ-0.1\nX-0.992 Y25\nG02 X24.008 Y50 I25 J0\n%\n",
-    # skipped words: S T M G4 P G40 G49 G54 G61 G61.1 G64 P Q G8 G94
+    # skipped words: S T M G4 P G40 G49 G54 G8 G94; path control (G61 G61.1 G64 P Q) is read
     "G21 G90 G17 G40 G49 G54 G94 G61 G8\nG61.1\nG64 P0.01 q00.01\nM06 T1 S1000 M3 M8\n"
     "G0 X0 Y0 Z1\nM01\nG04 P0.6\nG1 Z-0.1 F24 M7\nG1 X-0.992 Y25 S100\nG2 X24.008 Y50 I25 J0\n"
     "M9 M5 M0\nG64\nM4\n",
@@ -488,3 +488,21 @@ def test_segment_count_is_bounded(monkeypatch):
         parse("G21 G0 X0\nG1 X1 F60\nX2\nX3\nX4\n")
     assert (err.value.line, err.value.column) == (5, 1)
     assert "more than 3 moves" in err.value.message
+
+
+def test_path_control_modes_apply_to_the_moves_programmed_under_them():
+    path = parse("G21 G90 G17\nG0 X0 Y0\nG1 X1 F600\nG61 X2\nG64 P0.05 X3\nG61.1\nX4\n"
+                 "G64 P0 X5\nG20 G64 P0.001 X0.3\nG21 G64 X6\nG64 Q0.03 X7\n")
+    got = [s.blend_tol_m for s in path.segments]
+    assert got[:4] == [None, 0.0, pytest.approx(0.05e-3), 0.0]
+    assert got[4] is None  # P0: G64 without P, as in LinuxCNC
+    assert got[5] == pytest.approx(0.001 * 0.0254)  # P in the program's units (inch)
+    assert got[6:] == [None, None]  # Q alone: the plan's tolerance
+    arc = parse("G21 G17 G61 G0 X0 Y0\nG2 X10 Y10 I10 J0 F100\n").segments[0]
+    assert arc.blend_tol_m == 0.0
+
+
+def test_negative_g64_p_is_refused_at_its_column():
+    with pytest.raises(GcodeError, match="must not be negative") as err:
+        parse("G21 G0 X0\nG64 P-0.1\n")
+    assert (err.value.line, err.value.column) == (2, 5)

@@ -176,8 +176,8 @@ def test_helix_three_axes():
     assert sp.moving_axes == (0, 1, 2)
 
 
-def test_sharp_corner_is_an_exact_stop():
-    l1 = Line([0, 0, 0], [10 * MM, 0, 0], F3000, line=1)
+def test_sharp_corner_under_g61_is_an_exact_stop():
+    l1 = Line([0, 0, 0], [10 * MM, 0, 0], F3000, line=1, blend_tol_m=0.0)  # G61
     l2 = Line(l1.end, [10 * MM, 10 * MM, 0], F3000, line=2)
     path = Path(l1.start, (l1, l2), "xy")
     sp = plan(path, UCP)

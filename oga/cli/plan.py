@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
     check_files(args, "out", "summary")  # before the compiled kernels load
 
     from feedplan.check import check_setpoints
+    from feedplan.plan import program_tolerance_m
     from oga.export import setpoints_csv
     from oga.pipeline import plan_toolpath
 
@@ -41,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     sp = plan_toolpath(path, machine, feed_m_s=feed_m_s, tol_m=tol_m, dt=dt)
     planning_time = time.perf_counter() - t0
-    check = check_setpoints(sp, path, limits, feed_m_s=feed_m_s, tol_m=tol_m)
+    check = check_setpoints(sp, path, limits, feed_m_s=feed_m_s,
+                            tol_m=program_tolerance_m(path, tol_m))  # G64 P where given
     write_text(args.out, setpoints_csv(sp))
     if args.summary:
         write_json(args.summary, {
