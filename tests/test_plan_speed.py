@@ -1,0 +1,82 @@
+"""Planning speed work changes no output: setpoints against those pinned at the base commit.
+
+``tests/data/plan_reference.npz`` was computed with the planner before the speed work
+(commit c417bb6) by ``PYTHONPATH=. python tests/plan_reference.py``; rerun that command
+when the planner's output is meant to change. A generated micro-segment program is also
+checked here against the limits (finite differences) and the tolerance (exact distance to
+its programmed polyline).
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+
+import plan_reference as ref
+from feedplan.read import read_toolpath
+from oga.defaults import TOL_M
+from oga.machine import load_machine
+
+
+@pytest.fixture(scope="module")
+def pinned():
+    with np.load(ref.REFERENCE) as z:
+        return {k: z[k] for k in z.files}
+
+
+@pytest.mark.parametrize("name", ref.PROGRAMS)
+def test_setpoints_as_pinned(pinned, name):
+    sp = ref.plan_program(name)
+    want_n = int(pinned[f"{name}/samples"])
+    assert len(sp) == want_n, f"{name}: {len(sp)} samples, pinned {want_n}"
+    diff = float(np.max(np.abs(sp.pos[:: ref.STRIDE] - pinned[f"{name}/pos"])))
+    assert ref.digest(sp) == str(pinned[f"{name}/sha256"]), (
+        f"{name}: setpoints differ from the pinned ones (largest difference on the stored "
+        f"samples {diff:.3g} m)")
+
+
+def test_digest_sees_one_ulp():
+    sp = ref.plan_program("short_xz.ngc")
+    pos = sp.pos.copy()
+    pos[len(pos) // 2, 0] = np.nextafter(pos[len(pos) // 2, 0], np.inf)
+    h = hashlib.sha256()
+    for a in (pos, sp.block, sp.rapid):
+        h.update(np.ascontiguousarray(a).tobytes())
+    assert h.hexdigest() != ref.digest(sp)
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance of each point p (N, 3) to the nearest of the segments a[i]-b[i] (M, 3)."""
+    ab = b - a
+    best = np.full(len(p), np.inf)
+    for k in range(0, len(a), 256):
+        aa, bb = a[k:k + 256], ab[k:k + 256]
+        w = p[:, None, :] - aa[None]
+        f = np.clip(np.sum(w * bb[None], axis=2) / np.sum(bb * bb, axis=1)[None], 0.0, 1.0)
+        d = np.linalg.norm(w - f[..., None] * bb[None], axis=2)
+        best = np.minimum(best, d.min(axis=1))
+    return best
+
+
+def test_micro_segments_within_limits_and_tolerance():
+    n = 2000
+    text = ref.micro_program(n)
+    path = read_toolpath(text, "gcode", source="micro")
+    assert len(path.segments) == n
+    sp = ref.plan_program(f"micro_{n}")
+    machine = load_machine("ucp710")
+    lim = machine.planning_limits()
+    p = np.concatenate([np.repeat(sp.pos[:1], 3, axis=0), sp.pos, np.repeat(sp.pos[-1:], 3, axis=0)])
+    v = np.diff(p, axis=0) / sp.dt
+    a = np.diff(v, axis=0) / sp.dt
+    j = np.diff(a, axis=0) / sp.dt
+    for x, bound in ((v, lim.vmax_m_s), (a, lim.amax_m_s2), (j, lim.jmax_m_s3)):
+        assert np.all(np.abs(x).max(axis=0) <= bound * (1 + 1e-9))
+    speed = np.linalg.norm(v[2:-3], axis=1)  # row k + 2 ends at pos[k]
+    assert speed.max() <= path.segments[0].feed_m_s * 1.005
+    a_pts = np.array([s.start for s in path.segments])
+    b_pts = np.array([s.end for s in path.segments])
+    assert np.all(_segment_distance(sp.pos, a_pts, b_pts) <= TOL_M)
+    assert np.array_equal(sp.pos[0], path.start) and np.array_equal(sp.pos[-1], b_pts[-1])
