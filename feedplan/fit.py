@@ -29,6 +29,13 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
+try:  # scipy's own QR steps (private), for a linear-time make_lsq_spline: see _lsq_coefficients
+    from scipy.interpolate import _dierckx
+
+    _BANDED_QR = all(hasattr(_dierckx, f) for f in ("data_matrix", "qr_reduce", "fpback"))
+except ImportError:  # pragma: no cover - a scipy without it: make_lsq_spline itself
+    _BANDED_QR = False
+
 from feedplan.check import point_segment_distance
 from feedplan.path import PLANES, Arc, Line, Path
 
@@ -235,6 +242,50 @@ def polyline_fit_deviation(spline: BSpline, verts: np.ndarray, u: np.ndarray) ->
     return _two_way_deviation(np.ascontiguousarray(verts), np.ascontiguousarray(dense), per, 3)
 
 
+#: Rows of the QR reduction per call of scipy's qr_reduce span this many coefficients.
+_QR_BAND = 16
+
+
+def _lsq_coefficients(x: np.ndarray, y: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``make_lsq_spline(x, y, t, k=3).c`` bit for bit, in time linear in ``len(x)``.
+
+    scipy's QR reduction (1.15-1.17) rotates every data row against every coefficient
+    row up to the last (O(m nc): 7 s for 100k micro-segments); once a sorted data row
+    has passed the ``k + 1`` coefficient rows of its support it is exactly zero and the
+    remaining rotations are the identity (``c = 1, s = 0``). Here scipy's own steps run
+    on stretches of rows whose offsets span at most :data:`_QR_BAND` coefficients, each
+    told that the coefficients end just after its support: the same rotations on the
+    same numbers, without the identities.
+
+    Parameters
+    ----------
+    x : ndarray, shape (m,)
+        Sorted abscissas.
+    y : ndarray, shape (m, 3)
+        Ordinates.
+    t : ndarray, shape (nc + 4,)
+        Knots of the cubic.
+
+    Returns
+    -------
+    ndarray, shape (nc, 3)
+        The coefficients.
+    """
+    if not _BANDED_QR:  # pragma: no cover
+        return make_lsq_spline(x, y, t, k=3).c
+    k = 3
+    w = np.ones_like(x)
+    y_w = y * w[:, None]
+    a, offset, nc = _dierckx.data_matrix(x, t, k, w)
+    starts = np.searchsorted(offset, np.arange(_QR_BAND, nc, _QR_BAND))
+    bounds = np.unique(np.clip(np.concatenate([[1], starts, [x.size]]), 1, x.size))
+    for r0, r1 in zip(bounds[:-1], bounds[1:]):
+        nc_seen = min(nc, int(offset[r1 - 1]) + k + 1)
+        _dierckx.qr_reduce(a[:r1], offset[:r1], nc_seen, y_w[:r1], int(r0))
+    c, _, _ = _dierckx.fpback(a, nc, x, y, t, k, w, y_w)
+    return c
+
+
 def _lsq(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray) -> BSpline:
     """Least-squares cubic through vertices and chord midpoints, clamped on the ends."""
     mid_u = 0.5 * (u[:-1] + u[1:])
@@ -244,8 +295,7 @@ def _lsq(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray) -> BSpline:
     x[0::2], x[1::2] = u, mid_u
     y[0::2], y[1::2] = verts, mid_p
     t = np.concatenate([[u[0]] * 4, u[knots_at], [u[-1]] * 4])
-    spl = make_lsq_spline(x, y, t, k=3)
-    c = spl.c.copy()
+    c = _lsq_coefficients(x, y, t)
     c[0], c[-1] = verts[0], verts[-1]
     return BSpline(t, c, 3)
 

@@ -80,3 +80,19 @@ def test_micro_segments_within_limits_and_tolerance():
     b_pts = np.array([s.end for s in path.segments])
     assert np.all(_segment_distance(sp.pos, a_pts, b_pts) <= TOL_M)
     assert np.array_equal(sp.pos[0], path.start) and np.array_equal(sp.pos[-1], b_pts[-1])
+
+
+@pytest.mark.parametrize("n, step", [(4, 1), (60, 1), (60, 7), (3000, 1), (3000, 10), (20000, 10)])
+def test_lsq_coefficients_as_scipy(n, step):
+    """The linear-time QR gives make_lsq_spline's coefficients bit for bit."""
+    from scipy.interpolate import make_lsq_spline
+
+    from feedplan.fit import _lsq_coefficients
+
+    rng = np.random.default_rng(n + step)
+    u = np.concatenate([[0.0], np.cumsum(rng.uniform(10e-6, 50e-6, n))])
+    x = np.sort(np.concatenate([u, 0.5 * (u[:-1] + u[1:])]))
+    y = np.column_stack([np.sin(x / 3e-3), np.cos(x / 7e-3), x]) * 1e-3
+    y += 1e-7 * rng.standard_normal(y.shape)
+    t = np.concatenate([[u[0]] * 4, u[np.arange(step, n, step)], [u[-1]] * 4])
+    assert np.array_equal(_lsq_coefficients(x, y, t), make_lsq_spline(x, y, t, k=3).c)
