@@ -36,6 +36,8 @@ __all__ = [
 SPEED_MARGIN = 0.005
 #: Programmed moves searched on each side of the previous sample's nearest move.
 _SEARCH_WINDOW = 64
+#: Consecutive moves whose balls are tested together first (aligned on multiples of it).
+_GROUP = 8
 #: Largest distance of the first/last sample from the programmed start/end, metres.
 _END_TOL_M = 1e-9
 
@@ -123,7 +125,50 @@ def _seg_dist(p, s, kind, a, b, c, ax, geo):
 
 
 @njit(cache=True)
-def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, window):
+def _group_balls(sphere, use):
+    """Per :data:`_GROUP` consecutive moves, a ball holding the balls of those measured.
+
+    Shape (ceil(n / _GROUP), 4): centre, radius (m); radius -inf where none is measured.
+    The radius has a margin of 1e-9 relative plus 1 nm over float rounding, so a point
+    the group ball is farther from than ``best`` is also farther from each member ball.
+    """
+    n = sphere.shape[0]
+    out = np.zeros(((n + _GROUP - 1) // _GROUP, 4))
+    for g in range(out.shape[0]):
+        lo, hi = g * _GROUP, min(n, (g + 1) * _GROUP)
+        cnt = 0
+        for s in range(lo, hi):
+            if use[s]:
+                cnt += 1
+                for i in range(3):
+                    out[g, i] += sphere[s, i]
+        if cnt == 0:
+            out[g, 3] = -np.inf
+            continue
+        for i in range(3):
+            out[g, i] /= cnt
+        r = 0.0
+        for s in range(lo, hi):
+            if use[s]:
+                e0 = sphere[s, 0] - out[g, 0]
+                e1 = sphere[s, 1] - out[g, 1]
+                e2 = sphere[s, 2] - out[g, 2]
+                r = max(r, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + sphere[s, 3])
+        out[g, 3] = r * (1.0 + 1e-9) + 1e-9
+    return out
+
+
+@njit(cache=True)
+def _far(p, ball, best):
+    """The ball (centre, radius) cannot hold a point nearer to ``p`` than ``best``."""
+    e0 = p[0] - ball[0]
+    e1 = p[1] - ball[1]
+    e2 = p[2] - ball[2]
+    return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - ball[3] >= best
+
+
+@njit(cache=True)
+def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, window):
     n_pts, n_seg = pos.shape[0], kind.shape[0]
     dist = np.zeros(n_pts)
     near = np.zeros(n_pts, np.int64)
@@ -138,14 +183,23 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, window):
         # above 1 nm, looking forward first (retraced moves do not pull it back)
         best = _seg_dist(pos[k], cur, kind, a, b, c, ax, geo)
         held, arg = best, cur
-        for step in range(1, 2 * window + 1):
-            s = cur + step if step <= window else cur + window - step
+        step = 1
+        while step <= 2 * window:
+            forward = step <= window
+            s = cur + step if forward else cur + window - step
+            # a whole group of moves inside the window, none of which can be nearer: each
+            # would be passed by its own ball below (same order, same result)
+            first = s if forward else s - _GROUP + 1
+            last = first + _GROUP - 1
+            if (first % _GROUP == 0 and first >= max(cur - window, 0)
+                    and last <= min(cur + window, n_seg - 1) and (last < cur or first > cur)
+                    and _far(pos[k], groups[first // _GROUP], best)):
+                step += _GROUP
+                continue
+            step += 1
             if s < 0 or s >= n_seg or not use[s]:
                 continue
-            e0 = pos[k, 0] - sphere[s, 0]
-            e1 = pos[k, 1] - sphere[s, 1]
-            e2 = pos[k, 2] - sphere[s, 2]
-            if np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - sphere[s, 3] >= best:
+            if _far(pos[k], sphere[s], best):
                 continue  # cannot be nearer (and best <= held)
             d = _seg_dist(pos[k], s, kind, a, b, c, ax, geo)
             best = min(best, d)
@@ -185,7 +239,8 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
     if not use.any():
         return np.zeros(len(pos)), np.zeros(len(pos), np.int64)
     pos = np.ascontiguousarray(pos, dtype=np.float64)
-    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, _SEARCH_WINDOW)
+    groups = _group_balls(sphere, use)
+    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, _SEARCH_WINDOW)
 
 
 def finite_differences(pos: np.ndarray, dt: float):
