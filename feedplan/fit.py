@@ -104,7 +104,7 @@ class Curve:
         """Parameter length in metres."""
         return float(self.u0[-1])
 
-    def evaluate(self, u: np.ndarray, left: bool = False):
+    def evaluate(self, u: np.ndarray, left: bool = False, order: int = 3):
         """Position and derivatives with respect to ``u``.
 
         Parameters
@@ -114,11 +114,14 @@ class Curve:
         left : bool
             At a piece boundary, evaluate the piece that ends there (default:
             the one that starts there).
+        order : {3, 2}
+            Highest derivative returned (2: no ``d3``, which costs a spline evaluation).
 
         Returns
         -------
         p, d1, d2, d3 : ndarray, shape (N, 3)
-            Position (m), dr/du (1), d2r/du2 (1/m), d3r/du3 (1/m^2).
+            Position (m), dr/du (1), d2r/du2 (1/m), d3r/du3 (1/m^2); ``d3`` only if
+            ``order`` is 3.
         """
         u = np.asarray(u, dtype=np.float64)
         side = "left" if left else "right"
@@ -147,12 +150,16 @@ class Curve:
             d3[m] = -w**3 * (c * e2 - s * e1)
         m = kind == _SPLINE
         if m.any():
-            sid = self.org[idx, 0].astype(np.int64)
-            for k in np.unique(sid[m]):
-                mk = m & (sid == k)
+            at = np.flatnonzero(m)
+            sid = self.org[idx[at], 0].astype(np.int64)
+            at = at[np.argsort(sid, kind="stable")]  # grouped by spline: O(N log N), not O(N S)
+            ids, first = np.unique(np.sort(sid), return_index=True)
+            for k, mk in zip(ids, np.split(at, first[1:])):
                 spl, x = self.splines[k], ul[mk, 0]
-                p[mk], d1[mk], d2[mk], d3[mk] = spl(x), spl(x, 1), spl(x, 2), spl(x, 3)
-        return p, d1, d2, d3
+                p[mk], d1[mk], d2[mk] = spl(x), spl(x, 1), spl(x, 2)
+                if order == 3:
+                    d3[mk] = spl(x, 3)
+        return (p, d1, d2, d3) if order == 3 else (p, d1, d2)
 
 
 @dataclass(frozen=True, eq=False)

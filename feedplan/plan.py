@@ -408,7 +408,7 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensa
     u, ud = _sample(fb.nodes, v, ceil, acc_t, dt, fb.budget - m - 3)
     if u.size == 0:
         raise _too_long(int(fb.seg_lines[0]), dt)
-    p, d1, d2, _ = fb.block.curve.evaluate(u)
+    p, d1, d2 = fb.block.curve.evaluate(u, order=2)
     p[0], p[-1] = fb.first, fb.last
     if compensate:
         p += _rounding_compensation(d1, d2, ud, m, dt)
