@@ -115,6 +115,8 @@ _MAX_NODES = 1_000_000
 _MAX_TURNS = 1000
 #: Moving averages costing more additions than this are running sums (O(n), not O(n m)).
 _EXACT_SUM_OPS = 200_000_000
+#: Moving means summed side by side (a block that stays in the first-level cache).
+_SUM_BLOCK = 512
 
 
 # --------------------------------------------------------------------------- straight blocks
@@ -270,23 +272,41 @@ def _moving_average(x, m, extra):
 
     Each mean summed afresh while that costs at most :data:`_EXACT_SUM_OPS` additions;
     beyond, a running sum, summed afresh every m samples (its rounding stays that of m
-    additions): O(n) whatever m.
+    additions): O(n) whatever m. The fresh sums add the same numbers in the same order
+    for every mean, :data:`_SUM_BLOCK` means at a time (so they run side by side).
     """
     n = x.shape[0]
-    out = np.empty((n + m - 1 + extra, x.shape[1]))
-    exact = out.shape[0] * m <= _EXACT_SUM_OPS
+    total = n + m - 1 + extra
+    out = np.empty((total, x.shape[1]))
+    exact = total * m <= _EXACT_SUM_OPS
+    # xs[i] = x[i - m + 1] - x[0] (held at the ends): the mean at k sums xs[k .. k + m - 1]
+    xs = np.empty(total + m - 1)
+    acc = np.empty(_SUM_BLOCK)
     for c in range(x.shape[1]):
         ref = x[0, c]
-        acc = 0.0
-        for k in range(out.shape[0]):
-            if exact or k % m == 0:
-                acc = 0.0
-                for q in range(k - m + 1, k + 1):
-                    acc += x[min(max(q, 0), n - 1), c] - ref
+        for i in range(total + m - 1):
+            xs[i] = x[min(max(i - m + 1, 0), n - 1), c] - ref
+        if exact:
+            for k0 in range(0, total, _SUM_BLOCK):
+                kb = min(_SUM_BLOCK, total - k0)
+                acc[:kb] = 0.0
+                for q in range(m):
+                    src = xs[k0 + q : k0 + q + kb]
+                    for i in range(kb):
+                        acc[i] += src[i]
+                for i in range(kb):
+                    out[k0 + i, c] = ref + acc[i] / m
+            continue
+        run = 0.0
+        for k in range(total):
+            if k % m == 0:
+                run = 0.0
+                for q in range(m):
+                    run += xs[k + q]
             else:
-                acc += (x[min(k, n - 1), c] - ref) - (x[min(max(k - m, 0), n - 1), c] - ref)
-            out[k, c] = ref + acc / m
-    for k in range(n + m - 2, out.shape[0]):
+                run += xs[k + m - 1] - xs[k - 1]
+            out[k, c] = ref + run / m
+    for k in range(n + m - 2, total):
         out[k] = x[n - 1]
     return out
 
