@@ -509,6 +509,14 @@ def _joints(curve):
     return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
 
 
+def _near(nodes: np.ndarray, u: float, reach: float) -> np.ndarray:
+    """Indices of the sorted ``nodes`` where ``abs(nodes - u) <= reach``, found by bisection
+    (not a pass over every node per joint: blocks of many arcs or kinks)."""
+    pad = 1e-12 * (abs(u) + reach)  # beyond it the float difference cannot be within reach
+    lo, hi = np.searchsorted(nodes, (u - reach - pad, u + reach + pad))
+    return lo + np.flatnonzero(np.abs(nodes[lo:hi] - u) <= reach)
+
+
 def _plan_feed(
     block: Block,
     path: Path,
@@ -571,13 +579,13 @@ def _plan_feed(
         acc_node = np.minimum(_AT_SHARE * j_path * T, a_path)
         reach = v_top * T  # the filter window around a jump
         for ub, d in zip(u_jump, d_kappa):
-            near = np.abs(fb.nodes - ub) <= reach
+            near = _near(fb.nodes, ub, reach)
             with np.errstate(divide="ignore"):
                 v2 = np.min((1.0 - _JUMP_AT_SHARE) * jmax * T / np.abs(d[ax]))
             ceil[near] = np.minimum(ceil[near], math.sqrt(v2))
             acc_node[near] = np.minimum(acc_node[near], _JUMP_AT_SHARE * j_path[near] * T)
         for uk, d in zip(u_kink, d_tan):
-            near = np.abs(fb.nodes - uk) <= spacing  # the speed while crossing it
+            near = _near(fb.nodes, uk, spacing)  # the speed while crossing it
             with np.errstate(divide="ignore"):
                 v_jerk = np.min(jmax * T * dt / np.abs(d[ax]))
             v_cut = 8.0 * tol_m / (T * np.linalg.norm(d))  # corner cut ~ v T |dt| / 8
