@@ -633,6 +633,22 @@ def _axis_speed_m_s(seg, vmax: np.ndarray) -> float:
     return float(np.min(vmax[m] / d[m])) if m.any() else math.inf
 
 
+def _allowed_speeds(segs, vmax: np.ndarray) -> np.ndarray:
+    """:func:`_axis_speed_m_s` of every move (inf for a move of length 0), lines at once."""
+    n = len(segs)
+    length = np.fromiter((s.length for s in segs), float, n)
+    arc = np.fromiter((isinstance(s, Arc) for s in segs), bool, n)
+    allowed = np.full(n, np.inf)
+    for k in np.flatnonzero(arc & (length > 0)):
+        allowed[k] = _axis_speed_m_s(segs[k], vmax)
+    lines = np.flatnonzero(~arc & (length > 0))
+    start, end = _line_arrays(segs, lines)
+    d = np.abs(end - start) / length[lines, None]
+    with np.errstate(divide="ignore"):
+        allowed[lines] = np.min(np.where((d > 0) & (vmax > 0), vmax / d, np.inf), axis=1)
+    return allowed
+
+
 def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
     """Feed of every move (m/s; rapids inf), capped at what the axes allow along it.
 
@@ -643,25 +659,22 @@ def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
         Largest path speed the axes allow somewhere along each move, m/s.
     warnings : list of str
     """
-    out, allowed = np.empty(len(path.segments)), np.empty(len(path.segments))
-    over = []
-    for k, s in enumerate(path.segments):
-        allowed[k] = _axis_speed_m_s(s, limits.vmax_m_s) if s.length > 0 else np.inf
-        if s.rapid:
-            out[k] = np.inf
-            continue
-        if feed_m_s is not None:
-            out[k] = feed_m_s
-        elif math.isfinite(s.feed_m_s) and s.feed_m_s > 0:
-            out[k] = s.feed_m_s
-        else:
-            where = f"line {s.line}" if s.line else f"move {k + 1}"
+    segs = path.segments
+    n = len(segs)
+    allowed = _allowed_speeds(segs, limits.vmax_m_s)
+    rapid = np.fromiter((s.rapid for s in segs), bool, n)
+    if feed_m_s is not None:
+        out = np.full(n, float(feed_m_s))
+    else:
+        out = np.fromiter((s.feed_m_s for s in segs), float, n)
+        for k in np.flatnonzero(~rapid & ~(np.isfinite(out) & (out > 0)))[:1]:
+            where = f"line {segs[k].line}" if segs[k].line else f"move {k + 1}"
             raise OptionError(f"{where}: no feed programmed (F); give feed_m_s")
-        if out[k] > allowed[k]:
-            over.append(k)
-            out[k] = allowed[k]
+    out[rapid] = np.inf
+    over = np.flatnonzero(~rapid & (out > allowed))
+    out[over] = allowed[over]
     warnings = []
-    if over:
+    if over.size:
         k = over[0]
         seg = path.segments[k]
         given = feed_m_s if feed_m_s is not None else seg.feed_m_s
@@ -675,7 +688,7 @@ def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
 
 def _move_times(path: Path, feeds: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     """Least motion time of each move, s: at its feed or the axis speed, no ramps."""
-    length = np.array([s.length for s in path.segments])
+    length = np.fromiter((s.length for s in path.segments), float, len(path.segments))
     with np.errstate(over="ignore"):
         return length / np.minimum(feeds, allowed)
 
@@ -725,6 +738,26 @@ def _estimate(path: Path, feeds: np.ndarray, allowed: np.ndarray, dt: float) -> 
     return t
 
 
+def _line_arrays(segs, idx: np.ndarray):
+    """Start and end points (len(idx), 3) m of the lines ``segs[idx]``."""
+    start = np.array([segs[k].start for k in idx]).reshape(-1, 3)
+    end = np.array([segs[k].end for k in idx]).reshape(-1, 3)
+    return start, end
+
+
+def _to_inspect(segs, present: np.ndarray) -> list:
+    """The moves :func:`_validate` must look at one by one, in order: arcs, and the lines
+    that fail its checks (a point beyond the bounds or not finite, a move of an absent
+    axis), found for all lines at once."""
+    arc = np.fromiter((isinstance(s, Arc) for s in segs), bool, len(segs))
+    lines = np.flatnonzero(~arc)
+    start, end = _line_arrays(segs, lines)
+    ok = np.all((np.abs(start) <= MAX_COORD_M) & (np.abs(end) <= MAX_COORD_M), axis=1)
+    ok &= ~np.any((np.abs(end - start) > 1e-12) & ~present, axis=1)
+    arc[lines[~ok]] = True
+    return [segs[k] for k in np.flatnonzero(arc)]
+
+
 def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float) -> None:
     if feed_m_s is not None and not (math.isfinite(feed_m_s) and feed_m_s > 0):
         raise OptionError(f"feed_m_s must be a positive finite number, got {feed_m_s!r}")
@@ -733,7 +766,8 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
                           f"got {tol_m!r}")
     if not (DT_RANGE_S[0] <= dt <= DT_RANGE_S[1]):
         raise OptionError(f"dt must be in [{DT_RANGE_S[0]:g}, {DT_RANGE_S[1]:g}] s, got {dt!r}")
-    for s in path.segments:
+    present = limits.present
+    for s in _to_inspect(path.segments, present):
         pts = np.concatenate([s.start, s.end, s.center if isinstance(s, Arc) else ()])
         if not np.all(np.abs(pts) <= MAX_COORD_M):  # also nan (paths built by hand)
             raise ToolpathError(f"a point beyond {MAX_COORD_M:g} m or not finite", line=s.line)
@@ -744,7 +778,7 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
         if isinstance(s, Arc) and s.length > 1e-12:
             i, j, _ = PLANES[s.plane]
             span[i] = span[j] = s.radius
-        for k in np.flatnonzero((span > 1e-12) & ~limits.present):
+        for k in np.flatnonzero((span > 1e-12) & ~present):
             raise ToolpathError(
                 f"moves axis {AXES[k]}, which the machine lacks (0 limits: it must not move)",
                 line=s.line,
