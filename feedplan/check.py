@@ -38,6 +38,8 @@ SPEED_MARGIN = 0.005
 _SEARCH_WINDOW = 64
 #: Consecutive moves whose balls are tested together first (aligned on multiples of it).
 _GROUP = 8
+#: Moves on each side of the tracked one tested one by one before all the others at once.
+_NEAR = 4
 #: Largest distance of the first/last sample from the programmed start/end, metres.
 _END_TOL_M = 1e-9
 
@@ -54,32 +56,39 @@ def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
     tuple of ndarray
         kind (n,) 0 line / 1 arc; start, end, centre (n, 3) m; plane axes (n, 3);
         radius m, start angle rad, sweep rad, rise m (n, 4); rapid flags (n,);
-        a ball holding each move, centre and radius m (n, 4).
+        a ball holding each move, centre and radius m (n, 4); balls holding groups of
+        moves (:func:`_group_balls`) and, per move, those ahead and behind it in the
+        search window (:func:`_window_balls`).
     """
     n = len(segments)
-    kind = np.zeros(n, np.int64)
-    a, b, c = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    arcs = np.fromiter((isinstance(s, Arc) for s in segments), np.bool_, n)
+    kind = arcs.astype(np.int64)
+    a = np.array([s.start for s in segments], dtype=np.float64).reshape(n, 3)
+    b = np.array([s.end for s in segments], dtype=np.float64).reshape(n, 3)
+    c = np.zeros((n, 3))
     ax = np.zeros((n, 3), np.int64)
     geo = np.zeros((n, 4))  # radius, start angle, sweep, rise
-    rapid = np.zeros(n, np.bool_)
-    sphere = np.zeros((n, 4))  # a ball holding the move: centre, radius
-    for k, s in enumerate(segments):
-        a[k], b[k], rapid[k] = s.start, s.end, s.rapid
-        mid = 0.5 * (s.start + s.end)
-        sphere[k] = (*mid, 0.5 * s.length)
-        if isinstance(s, Arc):
-            kind[k] = 1
-            c[k] = s.center
-            ax[k] = PLANES[s.plane]
-            geo[k] = (s.radius, s.start_angle, s.sweep_rad, s.rise)
-            if abs(s.sweep_rad) <= np.pi:
-                mid = s.point(0.5)
-                reach = max(np.linalg.norm(mid - s.start), np.linalg.norm(mid - s.end))
-                reach += abs(s.rise)
-            else:
-                mid, reach = s.center, np.hypot(s.radius, s.rise) + abs(s.rise)
-            sphere[k] = (*mid, reach)
-    return kind, a, b, c, ax, geo, rapid, sphere
+    rapid = np.fromiter((s.rapid for s in segments), np.bool_, n)
+    # a ball holding the move: centre, radius
+    length = np.fromiter((s.length for s in segments), np.float64, n)
+    sphere = np.column_stack([0.5 * (a + b), 0.5 * length]).reshape(n, 4)
+    for k in np.flatnonzero(arcs):
+        s = segments[k]
+        c[k] = s.center
+        ax[k] = PLANES[s.plane]
+        geo[k] = (s.radius, s.start_angle, s.sweep_rad, s.rise)
+        if abs(s.sweep_rad) <= np.pi:
+            mid = s.point(0.5)
+            reach = max(np.linalg.norm(mid - s.start), np.linalg.norm(mid - s.end))
+            reach += abs(s.rise)
+        else:
+            mid, reach = s.center, np.hypot(s.radius, s.rise) + abs(s.rise)
+        sphere[k] = (*mid, reach)
+    use = ~rapid
+    groups = _group_balls(sphere, use)
+    ahead = _window_balls(sphere, use, _NEAR + 1, _SEARCH_WINDOW)
+    behind = _window_balls(sphere, use, -_SEARCH_WINDOW, -_NEAR - 1)
+    return kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind
 
 
 @njit(cache=True)
@@ -159,6 +168,40 @@ def _group_balls(sphere, use):
 
 
 @njit(cache=True)
+def _window_balls(sphere, use, lo, hi):
+    """Per move s, a ball holding the balls of the measured moves s + lo .. s + hi.
+
+    Shape (n, 4): centre, radius (m); radius -inf where there is none. Centre: the middle
+    of their bounding box; radius with the margin of :func:`_group_balls`.
+    """
+    n = sphere.shape[0]
+    out = np.zeros((n, 4))
+    for s in range(n):
+        first, last = max(s + lo, 0), min(s + hi, n - 1)
+        box_lo = np.full(3, np.inf)
+        box_hi = np.full(3, -np.inf)
+        for t in range(first, last + 1):
+            if use[t]:
+                for i in range(3):
+                    box_lo[i] = min(box_lo[i], sphere[t, i])
+                    box_hi[i] = max(box_hi[i], sphere[t, i])
+        if not box_lo[0] <= box_hi[0]:
+            out[s, 3] = -np.inf
+            continue
+        for i in range(3):
+            out[s, i] = 0.5 * (box_lo[i] + box_hi[i])
+        r = 0.0
+        for t in range(first, last + 1):
+            if use[t]:
+                e0 = sphere[t, 0] - out[s, 0]
+                e1 = sphere[t, 1] - out[s, 1]
+                e2 = sphere[t, 2] - out[s, 2]
+                r = max(r, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + sphere[t, 3])
+        out[s, 3] = r * (1.0 + 1e-9) + 1e-9
+    return out
+
+
+@njit(cache=True)
 def _far(p, ball, best):
     """The ball (centre, radius) cannot hold a point nearer to ``p`` than ``best``."""
     e0 = p[0] - ball[0]
@@ -168,7 +211,7 @@ def _far(p, ball, best):
 
 
 @njit(cache=True)
-def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, window):
+def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind, window):
     n_pts, n_seg = pos.shape[0], kind.shape[0]
     dist = np.zeros(n_pts)
     near = np.zeros(n_pts, np.int64)
@@ -185,6 +228,13 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, window):
         held, arg = best, cur
         step = 1
         while step <= 2 * window:
+            # past the _NEAR moves on either side: all the others at once, when none of
+            # them can be nearer (as each would be passed below; the same result)
+            if step == _NEAR + 1 and _far(pos[k], ahead[cur], best):
+                step = window + 1
+                continue
+            if step == window + _NEAR + 1 and _far(pos[k], behind[cur], best):
+                break
             forward = step <= window
             s = cur + step if forward else cur + window - step
             # a whole group of moves inside the window, none of which can be nearer: each
@@ -233,14 +283,14 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
         point's move unless another is nearer by more than 1 nm, moves ahead
         tried first, so that a retraced stretch does not pull the tracking back.
     """
-    kind, a, b, c, ax, geo, rapid, sphere = table
+    kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind = table
     skip = np.zeros(len(pos), np.bool_) if skip is None else np.asarray(skip, np.bool_)
     use = ~rapid
     if not use.any():
         return np.zeros(len(pos)), np.zeros(len(pos), np.int64)
     pos = np.ascontiguousarray(pos, dtype=np.float64)
-    groups = _group_balls(sphere, use)
-    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, _SEARCH_WINDOW)
+    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind,
+                  _SEARCH_WINDOW)
 
 
 def finite_differences(pos: np.ndarray, dt: float):

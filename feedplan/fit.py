@@ -124,6 +124,10 @@ class Curve:
             ``order`` is 3.
         """
         u = np.asarray(u, dtype=np.float64)
+        if self.kind.size == 1 and self.kind[0] == _SPLINE:  # one fitted run: no piece lookup
+            spl, x = self.splines[0], u - self.u0[0]
+            out = (spl(x), spl(x, 1), spl(x, 2))
+            return (*out, spl(x, 3)) if order == 3 else out
         side = "left" if left else "right"
         idx = np.clip(np.searchsorted(self.u0, u, side=side) - 1, 0, len(self.kind) - 1)
         ul = (u - self.u0[idx])[:, None]
