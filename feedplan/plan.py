@@ -382,11 +382,51 @@ def _static_limits(fb: _Feed):
     return ceil, tan, kappa, feed
 
 
-def _centred_mean(x: np.ndarray, m: int) -> np.ndarray:
-    """Centred moving average over m (odd) samples, zero outside; shape of x (N, 3)."""
-    h = m // 2
-    c = np.cumsum(np.vstack([np.zeros((h + 1, 3)), x, np.zeros((h, 3))]), axis=0)
-    return (c[m:] - c[:-m]) / m
+@njit(cache=True)
+def _centred_mean(x, m):
+    """Centred moving average over m (odd) samples, zero outside; shape of x (N, 3).
+
+    A running sum over the zero-padded samples, differenced (one pass, no padded copy).
+    """
+    n, h = x.shape[0], m // 2
+    total = n + 2 * h + 1  # zeros (h + 1), x, zeros (h)
+    out = np.empty_like(x)
+    for col in range(x.shape[1]):
+        c = np.empty(total)
+        acc = 0.0
+        for i in range(total):
+            j = i - h - 1
+            acc = acc + (x[j, col] if 0 <= j < n else 0.0) if i > 0 else 0.0
+            c[i] = acc
+        for k in range(n):
+            out[k, col] = (c[k + m] - c[k]) / m
+    return out
+
+
+@njit(cache=True)
+def _compensation(d1, d2, ud, coef, m):
+    """:func:`_rounding_compensation` after its scalar ``coef = -s2 / 2``, compiled."""
+    n = d1.shape[0]
+    off = np.empty((n, 3))
+    for k in range(n):
+        speed = math.sqrt(d1[k, 0] * d1[k, 0] + d1[k, 1] * d1[k, 1] + d1[k, 2] * d1[k, 2])
+        t0, t1, t2 = d1[k, 0] / speed, d1[k, 1] / speed, d1[k, 2] / speed
+        dot = 0.0
+        dot += d2[k, 0] * t0
+        dot += d2[k, 1] * t1
+        dot += d2[k, 2] * t2
+        w = coef * (ud[k] * ud[k])
+        off[k, 0] = w * (d2[k, 0] - dot * t0)
+        off[k, 1] = w * (d2[k, 1] - dot * t1)
+        off[k, 2] = w * (d2[k, 2] - dot * t2)
+    odd = m | 1
+    off = _centred_mean(_centred_mean(off, odd), odd)
+    for k in range(n):
+        ramp = min(max(min(k, n - 1 - k) / (2.0 * m), 0.0), 1.0)
+        f = ramp * ramp * (3.0 - 2.0 * ramp)
+        for i in range(3):
+            off[k, i] = off[k, i] * f
+    return off
 
 
 def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
@@ -399,16 +439,8 @@ def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
     over the filter length, so it adds no jerk step where the curvature jumps, and it
     fades in and out over the first and last ``2 m`` samples (at rest at both ends).
     """
-    speed = np.linalg.norm(d1, axis=1)
-    t = d1 / speed[:, None]
-    normal = d2 - np.sum(d2 * t, axis=1)[:, None] * t
     s2 = (m * m - 1) * dt * dt / 12.0
-    off = -0.5 * s2 * (ud**2)[:, None] * normal
-    odd = m | 1
-    off = _centred_mean(_centred_mean(off, odd), odd)
-    n = len(off)
-    ramp = np.clip(np.minimum(np.arange(n), n - 1 - np.arange(n)) / (2.0 * m), 0.0, 1.0)
-    return off * (ramp * ramp * (3.0 - 2.0 * ramp))[:, None]
+    return _compensation(d1, d2, ud, -0.5 * s2, m)
 
 
 def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensate: bool):
