@@ -92,16 +92,22 @@ def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
 
 
 @njit(cache=True)
-def point_segment_distance(p, a, b):
-    """Distance (m) from point ``p`` to the straight segment ``a``-``b`` (each shape (3,))."""
-    ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-    ap0, ap1, ap2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+def _psd(p0, p1, p2, a0, a1, a2, b0, b1, b2):
+    """:func:`point_segment_distance` of scalars (no array views in hot loops)."""
+    ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
+    ap0, ap1, ap2 = p0 - a0, p1 - a1, p2 - a2
     den = ab0 * ab0 + ab1 * ab1 + ab2 * ab2
     f = 0.0
     if den > 0.0:
         f = min(1.0, max(0.0, (ap0 * ab0 + ap1 * ab1 + ap2 * ab2) / den))
     d0, d1, d2 = ap0 - f * ab0, ap1 - f * ab1, ap2 - f * ab2
     return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(cache=True)
+def point_segment_distance(p, a, b):
+    """Distance (m) from point ``p`` to the straight segment ``a``-``b`` (each shape (3,))."""
+    return _psd(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2])
 
 
 @njit(cache=True)
@@ -127,10 +133,12 @@ def _dist_arc(p, a, b, c, ax, geo):
 
 
 @njit(cache=True)
-def _seg_dist(p, s, kind, a, b, c, ax, geo):
+def _seg_dist(pos, k, s, kind, a, b, c, ax, geo):
+    """Distance of point pos[k] to move s (lines read in place: no array views)."""
     if kind[s] == 0:
-        return point_segment_distance(p, a[s], b[s])
-    return _dist_arc(p, a[s], b[s], c[s], ax[s], geo[s])
+        return _psd(pos[k, 0], pos[k, 1], pos[k, 2], a[s, 0], a[s, 1], a[s, 2],
+                    b[s, 0], b[s, 1], b[s, 2])
+    return _dist_arc(pos[k], a[s], b[s], c[s], ax[s], geo[s])
 
 
 @njit(cache=True)
@@ -202,12 +210,12 @@ def _window_balls(sphere, use, lo, hi):
 
 
 @njit(cache=True)
-def _far(p, ball, best):
-    """The ball (centre, radius) cannot hold a point nearer to ``p`` than ``best``."""
-    e0 = p[0] - ball[0]
-    e1 = p[1] - ball[1]
-    e2 = p[2] - ball[2]
-    return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - ball[3] >= best
+def _far(pos, k, balls, i, best):
+    """Ball i (centre, radius) cannot hold a point nearer to pos[k] than ``best``."""
+    e0 = pos[k, 0] - balls[i, 0]
+    e1 = pos[k, 1] - balls[i, 1]
+    e2 = pos[k, 2] - balls[i, 2]
+    return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - balls[i, 3] >= best
 
 
 @njit(cache=True)
@@ -224,16 +232,16 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind
             continue
         # true minimum over the window; the tracked move changes only for a gain
         # above 1 nm, looking forward first (retraced moves do not pull it back)
-        best = _seg_dist(pos[k], cur, kind, a, b, c, ax, geo)
+        best = _seg_dist(pos, k, cur, kind, a, b, c, ax, geo)
         held, arg = best, cur
         step = 1
         while step <= 2 * window:
             # past the _NEAR moves on either side: all the others at once, when none of
             # them can be nearer (as each would be passed below; the same result)
-            if step == _NEAR + 1 and _far(pos[k], ahead[cur], best):
+            if step == _NEAR + 1 and step <= window and _far(pos, k, ahead, cur, best):
                 step = window + 1
                 continue
-            if step == window + _NEAR + 1 and _far(pos[k], behind[cur], best):
+            if step == window + _NEAR + 1 and _far(pos, k, behind, cur, best):
                 break
             forward = step <= window
             s = cur + step if forward else cur + window - step
@@ -243,15 +251,15 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind
             last = first + _GROUP - 1
             if (first % _GROUP == 0 and first >= max(cur - window, 0)
                     and last <= min(cur + window, n_seg - 1) and (last < cur or first > cur)
-                    and _far(pos[k], groups[first // _GROUP], best)):
+                    and _far(pos, k, groups, first // _GROUP, best)):
                 step += _GROUP
                 continue
             step += 1
             if s < 0 or s >= n_seg or not use[s]:
                 continue
-            if _far(pos[k], sphere[s], best):
+            if _far(pos, k, sphere, s, best):
                 continue  # cannot be nearer (and best <= held)
-            d = _seg_dist(pos[k], s, kind, a, b, c, ax, geo)
+            d = _seg_dist(pos, k, s, kind, a, b, c, ax, geo)
             best = min(best, d)
             if d < held - 1e-9:
                 held, arg = d, s
