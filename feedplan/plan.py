@@ -66,7 +66,7 @@ import numpy as np
 from numba import njit
 from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
-from feedplan.check import SPEED_MARGIN, deviation_m, finite_differences, segment_table
+from feedplan.check import SPEED_MARGIN, deviation_m, segment_table
 from feedplan.fit import Block, blocks_of
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
@@ -465,27 +465,60 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensa
     if compensate:
         p += _rounding_compensation(d1, d2, ud, m, dt)
     pos = _moving_average(p, m, 3)
-    fv, fa, fj = finite_differences(pos, dt)
     dist, near = deviation_m(pos, fb.table)
     n = len(pos)
     axes = lim.present  # the others do not move (checked before planning)
-    r_v = np.max(np.abs(fv[:, axes]) / lim.vmax_m_s[axes], axis=1)
-    r_a = np.max(np.abs(fa[:, axes]) / lim.amax_m_s2[axes], axis=1)
-    r_j = np.max(np.abs(fj[:, axes]) / lim.jmax_m_s3[axes], axis=1)
-    r_s, r_d = np.zeros(len(fv)), np.zeros(len(fv))
-    r_s[:n] = np.linalg.norm(fv[:n], axis=1) / (fb.seg_feed[near] * (1.0 + SPEED_MARGIN))
-    r_d[:n] = dist / fb.tol_m
+    f_speed, f_acc = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
+                              lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
+                              fb.seg_feed[near] * (1.0 + SPEED_MARGIN), fb.tol_m, 1.0 - _MARGIN)
     centre = np.clip(np.arange(n) - (m - 1) // 2, 0, len(u) - 1)
     seg_at = np.searchsorted(fb.block.seg_u0, u[centre], side="right") - 1
     line = fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
-    ok = 1.0 - _MARGIN
-    # speed enters velocities linearly, rounding and accelerations/jerk about quadratically
-    f_acc = ok / np.maximum(np.maximum(r_a, r_j), ok)
-    f_speed = np.minimum(
-        ok / np.maximum(np.maximum(r_v, r_s), ok), np.sqrt(ok / np.maximum(r_d, ok))
-    )
-    f_speed = np.minimum(f_speed, np.sqrt(f_acc))
     return _Attempt(pos, line, (n - 1) * dt), f_speed, f_acc, u
+
+
+@njit(cache=True)
+def _factors(pos, dt, vmax, amax, jmax, axes, dist, feed, tol, ok):
+    """Per filtered sample (and the 3 at rest after it), the factors of the speed ceiling
+    and of ``A_t`` that would bring it within the limits (1 where clean).
+
+    The finite differences of :func:`feedplan.check.finite_differences` and the worst
+    ratio over the axes ``axes`` (limits ``vmax``, ``amax``, ``jmax`` of those axes) of
+    velocity, acceleration and jerk; the path speed over ``feed`` (the feed with its
+    margin, per sample); the distance ``dist`` over ``tol``. Speed enters velocities
+    linearly, rounding and accelerations/jerk about quadratically.
+    """
+    n = pos.shape[0]
+    rows = n + 3
+    f_speed, f_acc = np.empty(rows), np.empty(rows)
+    # p: pos held 3 samples before and after; v, a, j as numpy's diff of it over dt
+    v = np.empty((rows + 2, 3))
+    a = np.empty((rows + 1, 3))
+    for i in range(rows + 2):
+        for c in range(3):
+            v[i, c] = (pos[min(max(i - 2, 0), n - 1), c] - pos[min(max(i - 3, 0), n - 1), c]) / dt
+    for i in range(rows + 1):
+        for c in range(3):
+            a[i, c] = (v[i + 1, c] - v[i, c]) / dt
+    for k in range(rows):
+        r_v = r_a = r_j = -np.inf
+        for q in range(axes.shape[0]):
+            c = axes[q]
+            r_v = max(r_v, abs(v[k + 2, c]) / vmax[q])
+            r_a = max(r_a, abs(a[k + 1, c]) / amax[q])
+            r_j = max(r_j, abs((a[k + 1, c] - a[k, c]) / dt) / jmax[q])
+        r_s = r_d = 0.0
+        if k < n:
+            sq = 0.0
+            sq += v[k + 2, 0] * v[k + 2, 0]
+            sq += v[k + 2, 1] * v[k + 2, 1]
+            sq += v[k + 2, 2] * v[k + 2, 2]
+            r_s = math.sqrt(sq) / feed[k]
+            r_d = dist[k] / tol
+        fa = ok / max(max(r_a, r_j), ok)
+        fs = min(ok / max(max(r_v, r_s), ok), math.sqrt(ok / max(r_d, ok)))
+        f_acc[k], f_speed[k] = fa, min(fs, math.sqrt(fa))
+    return f_speed, f_acc
 
 
 def _converge(
