@@ -111,21 +111,23 @@ def point_segment_distance(p, a, b):
 
 
 @njit(cache=True)
-def _dist_arc(p, a, b, c, ax, geo):
-    i, j, n = ax[0], ax[1], ax[2]
-    radius, th0, sweep, rise = geo[0], geo[1], geo[2], geo[3]
+def _dist_arc(pos, k, s, a, b, c, ax, geo):
+    """Distance of point pos[k] to arc s (rows read in place: no array views)."""
+    i, j, n = ax[s, 0], ax[s, 1], ax[s, 2]
+    radius, th0, sweep, rise = geo[s, 0], geo[s, 1], geo[s, 2], geo[s, 3]
     best = 1e300
-    for q in (a, b):
-        d0, d1, d2 = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+    for q in range(2):  # the two ends (no tuple of arrays: it costs every caller)
+        e = a if q == 0 else b
+        d0, d1, d2 = pos[k, 0] - e[s, 0], pos[k, 1] - e[s, 1], pos[k, 2] - e[s, 2]
         best = min(best, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
-    dx, dy = p[i] - c[i], p[j] - c[j]
+    dx, dy = pos[k, i] - c[s, i], pos[k, j] - c[s, j]
     rho = np.hypot(dx, dy)
     span = abs(sweep)
     sgn = 1.0 if sweep >= 0.0 else -1.0
     delta = ((np.arctan2(dy, dx) - th0) * sgn) % (2.0 * np.pi)
     while delta <= span:
-        zn = a[n] + rise * delta / span
-        d = np.hypot(rho - radius, p[n] - zn)
+        zn = a[s, n] + rise * delta / span
+        d = np.hypot(rho - radius, pos[k, n] - zn)
         if d < best:
             best = d
         delta += 2.0 * np.pi
@@ -133,12 +135,18 @@ def _dist_arc(p, a, b, c, ax, geo):
 
 
 @njit(cache=True)
+def _line_dist(pos, k, s, a, b):
+    """Distance of point pos[k] to line s (rows read in place: no array views)."""
+    return _psd(pos[k, 0], pos[k, 1], pos[k, 2], a[s, 0], a[s, 1], a[s, 2],
+                b[s, 0], b[s, 1], b[s, 2])
+
+
+@njit(cache=True)
 def _seg_dist(pos, k, s, kind, a, b, c, ax, geo):
-    """Distance of point pos[k] to move s (lines read in place: no array views)."""
+    """Distance of point pos[k] to move s."""
     if kind[s] == 0:
-        return _psd(pos[k, 0], pos[k, 1], pos[k, 2], a[s, 0], a[s, 1], a[s, 2],
-                    b[s, 0], b[s, 1], b[s, 2])
-    return _dist_arc(pos[k], a[s], b[s], c[s], ax[s], geo[s])
+        return _line_dist(pos, k, s, a, b)
+    return _dist_arc(pos, k, s, a, b, c, ax, geo)
 
 
 @njit(cache=True)
@@ -221,6 +229,9 @@ def _far(pos, k, balls, i, best):
 @njit(cache=True)
 def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind, window):
     n_pts, n_seg = pos.shape[0], kind.shape[0]
+    # no arcs: the distance of lines alone (with the arc's code beside it, the compiled loop
+    # computes parts of it for every line too: 15x slower)
+    lines = not np.any(kind != 0)
     dist = np.zeros(n_pts)
     near = np.zeros(n_pts, np.int64)
     cur = 0
@@ -232,7 +243,10 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind
             continue
         # true minimum over the window; the tracked move changes only for a gain
         # above 1 nm, looking forward first (retraced moves do not pull it back)
-        best = _seg_dist(pos, k, cur, kind, a, b, c, ax, geo)
+        if lines:
+            best = _line_dist(pos, k, cur, a, b)
+        else:
+            best = _seg_dist(pos, k, cur, kind, a, b, c, ax, geo)
         held, arg = best, cur
         step = 1
         while step <= 2 * window:
@@ -259,7 +273,10 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind
                 continue
             if _far(pos, k, sphere, s, best):
                 continue  # cannot be nearer (and best <= held)
-            d = _seg_dist(pos, k, s, kind, a, b, c, ax, geo)
+            if lines:
+                d = _line_dist(pos, k, s, a, b)
+            else:
+                d = _seg_dist(pos, k, s, kind, a, b, c, ax, geo)
             best = min(best, d)
             if d < held - 1e-9:
                 held, arg = d, s
