@@ -709,7 +709,7 @@ def _allowed_speeds(segs, vmax: np.ndarray) -> np.ndarray:
     lines = np.flatnonzero(~arc & (length > 0))
     start, end = _line_arrays(segs, lines)
     d = np.abs(end - start) / length[lines, None]
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # 0 / 0 where masked
         allowed[lines] = np.min(np.where((d > 0) & (vmax > 0), vmax / d, np.inf), axis=1)
     return allowed
 
