@@ -342,11 +342,20 @@ class _Feed:
 
 @dataclass(frozen=True, eq=False)
 class _Attempt:
-    """Filtered positions (n, 3) m, source line per sample, duration s."""
+    """Filtered positions (n, 3) m, duration s; curve parameter u (m) of the unfiltered
+    samples and the filter length m (the source lines of the kept one: :func:`_lines`)."""
 
     pos: np.ndarray
-    line: np.ndarray
     duration: float
+    u: np.ndarray
+    m: int
+
+
+def _lines(fb: "_Feed", att: _Attempt) -> np.ndarray:
+    """Source line of each filtered sample: that of the move at the centre of its window."""
+    centre = np.clip(np.arange(len(att.pos)) - (att.m - 1) // 2, 0, len(att.u) - 1)
+    seg_at = np.searchsorted(fb.block.seg_u0, att.u[centre], side="right") - 1
+    return fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
 
 
 def _grid(block: Block) -> tuple[np.ndarray, float]:
@@ -471,10 +480,7 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensa
     f_speed, f_acc = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
                               lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
                               fb.seg_feed[near] * (1.0 + SPEED_MARGIN), fb.tol_m, 1.0 - _MARGIN)
-    centre = np.clip(np.arange(n) - (m - 1) // 2, 0, len(u) - 1)
-    seg_at = np.searchsorted(fb.block.seg_u0, u[centre], side="right") - 1
-    line = fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
-    return _Attempt(pos, line, (n - 1) * dt), f_speed, f_acc, u
+    return _Attempt(pos, (n - 1) * dt, u, m), f_speed, f_acc, u
 
 
 @njit(cache=True)
@@ -665,7 +671,7 @@ def _plan_feed(
             f"line {segs[0].line}: no plan within the limits and the tolerance "
             f"after {_ROUNDS} slow-down rounds"
         )
-    return best.pos, best.line
+    return best.pos, _lines(fb, best)
 
 
 # --------------------------------------------------------------------------- entry point
