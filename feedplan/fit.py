@@ -65,6 +65,72 @@ _FIT_ROUNDS = 12
 _LINE, _ARC, _SPLINE = 0, 1, 2
 
 
+@njit(cache=True)
+def _interval(t, x, prev):
+    """scipy's ``_find_interval`` for a cubic: l with t[l] <= x < t[l + 1] (hint ``prev``)."""
+    k, n = 3, t.shape[0] - 4
+    ell = prev if k < prev < n else k
+    while x < t[ell] and ell != k:
+        ell -= 1
+    ell += 1
+    while x >= t[ell] and ell != n:
+        ell += 1
+    return ell - 1
+
+
+@njit(cache=True)
+def _de_boor_step(t, x, ell, j, m, h, hh):
+    """One iteration ``j`` of scipy's ``_deBoor_D``: a value step (m < 0) or a step of
+    derivative ``m``, on the non-zero B-splines h[0..j] (hh: scratch)."""
+    for q in range(j):
+        hh[q] = h[q]
+    h[0] = 0.0
+    for n in range(1, j + 1):
+        xb, xa = t[ell + n], t[ell + n - j]
+        if xb == xa:
+            h[n if m < 0 else m] = 0.0
+            continue
+        if m < 0:
+            w = hh[n - 1] / (xb - xa)
+            h[n - 1] += w * (xb - x)
+            h[n] = w * (x - xa)
+        else:
+            w = j * hh[n - 1] / (xb - xa)
+            h[n - 1] -= w
+            h[n] = w
+
+
+@njit(cache=True)
+def _spline_values(t, c, x, order):
+    """A cubic spline and its derivatives up to ``order`` at the sorted or unsorted ``x``,
+    bit for bit as scipy's BSpline (the same de Boor steps and sums), in one pass: shape
+    (order + 1, N, dim). The value steps shared by the derivatives are done once."""
+    out = np.empty((order + 1, x.shape[0], c.shape[1]))
+    h, hh, saved = np.empty(4), np.empty(4), np.empty((4, 4))
+    ell = 3
+    for i in range(x.shape[0]):
+        ell = _interval(t, x[i], ell)
+        h[0] = 1.0
+        for j in range(1, 4):  # value steps; derivative nu starts after step 3 - nu
+            if 4 - j <= order:
+                for q in range(j):
+                    saved[4 - j, q] = h[q]
+            _de_boor_step(t, x[i], ell, j, -1, h, hh)
+        for q in range(4):
+            saved[0, q] = h[q]
+        for nu in range(order + 1):
+            for q in range(4):
+                h[q] = saved[nu, q]
+            for j in range(4 - nu, 4):
+                _de_boor_step(t, x[i], ell, j, nu, h, hh)
+            for col in range(c.shape[1]):
+                acc = 0.0
+                for a in range(4):
+                    acc += c[ell + a - 3, col] * h[a]
+                out[nu, i, col] = acc
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Curve:
     """A chain of pieces (lines, arcs, cubic splines) continuous in position.
@@ -125,9 +191,8 @@ class Curve:
         """
         u = np.asarray(u, dtype=np.float64)
         if self.kind.size == 1 and self.kind[0] == _SPLINE:  # one fitted run: no piece lookup
-            spl, x = self.splines[0], u - self.u0[0]
-            out = (spl(x), spl(x, 1), spl(x, 2))
-            return (*out, spl(x, 3)) if order == 3 else out
+            spl = self.splines[0]
+            return tuple(_spline_values(spl.t, spl.c, u - self.u0[0], order))
         side = "left" if left else "right"
         idx = np.clip(np.searchsorted(self.u0, u, side=side) - 1, 0, len(self.kind) - 1)
         ul = (u - self.u0[idx])[:, None]
@@ -159,10 +224,11 @@ class Curve:
             at = at[np.argsort(sid, kind="stable")]  # grouped by spline: O(N log N), not O(N S)
             ids, first = np.unique(np.sort(sid), return_index=True)
             for k, mk in zip(ids, np.split(at, first[1:])):
-                spl, x = self.splines[k], ul[mk, 0]
-                p[mk], d1[mk], d2[mk] = spl(x), spl(x, 1), spl(x, 2)
+                spl = self.splines[k]
+                val = _spline_values(spl.t, spl.c, ul[mk, 0], order)
+                p[mk], d1[mk], d2[mk] = val[0], val[1], val[2]
                 if order == 3:
-                    d3[mk] = spl(x, 3)
+                    d3[mk] = val[3]
         return (p, d1, d2, d3) if order == 3 else (p, d1, d2)
 
 

@@ -96,3 +96,20 @@ def test_lsq_coefficients_as_scipy(n, step):
     y += 1e-7 * rng.standard_normal(y.shape)
     t = np.concatenate([[u[0]] * 4, u[np.arange(step, n, step)], [u[-1]] * 4])
     assert np.array_equal(_lsq_coefficients(x, y, t), make_lsq_spline(x, y, t, k=3).c)
+
+
+def test_spline_values_as_scipy():
+    """The compiled cubic evaluation gives scipy's BSpline values and derivatives bit for bit."""
+    from scipy.interpolate import make_lsq_spline
+
+    from feedplan.fit import _spline_values
+
+    rng = np.random.default_rng(5)
+    u = np.concatenate([[0.0], np.cumsum(rng.uniform(10e-6, 50e-6, 400))])
+    y = np.column_stack([np.sin(u / 2e-3), np.cos(u / 5e-3), u]) * 1e-3
+    t = np.concatenate([[0.0] * 4, u[3:-3:3], [u[-1]] * 4])
+    spl = make_lsq_spline(u, y, t, k=3)
+    x = np.concatenate([np.sort(rng.uniform(0, u[-1], 5000)), u, rng.uniform(-1e-4, u[-1] + 1e-4, 99)])
+    got = _spline_values(spl.t, spl.c, x, 3)
+    for nu in range(4):
+        assert np.array_equal(got[nu], spl(x, nu)), nu
