@@ -150,70 +150,52 @@ def _seg_dist(pos, k, s, kind, a, b, c, ax, geo):
 
 
 @njit(cache=True)
-def _group_balls(sphere, use):
-    """Per :data:`_GROUP` consecutive moves, a ball holding the balls of those measured.
+def _ball_of(sphere, use, first, last, out, row):
+    """out[row] = a ball (centre, radius; m) holding the balls of the measured moves
+    first..last, radius -inf if there is none. Centre: the middle of their bounding box;
+    the radius has a margin of 1e-9 relative plus 1 nm over float rounding, so a point
+    this ball is farther from than ``best`` is also farther from each of theirs."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for t in range(first, last + 1):
+        if use[t]:
+            for i in range(3):
+                lo[i] = min(lo[i], sphere[t, i])
+                hi[i] = max(hi[i], sphere[t, i])
+    if not lo[0] <= hi[0]:
+        out[row, 3] = -np.inf
+        return
+    for i in range(3):
+        out[row, i] = 0.5 * (lo[i] + hi[i])
+    r = 0.0
+    for t in range(first, last + 1):
+        if use[t]:
+            e0 = sphere[t, 0] - out[row, 0]
+            e1 = sphere[t, 1] - out[row, 1]
+            e2 = sphere[t, 2] - out[row, 2]
+            r = max(r, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + sphere[t, 3])
+    out[row, 3] = r * (1.0 + 1e-9) + 1e-9
 
-    Shape (ceil(n / _GROUP), 4): centre, radius (m); radius -inf where none is measured.
-    The radius has a margin of 1e-9 relative plus 1 nm over float rounding, so a point
-    the group ball is farther from than ``best`` is also farther from each member ball.
-    """
+
+@njit(cache=True)
+def _group_balls(sphere, use):
+    """Per :data:`_GROUP` consecutive moves (aligned), a ball holding those measured, shape
+    (ceil(n / _GROUP), 4) (:func:`_ball_of`)."""
     n = sphere.shape[0]
     out = np.zeros(((n + _GROUP - 1) // _GROUP, 4))
     for g in range(out.shape[0]):
-        lo, hi = g * _GROUP, min(n, (g + 1) * _GROUP)
-        cnt = 0
-        for s in range(lo, hi):
-            if use[s]:
-                cnt += 1
-                for i in range(3):
-                    out[g, i] += sphere[s, i]
-        if cnt == 0:
-            out[g, 3] = -np.inf
-            continue
-        for i in range(3):
-            out[g, i] /= cnt
-        r = 0.0
-        for s in range(lo, hi):
-            if use[s]:
-                e0 = sphere[s, 0] - out[g, 0]
-                e1 = sphere[s, 1] - out[g, 1]
-                e2 = sphere[s, 2] - out[g, 2]
-                r = max(r, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + sphere[s, 3])
-        out[g, 3] = r * (1.0 + 1e-9) + 1e-9
+        _ball_of(sphere, use, g * _GROUP, min(n, (g + 1) * _GROUP) - 1, out, g)
     return out
 
 
 @njit(cache=True)
 def _window_balls(sphere, use, lo, hi):
-    """Per move s, a ball holding the balls of the measured moves s + lo .. s + hi.
-
-    Shape (n, 4): centre, radius (m); radius -inf where there is none. Centre: the middle
-    of their bounding box; radius with the margin of :func:`_group_balls`.
-    """
+    """Per move s, a ball holding the measured moves s + lo .. s + hi, shape (n, 4)
+    (:func:`_ball_of`)."""
     n = sphere.shape[0]
     out = np.zeros((n, 4))
     for s in range(n):
-        first, last = max(s + lo, 0), min(s + hi, n - 1)
-        box_lo = np.full(3, np.inf)
-        box_hi = np.full(3, -np.inf)
-        for t in range(first, last + 1):
-            if use[t]:
-                for i in range(3):
-                    box_lo[i] = min(box_lo[i], sphere[t, i])
-                    box_hi[i] = max(box_hi[i], sphere[t, i])
-        if not box_lo[0] <= box_hi[0]:
-            out[s, 3] = -np.inf
-            continue
-        for i in range(3):
-            out[s, i] = 0.5 * (box_lo[i] + box_hi[i])
-        r = 0.0
-        for t in range(first, last + 1):
-            if use[t]:
-                e0 = sphere[t, 0] - out[s, 0]
-                e1 = sphere[t, 1] - out[s, 1]
-                e2 = sphere[t, 2] - out[s, 2]
-                r = max(r, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + sphere[t, 3])
-        out[s, 3] = r * (1.0 + 1e-9) + 1e-9
+        _ball_of(sphere, use, max(s + lo, 0), min(s + hi, n - 1), out, s)
     return out
 
 
