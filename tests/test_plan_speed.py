@@ -113,3 +113,47 @@ def test_spline_values_as_scipy():
     got = _spline_values(spl.t, spl.c, x, 3)
     for nu in range(4):
         assert np.array_equal(got[nu], spl(x, nu)), nu
+
+
+def _track_reference(pos, segs, window=64):
+    """The tracking rule of feedplan.check.deviation_m without any pruning: every move of
+    the window measured (lines only)."""
+    a = np.array([s.start for s in segs])
+    b = np.array([s.end for s in segs])
+
+    def dist(p, s):
+        ab, ap = b[s] - a[s], p - a[s]
+        den = ab @ ab
+        f = min(1.0, max(0.0, (ap @ ab) / den)) if den > 0 else 0.0
+        return float(np.linalg.norm(ap - f * ab))
+
+    cur, out, near = 0, [], []
+    for p in pos:
+        best = dist(p, cur)
+        held, arg = best, cur
+        for s in [*range(cur + 1, cur + window + 1), *range(cur - 1, cur - window - 1, -1)]:
+            if 0 <= s < len(segs):
+                d = dist(p, s)
+                best = min(best, d)
+                if d < held - 1e-9:
+                    held, arg = d, s
+        out.append(best)
+        near.append(arg)
+        cur = arg
+    return np.array(out), np.array(near)
+
+
+def test_deviation_tracker_as_without_pruning():
+    """The pruned tracker (balls of groups and windows) finds the same distances and moves."""
+    from feedplan.check import deviation_m, segment_table
+
+    sp = ref.plan_program("micro_2000")
+    path = read_toolpath(ref.micro_program(2000), "gcode", source="micro")
+    segs = [s for s in path.segments if not s.rapid]
+    rng = np.random.default_rng(11)
+    feed = sp.pos[sp.pos[:, 0] > 0][::7]  # past the rapid to the start
+    pos = feed + rng.normal(0.0, 20e-6, feed.shape)
+    dist, near = deviation_m(pos, segment_table(segs))
+    want_d, want_n = _track_reference(pos, segs)
+    assert np.array_equal(near, want_n)
+    assert np.allclose(dist, want_d, rtol=0, atol=1e-15)
