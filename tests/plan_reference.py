@@ -1,6 +1,6 @@
 """Pinned planner output: the setpoints of a few programs, to prove speed work changes nothing.
 
-``tests/data/plan_reference.npz`` holds, per program of :data:`PROGRAMS`, the SHA-256 of
+``tests/data/pinned/plan_reference.npz`` holds, per program of :data:`PROGRAMS`, the SHA-256 of
 the planned positions (float64 bytes), source lines and rapid flags, the sample count,
 and every :data:`STRIDE`-th position (to say by how much a changed plan differs).
 ``tests/test_plan_speed.py`` plans the programs again and compares.
@@ -30,7 +30,7 @@ from oga.machine import load_machine
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
-REFERENCE = DATA / "plan_reference.npz"
+REFERENCE = DATA / "pinned" / "plan_reference.npz"  # not beside the programs (globbed)
 #: Programs of tests/data (lines, arcs, helices, rapids, corners, fitted micro-segments).
 FILES = ("reference_xz.ngc", "circle_r50_f3000.ngc", "helix_r20.ngc", "freeform_xz.ngc",
          "sharp_corners_xy.ngc", "corner_steps.ngc", "rapids_xy.ngc", "short_xz.ngc",

@@ -1,6 +1,6 @@
 """Planning speed work changes no output: setpoints against those pinned at the base commit.
 
-``tests/data/plan_reference.npz`` was computed with the planner before the speed work
+``tests/data/pinned/plan_reference.npz`` was computed with the planner before the speed work
 (commit c417bb6) by ``PYTHONPATH=. python tests/plan_reference.py``; rerun that command
 when the planner's output is meant to change. A generated micro-segment program is also
 checked here against the limits (finite differences) and the tolerance (exact distance to
