@@ -39,7 +39,7 @@ _SEARCH_WINDOW = 64
 #: Consecutive moves whose balls are tested together first (aligned on multiples of it).
 _GROUP = 8
 #: Moves on each side of the tracked one tested one by one before all the others at once.
-_NEAR = 4
+_NEAR = 2
 #: Largest distance of the first/last sample from the programmed start/end, metres.
 _END_TOL_M = 1e-9
 
