@@ -1,32 +1,52 @@
-"""Benchmark of the feed planner on the shared toolpaths (a benchmark, not a test).
+"""Benchmark of the feed planner: cycle time against toppra and ruckig, planning speed.
 
-Run: ``python bench/bench_plan.py`` from the repository root. Prints one row per
-toolpath: samples, cycle time, its lower bound, their ratio, the largest deviation
-from the programmed geometry, the worst finite-difference limit ratio per axis
-(velocity / acceleration / jerk, x y z) and the planning time (numba compiled
-before timing).
+Run: ``python bench/bench_plan.py [--only NAME,...] [--no-toppra] [--shared DIR]`` from the
+repository root (toppra is a dev dependency: ``pip install -e '.[dev]'``). A benchmark, not a
+test: it prints figures and asserts nothing.
 
-The bound
----------
-A lower bound of the cycle time that a planner honouring the limits could reach
-if curvature cost nothing::
+Programs: those of tests/data (reference_xz, circle_r50_f3000, helix_r20, freeform_xz,
+cncjs_toolpath), the LinuxCNC programs of ``shared/toolpaths/external`` (GPL: read from
+``--shared``, default ``../shared`` beside the repository, never copied into it; skipped
+when absent), and generated freeform programs of 2k, 20k and 100k G1 micro-segments
+(:func:`synthetic_program`). Everything at ucp710's planning limits, as ``oga plan`` plans.
 
-    bound = sum over rapids of the time-optimal rest-to-rest time along the line
-          + sum over feed moves of length / feed
-          + extra(start) / 2 + extra(end) / 2
+Columns of the first table, per program:
 
-``extra(d)`` is what a 1-D time-optimal jerk-limited rest-to-rest profile
-(computed by ruckig, from rest to rest over 1 m, cruise speed the feed) takes
-beyond ``1 m / feed``, with the acceleration and jerk limits of the axes projected
-on the feed path's start (or end) direction ``d``: ``min_i A_i / |d_i|``,
-``min_i J_i / |d_i|``. Half of it is the price of starting, half of stopping.
-Rapids use the same construction with every limit projected on their line. The
-issue's targets are ``cycle / bound <= 1.10`` on reference_xz and ``<= 1.05`` on
-circle_r50_f3000.
+- ``plan_s``: planned cycle time (duration of the setpoints);
+- ``toppra_s``: toppra's time-optimal parameterisation along the planner's own geometry
+  (the curves of :func:`feedplan.fit.blocks_of`: programmed lines and arcs, the fitted
+  splines of micro-segment runs), at rest where the planner stops (block ends), with the
+  per-axis velocity and acceleration limits and the path speed at most the programmed
+  feed; no jerk limit, and nothing at the joints of pieces inside a block (a kink there
+  is free). The planner moves along the same curves (within the tolerance the filter
+  rounds them by), stops at the same places and honours the same limits plus the jerk
+  limits, so this is a lower bound of its cycle time: their ratio is what the planner
+  loses to jerk and to its own construction. Why the fitted geometry and not the
+  programmed polyline: along a polyline every vertex is a kink, where a time-optimal
+  parameterisation must stop (infinite curvature) or, with nothing at the joints, may
+  pass at any speed; the fitted curve is the geometry actually run. A blending planner
+  that leaves the programmed geometry at corners may beat this bound (it is a bound for
+  the geometry and the stops the planner chose). A failed toppra solve is reported as
+  ``failed`` in the row;
+- ``straight``: blocks that are one line (rapids, lone feed lines), their count, the
+  planned time of those blocks (each planned alone, as the planner plans them from rest
+  to rest) and ruckig's time-optimal jerk-limited rest-to-rest time for them
+  (:func:`rest_to_rest_s`, the axis limits projected on the line, speed at most the feed);
+- ``dev_um``: largest distance of a feed sample to the programmed geometry;
+  ``v/a/j``: worst finite-difference ratio to the limits over the axes;
+- ``wall_s``, ``cpu_s``: wall-clock and process CPU time of parsing plus planning.
+
+The second table splits the CPU time (one core; numba compiled before timing) into the
+stages: ``read`` (G-code to Path), ``fit`` (blocks and micro-segment splines,
+``blocks_of``), ``plan`` (speed profiles, filtering, check-and-slow-down rounds), ``setpoints``
+(derivatives and the Setpoints object), ``check`` (``check_setpoints``, run after ``plan``).
 """
 
 from __future__ import annotations
 
+import argparse
+import importlib
+import math
 import sys
 import time
 from pathlib import Path as FilePath
@@ -35,15 +55,30 @@ import numpy as np
 from ruckig import InputParameter, Ruckig, Trajectory
 
 from feedplan.check import check_setpoints
+from feedplan.fit import blocks_of
 from feedplan.gcode import parse_gcode
 from feedplan.limits import AxisLimits
 from feedplan.path import Line, Path
-from feedplan.plan import plan
+from feedplan.plan import FIT_TOL_FRACTION, plan
+from oga.defaults import TOL_M
 from oga.machine import load_machine
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
 MACHINE = load_machine("ucp710")
+planner = importlib.import_module("feedplan.plan")  # the module (feedplan.plan is also plan())
+#: Programs of tests/data (the shared ones the repository may hold).
+DATA_PROGRAMS = ("reference_xz.ngc", "circle_r50_f3000.ngc", "helix_r20.ngc", "freeform_xz.ngc",
+                 "cncjs_toolpath.nc")
+#: LinuxCNC programs of shared/toolpaths/external (GPL-2.0: read there, never copied here).
+EXTERNAL = ("lcnc_arcspiral.ngc", "lcnc_lathe_pawn.ngc", "lcnc_test_12mmflat.ngc",
+            "lcnc_short_segments_0.001.ngc", "lcnc_plasmatest.ngc", "lcnc_51MeanderAve.ngc",
+            "lcnc_line-contouring-xz.ngc")
+#: Generated micro-segment programs, segments.
+SYNTHETIC = (2000, 20000, 100000)
+#: toppra grid: about this spacing along a block (m), at least/most this many points.
+TOPPRA_GRID_M = 0.25e-3
+TOPPRA_POINTS = (50, 40000)
 
 
 def rest_to_rest_s(length_m: float, v: float, a: float, j: float) -> float:
@@ -54,37 +89,6 @@ def rest_to_rest_s(length_m: float, v: float, a: float, j: float) -> float:
     traj = Trajectory(1)
     Ruckig(1).calculate(inp, traj)
     return traj.duration
-
-
-def _projected(d: np.ndarray, lim: np.ndarray) -> float:
-    m = np.abs(d) > 1e-12
-    return float(np.min(lim[m] / np.abs(d[m])))
-
-
-def _direction(seg, at_end: bool) -> np.ndarray:
-    p0, p1 = (seg.point(0.999), seg.point(1.0)) if at_end else (seg.point(0.0), seg.point(0.001))
-    d = np.asarray(p1 - p0, dtype=float)
-    return d / np.linalg.norm(d)
-
-
-def bound_s(path: Path, limits: AxisLimits) -> float:
-    """The cycle-time bound defined in the module docstring, seconds."""
-    total = 0.0
-    feed = [s for s in path.segments if not s.rapid and s.length > 0]
-    for s in path.segments:
-        if s.rapid and s.length > 0:
-            d = _direction(s, False)
-            lims = (limits.vmax_m_s, limits.amax_m_s2, limits.jmax_m_s3)
-            total += rest_to_rest_s(s.length, *(_projected(d, x) for x in lims))
-    if not feed:
-        return total
-    total += sum(s.length / s.feed_m_s for s in feed)
-    for seg, at_end in ((feed[0], False), (feed[-1], True)):
-        d, f = _direction(seg, at_end), seg.feed_m_s
-        a, j = _projected(d, limits.amax_m_s2), _projected(d, limits.jmax_m_s3)
-        extra = rest_to_rest_s(1.0, f, a, j) - 1.0 / f
-        total += extra / 2
-    return total
 
 
 def synthetic_program(n: int = 20000) -> str:
@@ -98,53 +102,222 @@ def synthetic_program(n: int = 20000) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table(programs: list[tuple[str, str]], limits: AxisLimits, check_limits: AxisLimits) -> None:
-    """Plan each program with ``limits``, check against ``check_limits``, print one row each."""
-    head = (
-        f"{'toolpath':18s} {'samples':>7s} {'cycle_s':>8s} {'bound_s':>8s} {'ratio':>6s} "
-        f"{'dev_um':>7s}  {'v ratio x/y/z':>17s}  {'a ratio x/y/z':>17s}  "
-        f"{'j ratio x/y/z':>17s}  {'plan_s':>6s} ok"
-    )
+# --------------------------------------------------------------------------- references
+
+
+def _projected(d: np.ndarray, lim: np.ndarray) -> float:
+    m = np.abs(d) > 1e-12
+    return float(np.min(lim[m] / np.abs(d[m])))
+
+
+def straight_blocks(path: Path, limits: AxisLimits, tol_m: float = TOL_M):
+    """Blocks of one line: (count, planned s, ruckig s), each planned alone from rest to rest."""
+    n, planned, best = 0, 0.0, 0.0
+    for blk in blocks_of(path, tol_m * FIT_TOL_FRACTION):
+        seg = path.segments[blk.segments[0]]
+        if len(blk.segments) != 1 or not isinstance(seg, Line):
+            continue
+        n += 1
+        planned += plan(Path(seg.start, (seg,)), limits, tol_m=tol_m).duration
+        d = (seg.end - seg.start) / seg.length
+        v = _projected(d, limits.vmax_m_s)
+        if not seg.rapid:
+            v = min(v, seg.feed_m_s)
+        best += rest_to_rest_s(seg.length, v, _projected(d, limits.amax_m_s2),
+                               _projected(d, limits.jmax_m_s3))
+    return n, planned, best
+
+
+class _BlockPath:
+    """A block's curve as a toppra path: x, y, z and the arc length u (its speed is F's)."""
+
+    def __init__(self, curve) -> None:
+        self.curve = curve
+
+    dof = 4
+
+    @property
+    def path_interval(self) -> np.ndarray:
+        return np.array([0.0, self.curve.length])
+
+    @property
+    def waypoints(self):
+        return None
+
+    def __call__(self, s, order: int = 0) -> np.ndarray:
+        u = np.atleast_1d(np.asarray(s, dtype=float))
+        r = self.curve.evaluate(np.clip(u, 0.0, self.curve.length), order=2)[order]
+        col = u if order == 0 else np.full(u.size, 1.0 if order == 1 else 0.0)
+        out = np.column_stack([r, col])
+        return out if np.ndim(s) else out[0]
+
+    eval = __call__
+
+    def evald(self, s):
+        return self(s, 1)
+
+    def evaldd(self, s):
+        return self(s, 2)
+
+
+def toppra_bound_s(path: Path, limits: AxisLimits, tol_m: float = TOL_M) -> tuple[float, str]:
+    """toppra's time along the planner's blocks (module docstring), s, and "" or why it failed."""
+    import toppra
+    import toppra.algorithm as algo
+    import toppra.constraint as con
+
+    toppra.setup_logging("ERROR")
+    total = 0.0
+    segs = path.segments
+    big = 1e6  # no limit (a rapid's speed, the arc length's acceleration)
+    for blk in blocks_of(path, tol_m * FIT_TOL_FRACTION):
+        L = blk.curve.length
+        seg_u0, seg_feed = blk.seg_u0, np.array([segs[i].feed_m_s for i in blk.segments])
+        seg_feed = np.where(np.isfinite(seg_feed), seg_feed, big)
+
+        def vlim(s, seg_u0=seg_u0, seg_feed=seg_feed):
+            k = min(max(int(np.searchsorted(seg_u0, s, side="right")) - 1, 0), len(seg_feed) - 1)
+            v = np.append(np.where(limits.present, limits.vmax_m_s, big), seg_feed[k])
+            return np.column_stack([-v, v])
+
+        amax = np.append(np.where(limits.present, limits.amax_m_s2, big), big)
+        n = int(np.clip(L / TOPPRA_GRID_M, *TOPPRA_POINTS))
+        grid = np.unique(np.concatenate([np.linspace(0.0, L, n + 1), blk.curve.u0]))
+        inst = algo.TOPPRA([con.JointVelocityConstraintVarying(vlim),
+                            con.JointAccelerationConstraint(np.column_stack([-amax, amax]))],
+                           _BlockPath(blk.curve), gridpoints=grid, solver_wrapper="seidel")
+        _, sd, _ = inst.compute_parameterization(0.0, 0.0)
+        if sd is None:
+            return math.nan, f"toppra failed on the block at line {segs[blk.segments[0]].line}"
+        sd = np.maximum(sd, 0.0)  # path speed du/dt at the grid points
+        with np.errstate(divide="ignore"):
+            total += float(np.sum(2.0 * np.diff(grid) / (sd[:-1] + sd[1:])))
+    return total, ""
+
+
+# --------------------------------------------------------------------------- timing
+
+
+class _Stages:
+    """CPU time (s) of the planner's stages, by wrapping its module-level steps."""
+
+    def __init__(self) -> None:
+        self.fit = self.setpoints = 0.0
+        self._mark = None
+
+    def __enter__(self):
+        self._blocks, self._deriv = planner.blocks_of, planner._derivatives
+
+        def blocks(*a, **k):
+            t = time.process_time()
+            out = self._blocks(*a, **k)
+            self.fit += time.process_time() - t
+            return out
+
+        def deriv(*a, **k):
+            self._mark = time.process_time()  # from here to plan()'s return: setpoints
+            return self._deriv(*a, **k)
+
+        planner.blocks_of, planner._derivatives = blocks, deriv
+        return self
+
+    def __exit__(self, *exc):
+        planner.blocks_of, planner._derivatives = self._blocks, self._deriv
+
+
+def measure(name: str, text: str, limits: AxisLimits, toppra: bool) -> dict:
+    """Plan one program, check it, time it, compare it with toppra and ruckig."""
+    c0, w0 = time.process_time(), time.perf_counter()
+    path = parse_gcode(text, source=name)
+    c1 = time.process_time()
+    with _Stages() as st:
+        sp = plan(path, limits)
+        c2, w2 = time.process_time(), time.perf_counter()
+    c_check = time.process_time()
+    chk = check_setpoints(sp, path, limits)
+    c3 = time.process_time()
+    row = dict(name=name, samples=len(sp), plan_s=sp.duration, ok=chk.ok, dev_um=chk.max_deviation_m * 1e6,
+               vaj=(chk.vel_ratio.max(), chk.acc_ratio.max(), chk.jerk_ratio.max()),
+               wall=w2 - w0, cpu=c2 - c0, read=c1 - c0, fit=st.fit,
+               setpoints=c2 - st._mark, check=c3 - c_check, violations=chk.violations)
+    row["stage_plan"] = row["cpu"] - row["read"] - row["fit"] - row["setpoints"]
+    row["straight"] = straight_blocks(path, limits)
+    row["toppra_s"], row["toppra_note"] = (math.nan, "not run")
+    if toppra:
+        try:
+            row["toppra_s"], row["toppra_note"] = toppra_bound_s(path, limits)
+        except Exception as err:  # a failed solve is a row's remark, not a crash
+            row["toppra_s"], row["toppra_note"] = math.nan, f"toppra failed: {err}"
+    return row
+
+
+def programs(shared: FilePath, only: set[str] | None) -> list[tuple[str, str]]:
+    """(name, G-code) of every benchmarked program that is present."""
+    out = [(FilePath(f).stem, (DATA / f).read_text()) for f in DATA_PROGRAMS]
+    ext = shared / "toolpaths" / "external"
+    out += [(FilePath(f).stem.removeprefix("lcnc_"), (ext / f).read_text())
+            for f in EXTERNAL if (ext / f).is_file()]
+    out += [(f"micro_{n // 1000}k", synthetic_program(n)) for n in SYNTHETIC]
+    return [p for p in out if only is None or p[0] in only]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", help="comma-separated program names")
+    ap.add_argument("--no-toppra", action="store_true", help="skip the toppra bound")
+    ap.add_argument("--shared", type=FilePath, default=ROOT.parent / "shared",
+                    help="the shared folder holding toolpaths/external (default ../shared)")
+    args = ap.parse_args(argv)
+    only = set(args.only.split(",")) if args.only else None
+    limits = MACHINE.planning_limits()
+    plan(parse_gcode(synthetic_program(200)), limits)  # compile numba kernels before timing
+    check_setpoints(plan(parse_gcode((DATA / DATA_PROGRAMS[0]).read_text()), limits),
+                    parse_gcode((DATA / DATA_PROGRAMS[0]).read_text()), limits)
+    rows = []
+    head = (f"{'program':22s} {'samples':>7s} {'plan_s':>8s} {'toppra_s':>8s} {'ratio':>6s}  "
+            f"{'straight n: plan_s / ruckig_s':>31s} {'dev_um':>6s} {'v/a/j ratio':>17s} "
+            f"{'wall_s':>7s} {'cpu_s':>7s} ok")
+    print("ucp710 planning limits (as `oga plan`), tolerance "
+          f"{TOL_M * 1e3:g} mm; load average {' '.join(f'{x:.1f}' for x in _load())}")
     print(head)
     print("-" * len(head))
-    for name, text in programs:
-        path = parse_gcode(text, source=name)
-        t0 = time.perf_counter()
-        sp = plan(path, limits)
-        dt = time.perf_counter() - t0
-        chk = check_setpoints(sp, path, check_limits)
-        b = bound_s(path, limits)
-        ratios = (chk.vel_ratio, chk.acc_ratio, chk.jerk_ratio)
-        v, a, j = ("/".join(f"{x:.3f}" for x in r) for r in ratios)
-        print(
-            f"{name:18s} {len(sp):7d} {sp.duration:8.3f} {b:8.3f} {sp.duration / b:6.3f} "
-            f"{chk.max_deviation_m * 1e6:7.2f}  {v:>17s}  {a:>17s}  {j:>17s}  {dt:6.2f} {chk.ok}"
-        )
-        for msg in chk.violations:
+    for name, text in programs(args.shared, only):
+        r = measure(name, text, limits, not args.no_toppra)
+        rows.append(r)
+        n, sp_s, rk_s = r["straight"]
+        straight = f"{n:4d}: {sp_s:9.3f} / {rk_s:9.3f}" if n else "-"
+        ratio = r["plan_s"] / r["toppra_s"] if r["toppra_s"] > 0 else math.nan
+        print(f"{name:22s} {r['samples']:7d} {r['plan_s']:8.3f} {r['toppra_s']:8.3f} {ratio:6.3f}  "
+              f"{straight:>31s} {r['dev_um']:6.2f} {'/'.join(f'{x:.3f}' for x in r['vaj']):>17s} "
+              f"{r['wall']:7.2f} {r['cpu']:7.2f} {r['ok']}", flush=True)
+        for msg in r["violations"]:
             print("    violation:", msg)
-
-
-def main() -> int:
-    names = ("reference_xz", "circle_r50_f3000", "helix_r20", "freeform_xz")
-    programs = [(name, (DATA / f"{name}.ngc").read_text()) for name in names]
-    programs += [(f"synthetic_{n}", synthetic_program(n)) for n in (2000, 20000, 100000)]
-    full, planning = MACHINE.axis_limits(), MACHINE.planning_limits()
-    plan(parse_gcode(programs[0][1]), full)  # compile numba kernels before timing
-    print("ucp710 axis limits (bound and ratios at these limits):")
-    table(programs, full, full)
+        if r["toppra_note"] and not args.no_toppra:
+            print("    toppra:", r["toppra_note"])
     print()
-    print(
-        "ucp710 planning limits as `oga plan` uses them (acceleration x "
-        f"{MACHINE.planner.accel_fraction}, jerk x {MACHINE.planner.jerk_fraction}; "
-        "bound at the planning limits, ratios to the axis limits):"
-    )
-    table(programs, planning, full)
+    print("CPU seconds per stage (one core):")
+    head = (f"{'program':22s} {'read':>7s} {'fit':>7s} {'plan':>7s} {'setpoints':>9s} "
+            f"{'check':>7s} {'total':>7s}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['name']:22s} {r['read']:7.3f} {r['fit']:7.3f} {r['stage_plan']:7.3f} "
+              f"{r['setpoints']:9.3f} {r['check']:7.3f} {r['cpu'] + r['check']:7.3f}")
     print()
-    straight(planning)
+    lone_lines(limits)
     return 0
 
 
-def straight(limits: AxisLimits) -> None:
+def _load() -> tuple[float, ...]:
+    try:
+        import os
+
+        return os.getloadavg()
+    except OSError:  # pragma: no cover
+        return (math.nan,) * 3
+
+
+def lone_lines(limits: AxisLimits) -> None:
     """Lone feed lines (planned by ruckig) against ruckig's rest-to-rest time, one row each."""
     print("lone feed lines at the planning limits: planned vs ruckig (ratio; +3 samples of the "
           "sample grid and the 1e-3 margin)")

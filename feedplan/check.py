@@ -36,6 +36,10 @@ __all__ = [
 SPEED_MARGIN = 0.005
 #: Programmed moves searched on each side of the previous sample's nearest move.
 _SEARCH_WINDOW = 64
+#: Consecutive moves whose balls are tested together first (aligned on multiples of it).
+_GROUP = 8
+#: Moves on each side of the tracked one tested one by one before all the others at once.
+_NEAR = 2
 #: Largest distance of the first/last sample from the programmed start/end, metres.
 _END_TOL_M = 1e-9
 
@@ -52,39 +56,46 @@ def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
     tuple of ndarray
         kind (n,) 0 line / 1 arc; start, end, centre (n, 3) m; plane axes (n, 3);
         radius m, start angle rad, sweep rad, rise m (n, 4); rapid flags (n,);
-        a ball holding each move, centre and radius m (n, 4).
+        a ball holding each move, centre and radius m (n, 4); balls holding groups of
+        moves (:func:`_group_balls`) and, per move, those ahead and behind it in the
+        search window (:func:`_window_balls`).
     """
     n = len(segments)
-    kind = np.zeros(n, np.int64)
-    a, b, c = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    arcs = np.fromiter((isinstance(s, Arc) for s in segments), np.bool_, n)
+    kind = arcs.astype(np.int64)
+    a = np.array([s.start for s in segments], dtype=np.float64).reshape(n, 3)
+    b = np.array([s.end for s in segments], dtype=np.float64).reshape(n, 3)
+    c = np.zeros((n, 3))
     ax = np.zeros((n, 3), np.int64)
     geo = np.zeros((n, 4))  # radius, start angle, sweep, rise
-    rapid = np.zeros(n, np.bool_)
-    sphere = np.zeros((n, 4))  # a ball holding the move: centre, radius
-    for k, s in enumerate(segments):
-        a[k], b[k], rapid[k] = s.start, s.end, s.rapid
-        mid = 0.5 * (s.start + s.end)
-        sphere[k] = (*mid, 0.5 * s.length)
-        if isinstance(s, Arc):
-            kind[k] = 1
-            c[k] = s.center
-            ax[k] = PLANES[s.plane]
-            geo[k] = (s.radius, s.start_angle, s.sweep_rad, s.rise)
-            if abs(s.sweep_rad) <= np.pi:
-                mid = s.point(0.5)
-                reach = max(np.linalg.norm(mid - s.start), np.linalg.norm(mid - s.end))
-                reach += abs(s.rise)
-            else:
-                mid, reach = s.center, np.hypot(s.radius, s.rise) + abs(s.rise)
-            sphere[k] = (*mid, reach)
-    return kind, a, b, c, ax, geo, rapid, sphere
+    rapid = np.fromiter((s.rapid for s in segments), np.bool_, n)
+    # a ball holding the move: centre, radius
+    length = np.fromiter((s.length for s in segments), np.float64, n)
+    sphere = np.column_stack([0.5 * (a + b), 0.5 * length]).reshape(n, 4)
+    for k in np.flatnonzero(arcs):
+        s = segments[k]
+        c[k] = s.center
+        ax[k] = PLANES[s.plane]
+        geo[k] = (s.radius, s.start_angle, s.sweep_rad, s.rise)
+        if abs(s.sweep_rad) <= np.pi:
+            mid = s.point(0.5)
+            reach = max(np.linalg.norm(mid - s.start), np.linalg.norm(mid - s.end))
+            reach += abs(s.rise)
+        else:
+            mid, reach = s.center, np.hypot(s.radius, s.rise) + abs(s.rise)
+        sphere[k] = (*mid, reach)
+    use = ~rapid
+    groups = _group_balls(sphere, use)
+    ahead = _window_balls(sphere, use, _NEAR + 1, _SEARCH_WINDOW)
+    behind = _window_balls(sphere, use, -_SEARCH_WINDOW, -_NEAR - 1)
+    return kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind
 
 
 @njit(cache=True)
-def point_segment_distance(p, a, b):
-    """Distance (m) from point ``p`` to the straight segment ``a``-``b`` (each shape (3,))."""
-    ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-    ap0, ap1, ap2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+def _psd(p0, p1, p2, a0, a1, a2, b0, b1, b2):
+    """:func:`point_segment_distance` of scalars (no array views in hot loops)."""
+    ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
+    ap0, ap1, ap2 = p0 - a0, p1 - a1, p2 - a2
     den = ab0 * ab0 + ab1 * ab1 + ab2 * ab2
     f = 0.0
     if den > 0.0:
@@ -94,21 +105,29 @@ def point_segment_distance(p, a, b):
 
 
 @njit(cache=True)
-def _dist_arc(p, a, b, c, ax, geo):
-    i, j, n = ax[0], ax[1], ax[2]
-    radius, th0, sweep, rise = geo[0], geo[1], geo[2], geo[3]
+def point_segment_distance(p, a, b):
+    """Distance (m) from point ``p`` to the straight segment ``a``-``b`` (each shape (3,))."""
+    return _psd(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2])
+
+
+@njit(cache=True)
+def _dist_arc(pos, k, s, a, b, c, ax, geo):
+    """Distance of point pos[k] to arc s (rows read in place: no array views)."""
+    i, j, n = ax[s, 0], ax[s, 1], ax[s, 2]
+    radius, th0, sweep, rise = geo[s, 0], geo[s, 1], geo[s, 2], geo[s, 3]
     best = 1e300
-    for q in (a, b):
-        d0, d1, d2 = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+    for q in range(2):  # the two ends (no tuple of arrays: it costs every caller)
+        e = a if q == 0 else b
+        d0, d1, d2 = pos[k, 0] - e[s, 0], pos[k, 1] - e[s, 1], pos[k, 2] - e[s, 2]
         best = min(best, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
-    dx, dy = p[i] - c[i], p[j] - c[j]
+    dx, dy = pos[k, i] - c[s, i], pos[k, j] - c[s, j]
     rho = np.hypot(dx, dy)
     span = abs(sweep)
     sgn = 1.0 if sweep >= 0.0 else -1.0
     delta = ((np.arctan2(dy, dx) - th0) * sgn) % (2.0 * np.pi)
     while delta <= span:
-        zn = a[n] + rise * delta / span
-        d = np.hypot(rho - radius, p[n] - zn)
+        zn = a[s, n] + rise * delta / span
+        d = np.hypot(rho - radius, pos[k, n] - zn)
         if d < best:
             best = d
         delta += 2.0 * np.pi
@@ -116,15 +135,85 @@ def _dist_arc(p, a, b, c, ax, geo):
 
 
 @njit(cache=True)
-def _seg_dist(p, s, kind, a, b, c, ax, geo):
-    if kind[s] == 0:
-        return point_segment_distance(p, a[s], b[s])
-    return _dist_arc(p, a[s], b[s], c[s], ax[s], geo[s])
+def _line_dist(pos, k, s, a, b):
+    """Distance of point pos[k] to line s (rows read in place: no array views)."""
+    return _psd(pos[k, 0], pos[k, 1], pos[k, 2], a[s, 0], a[s, 1], a[s, 2],
+                b[s, 0], b[s, 1], b[s, 2])
 
 
 @njit(cache=True)
-def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, window):
+def _seg_dist(pos, k, s, kind, a, b, c, ax, geo):
+    """Distance of point pos[k] to move s."""
+    if kind[s] == 0:
+        return _line_dist(pos, k, s, a, b)
+    return _dist_arc(pos, k, s, a, b, c, ax, geo)
+
+
+@njit(cache=True)
+def _ball_of(sphere, use, first, last, out, row):
+    """out[row] = a ball (centre, radius; m) holding the balls of the measured moves
+    first..last, radius -inf if there is none. Centre: the middle of their bounding box;
+    the radius has a margin of 1e-9 relative plus 1 nm over float rounding, so a point
+    this ball is farther from than ``best`` is also farther from each of theirs."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for t in range(first, last + 1):
+        if use[t]:
+            for i in range(3):
+                lo[i] = min(lo[i], sphere[t, i])
+                hi[i] = max(hi[i], sphere[t, i])
+    if not lo[0] <= hi[0]:
+        out[row, 3] = -np.inf
+        return
+    for i in range(3):
+        out[row, i] = 0.5 * (lo[i] + hi[i])
+    r = 0.0
+    for t in range(first, last + 1):
+        if use[t]:
+            e0 = sphere[t, 0] - out[row, 0]
+            e1 = sphere[t, 1] - out[row, 1]
+            e2 = sphere[t, 2] - out[row, 2]
+            r = max(r, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + sphere[t, 3])
+    out[row, 3] = r * (1.0 + 1e-9) + 1e-9
+
+
+@njit(cache=True)
+def _group_balls(sphere, use):
+    """Per :data:`_GROUP` consecutive moves (aligned), a ball holding those measured, shape
+    (ceil(n / _GROUP), 4) (:func:`_ball_of`)."""
+    n = sphere.shape[0]
+    out = np.zeros(((n + _GROUP - 1) // _GROUP, 4))
+    for g in range(out.shape[0]):
+        _ball_of(sphere, use, g * _GROUP, min(n, (g + 1) * _GROUP) - 1, out, g)
+    return out
+
+
+@njit(cache=True)
+def _window_balls(sphere, use, lo, hi):
+    """Per move s, a ball holding the measured moves s + lo .. s + hi, shape (n, 4)
+    (:func:`_ball_of`)."""
+    n = sphere.shape[0]
+    out = np.zeros((n, 4))
+    for s in range(n):
+        _ball_of(sphere, use, max(s + lo, 0), min(s + hi, n - 1), out, s)
+    return out
+
+
+@njit(cache=True)
+def _far(pos, k, balls, i, best):
+    """Ball i (centre, radius) cannot hold a point nearer to pos[k] than ``best``."""
+    e0 = pos[k, 0] - balls[i, 0]
+    e1 = pos[k, 1] - balls[i, 1]
+    e2 = pos[k, 2] - balls[i, 2]
+    return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - balls[i, 3] >= best
+
+
+@njit(cache=True)
+def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind, window):
     n_pts, n_seg = pos.shape[0], kind.shape[0]
+    # no arcs: the distance of lines alone (with the arc's code beside it, the compiled loop
+    # computes parts of it for every line too: 15x slower)
+    lines = not np.any(kind != 0)
     dist = np.zeros(n_pts)
     near = np.zeros(n_pts, np.int64)
     cur = 0
@@ -136,18 +225,40 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, window):
             continue
         # true minimum over the window; the tracked move changes only for a gain
         # above 1 nm, looking forward first (retraced moves do not pull it back)
-        best = _seg_dist(pos[k], cur, kind, a, b, c, ax, geo)
+        if lines:
+            best = _line_dist(pos, k, cur, a, b)
+        else:
+            best = _seg_dist(pos, k, cur, kind, a, b, c, ax, geo)
         held, arg = best, cur
-        for step in range(1, 2 * window + 1):
-            s = cur + step if step <= window else cur + window - step
+        step = 1
+        while step <= 2 * window:
+            # past the _NEAR moves on either side: all the others at once, when none of
+            # them can be nearer (as each would be passed below; the same result)
+            if step == _NEAR + 1 and step <= window and _far(pos, k, ahead, cur, best):
+                step = window + 1
+                continue
+            if step == window + _NEAR + 1 and _far(pos, k, behind, cur, best):
+                break
+            forward = step <= window
+            s = cur + step if forward else cur + window - step
+            # a whole group of moves inside the window, none of which can be nearer: each
+            # would be passed by its own ball below (same order, same result)
+            first = s if forward else s - _GROUP + 1
+            last = first + _GROUP - 1
+            if (first % _GROUP == 0 and first >= max(cur - window, 0)
+                    and last <= min(cur + window, n_seg - 1) and (last < cur or first > cur)
+                    and _far(pos, k, groups, first // _GROUP, best)):
+                step += _GROUP
+                continue
+            step += 1
             if s < 0 or s >= n_seg or not use[s]:
                 continue
-            e0 = pos[k, 0] - sphere[s, 0]
-            e1 = pos[k, 1] - sphere[s, 1]
-            e2 = pos[k, 2] - sphere[s, 2]
-            if np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - sphere[s, 3] >= best:
+            if _far(pos, k, sphere, s, best):
                 continue  # cannot be nearer (and best <= held)
-            d = _seg_dist(pos[k], s, kind, a, b, c, ax, geo)
+            if lines:
+                d = _line_dist(pos, k, s, a, b)
+            else:
+                d = _seg_dist(pos, k, s, kind, a, b, c, ax, geo)
             best = min(best, d)
             if d < held - 1e-9:
                 held, arg = d, s
@@ -179,13 +290,14 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
         point's move unless another is nearer by more than 1 nm, moves ahead
         tried first, so that a retraced stretch does not pull the tracking back.
     """
-    kind, a, b, c, ax, geo, rapid, sphere = table
+    kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind = table
     skip = np.zeros(len(pos), np.bool_) if skip is None else np.asarray(skip, np.bool_)
     use = ~rapid
     if not use.any():
         return np.zeros(len(pos)), np.zeros(len(pos), np.int64)
     pos = np.ascontiguousarray(pos, dtype=np.float64)
-    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, _SEARCH_WINDOW)
+    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind,
+                  _SEARCH_WINDOW)
 
 
 def finite_differences(pos: np.ndarray, dt: float):

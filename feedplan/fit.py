@@ -38,6 +38,13 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import BSpline, make_lsq_spline
 
+try:  # scipy's own QR steps (private), for a linear-time make_lsq_spline: see _lsq_coefficients
+    from scipy.interpolate import _dierckx
+
+    _BANDED_QR = all(hasattr(_dierckx, f) for f in ("data_matrix", "qr_reduce", "fpback"))
+except ImportError:  # pragma: no cover - a scipy without it: make_lsq_spline itself
+    _BANDED_QR = False
+
 from feedplan.blend import Blend, bezier, corner_blend, corner_speed_m_s
 from feedplan.check import point_segment_distance, segment_table
 from feedplan.limits import AxisLimits
@@ -75,6 +82,72 @@ BLEND_MAX_TURN_RAD = 0.95 * np.pi
 _FIT_ROUNDS = 12
 
 _LINE, _ARC, _SPLINE, _QUINTIC = 0, 1, 2, 3
+
+
+@njit(cache=True)
+def _interval(t, x, prev):
+    """scipy's ``_find_interval`` for a cubic: l with t[l] <= x < t[l + 1] (hint ``prev``)."""
+    k, n = 3, t.shape[0] - 4
+    ell = prev if k < prev < n else k
+    while x < t[ell] and ell != k:
+        ell -= 1
+    ell += 1
+    while x >= t[ell] and ell != n:
+        ell += 1
+    return ell - 1
+
+
+@njit(cache=True)
+def _de_boor_step(t, x, ell, j, m, h, hh):
+    """One iteration ``j`` of scipy's ``_deBoor_D``: a value step (m < 0) or a step of
+    derivative ``m``, on the non-zero B-splines h[0..j] (hh: scratch)."""
+    for q in range(j):
+        hh[q] = h[q]
+    h[0] = 0.0
+    for n in range(1, j + 1):
+        xb, xa = t[ell + n], t[ell + n - j]
+        if xb == xa:
+            h[n if m < 0 else m] = 0.0
+            continue
+        if m < 0:
+            w = hh[n - 1] / (xb - xa)
+            h[n - 1] += w * (xb - x)
+            h[n] = w * (x - xa)
+        else:
+            w = j * hh[n - 1] / (xb - xa)
+            h[n - 1] -= w
+            h[n] = w
+
+
+@njit(cache=True)
+def _spline_values(t, c, x, order):
+    """A cubic spline and its derivatives up to ``order`` at the sorted or unsorted ``x``,
+    bit for bit as scipy's BSpline (the same de Boor steps and sums), in one pass: shape
+    (order + 1, N, dim). The value steps shared by the derivatives are done once."""
+    out = np.empty((order + 1, x.shape[0], c.shape[1]))
+    h, hh, saved = np.empty(4), np.empty(4), np.empty((4, 4))
+    ell = 3
+    for i in range(x.shape[0]):
+        ell = _interval(t, x[i], ell)
+        h[0] = 1.0
+        for j in range(1, 4):  # value steps; derivative nu starts after step 3 - nu
+            if 4 - j <= order:
+                for q in range(j):
+                    saved[4 - j, q] = h[q]
+            _de_boor_step(t, x[i], ell, j, -1, h, hh)
+        for q in range(4):
+            saved[0, q] = h[q]
+        for nu in range(order + 1):
+            for q in range(4):
+                h[q] = saved[nu, q]
+            for j in range(4 - nu, 4):
+                _de_boor_step(t, x[i], ell, j, nu, h, hh)
+            for col in range(c.shape[1]):
+                acc = 0.0
+                for a in range(4):
+                    acc += c[ell + a - 3, col] * h[a]
+                out[nu, i, col] = acc
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,7 +195,7 @@ class Curve:
         """Parameter length in metres."""
         return float(self.u0[-1])
 
-    def evaluate(self, u: np.ndarray, left: bool = False):
+    def evaluate(self, u: np.ndarray, left: bool = False, order: int = 3):
         """Position and derivatives with respect to ``u``.
 
         Parameters
@@ -132,13 +205,19 @@ class Curve:
         left : bool
             At a piece boundary, evaluate the piece that ends there (default:
             the one that starts there).
+        order : {3, 2}
+            Highest derivative returned (2: no ``d3``, which costs a spline evaluation).
 
         Returns
         -------
         p, d1, d2, d3 : ndarray, shape (N, 3)
-            Position (m), dr/du (1), d2r/du2 (1/m), d3r/du3 (1/m^2).
+            Position (m), dr/du (1), d2r/du2 (1/m), d3r/du3 (1/m^2); ``d3`` only if
+            ``order`` is 3.
         """
         u = np.asarray(u, dtype=np.float64)
+        if self.kind.size == 1 and self.kind[0] == _SPLINE:  # one fitted run: no piece lookup
+            spl = self.splines[0]
+            return tuple(_spline_values(spl.t, spl.c, u - self.u0[0], order))
         side = "left" if left else "right"
         idx = np.clip(np.searchsorted(self.u0, u, side=side) - 1, 0, len(self.kind) - 1)
         ul = (u - self.u0[idx])[:, None]
@@ -171,16 +250,16 @@ class Curve:
                                                ul[m, 0])
         at = np.flatnonzero(kind == _SPLINE)
         if at.size:
-            # the points of each spline together (one call per spline, O(N log N) in all)
             sid = self.org[idx[at], 0].astype(np.int64)
-            order = np.argsort(sid, kind="stable")
-            at, sid = at[order], sid[order]
-            cuts = np.flatnonzero(np.diff(sid)) + 1
-            for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, at.size]):
-                mk, spl = at[lo:hi], self.splines[sid[lo]]
-                x = ul[mk, 0]
-                p[mk], d1[mk], d2[mk], d3[mk] = spl(x), spl(x, 1), spl(x, 2), spl(x, 3)
-        return p, d1, d2, d3
+            at = at[np.argsort(sid, kind="stable")]  # grouped by spline: O(N log N), not O(N S)
+            ids, first = np.unique(np.sort(sid), return_index=True)
+            for k, mk in zip(ids, np.split(at, first[1:])):
+                spl = self.splines[k]
+                val = _spline_values(spl.t, spl.c, ul[mk, 0], order)
+                p[mk], d1[mk], d2[mk] = val[0], val[1], val[2]
+                if order == 3:
+                    d3[mk] = val[3]
+        return (p, d1, d2, d3) if order == 3 else (p, d1, d2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,6 +349,50 @@ def polyline_fit_deviation(spline: BSpline, verts: np.ndarray, u: np.ndarray) ->
     return _two_way_deviation(np.ascontiguousarray(verts), np.ascontiguousarray(dense), per, 3)
 
 
+#: Rows of the QR reduction per call of scipy's qr_reduce span this many coefficients.
+_QR_BAND = 16
+
+
+def _lsq_coefficients(x: np.ndarray, y: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``make_lsq_spline(x, y, t, k=3).c`` bit for bit, in time linear in ``len(x)``.
+
+    scipy's QR reduction (1.15-1.17) rotates every data row against every coefficient
+    row up to the last (O(m nc): 7 s for 100k micro-segments); once a sorted data row
+    has passed the ``k + 1`` coefficient rows of its support it is exactly zero and the
+    remaining rotations are the identity (``c = 1, s = 0``). Here scipy's own steps run
+    on stretches of rows whose offsets span at most :data:`_QR_BAND` coefficients, each
+    told that the coefficients end just after its support: the same rotations on the
+    same numbers, without the identities.
+
+    Parameters
+    ----------
+    x : ndarray, shape (m,)
+        Sorted abscissas.
+    y : ndarray, shape (m, 3)
+        Ordinates.
+    t : ndarray, shape (nc + 4,)
+        Knots of the cubic.
+
+    Returns
+    -------
+    ndarray, shape (nc, 3)
+        The coefficients.
+    """
+    if not _BANDED_QR:  # pragma: no cover
+        return make_lsq_spline(x, y, t, k=3).c
+    k = 3
+    w = np.ones_like(x)
+    y_w = y * w[:, None]
+    a, offset, nc = _dierckx.data_matrix(x, t, k, w)
+    starts = np.searchsorted(offset, np.arange(_QR_BAND, nc, _QR_BAND))
+    bounds = np.unique(np.clip(np.concatenate([[1], starts, [x.size]]), 1, x.size))
+    for r0, r1 in zip(bounds[:-1], bounds[1:]):
+        nc_seen = min(nc, int(offset[r1 - 1]) + k + 1)
+        _dierckx.qr_reduce(a[:r1], offset[:r1], nc_seen, y_w[:r1], int(r0))
+    c, _, _ = _dierckx.fpback(a, nc, x, y, t, k, w, y_w)
+    return c
+
+
 def _lsq(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray) -> BSpline:
     """Least-squares cubic through vertices and chord midpoints, clamped on the ends."""
     mid_u = 0.5 * (u[:-1] + u[1:])
@@ -279,8 +402,7 @@ def _lsq(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray) -> BSpline:
     x[0::2], x[1::2] = u, mid_u
     y[0::2], y[1::2] = verts, mid_p
     t = np.concatenate([[u[0]] * 4, u[knots_at], [u[-1]] * 4])
-    spl = make_lsq_spline(x, y, t, k=3)
-    c = spl.c.copy()
+    c = _lsq_coefficients(x, y, t)
     c[0], c[-1] = verts[0], verts[-1]
     return BSpline(t, c, 3)
 

@@ -385,7 +385,7 @@ class _Reader:
                              n, column)
         if is_arc:
             self.segments.append(self._arc(start, end, axis, arc, n, column))
-        elif (start != end).any():
+        elif start[0] != end[0] or start[1] != end[1] or start[2] != end[2]:  # no numpy call
             rapid = self.motion == 0
             self.segments.append(Line(start, end, math.inf if rapid else self.feed_m_s,
                                       rapid=rapid, line=n, blend_tol_m=self.blend_tol_m))

@@ -23,6 +23,7 @@ that makes G2 counter-clockwise when drawn with X to the right and Z up.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Literal, Union
 
 import numpy as np
@@ -71,7 +72,7 @@ class Line:
         object.__setattr__(self, "start", _vec(self.start))
         object.__setattr__(self, "end", _vec(self.end))
 
-    @property
+    @cached_property  # start/end are read-only: computed once, read often (planning)
     def length(self) -> float:
         """Length in metres."""
         return float(np.linalg.norm(self.end - self.start))
@@ -121,26 +122,26 @@ class Arc:
         object.__setattr__(self, "end", _vec(self.end))
         object.__setattr__(self, "center", _vec(self.center))
 
-    @property
+    @cached_property
     def radius(self) -> float:
         """Radius in metres (distance of ``start`` from the centre in the plane)."""
         i, j, _ = PLANES[self.plane]
         d = self.start - self.center
         return float(np.hypot(d[i], d[j]))
 
-    @property
+    @cached_property
     def start_angle(self) -> float:
         """Angle of ``start`` about the centre in the plane's (e1, e2) frame, rad."""
         i, j, _ = PLANES[self.plane]
         d = self.start - self.center
         return float(np.arctan2(d[j], d[i]))
 
-    @property
+    @cached_property
     def rise(self) -> float:
         """Helical rise along the plane normal from start to end, metres."""
         return float(self.end[PLANES[self.plane][2]] - self.start[PLANES[self.plane][2]])
 
-    @property
+    @cached_property
     def length(self) -> float:
         """Length in metres (helical length when ``rise`` is non-zero)."""
         return float(np.hypot(self.radius * abs(self.sweep_rad), self.rise))

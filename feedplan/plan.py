@@ -129,6 +129,8 @@ _MAX_NODES = 1_000_000
 _MAX_TURNS = 1000
 #: Moving averages costing more additions than this are running sums (O(n), not O(n m)).
 _EXACT_SUM_OPS = 200_000_000
+#: Moving means summed side by side (a block that stays in the first-level cache).
+_SUM_BLOCK = 512
 
 
 # --------------------------------------------------------------------------- straight blocks
@@ -284,23 +286,41 @@ def _moving_average(x, m, extra):
 
     Each mean summed afresh while that costs at most :data:`_EXACT_SUM_OPS` additions;
     beyond, a running sum, summed afresh every m samples (its rounding stays that of m
-    additions): O(n) whatever m.
+    additions): O(n) whatever m. The fresh sums add the same numbers in the same order
+    for every mean, :data:`_SUM_BLOCK` means at a time (so they run side by side).
     """
     n = x.shape[0]
-    out = np.empty((n + m - 1 + extra, x.shape[1]))
-    exact = out.shape[0] * m <= _EXACT_SUM_OPS
+    total = n + m - 1 + extra
+    out = np.empty((total, x.shape[1]))
+    exact = total * m <= _EXACT_SUM_OPS
+    # xs[i] = x[i - m + 1] - x[0] (held at the ends): the mean at k sums xs[k .. k + m - 1]
+    xs = np.empty(total + m - 1)
+    acc = np.empty(_SUM_BLOCK)
     for c in range(x.shape[1]):
         ref = x[0, c]
-        acc = 0.0
-        for k in range(out.shape[0]):
-            if exact or k % m == 0:
-                acc = 0.0
-                for q in range(k - m + 1, k + 1):
-                    acc += x[min(max(q, 0), n - 1), c] - ref
+        for i in range(total + m - 1):
+            xs[i] = x[min(max(i - m + 1, 0), n - 1), c] - ref
+        if exact:
+            for k0 in range(0, total, _SUM_BLOCK):
+                kb = min(_SUM_BLOCK, total - k0)
+                acc[:kb] = 0.0
+                for q in range(m):
+                    src = xs[k0 + q : k0 + q + kb]
+                    for i in range(kb):
+                        acc[i] += src[i]
+                for i in range(kb):
+                    out[k0 + i, c] = ref + acc[i] / m
+            continue
+        run = 0.0
+        for k in range(total):
+            if k % m == 0:
+                run = 0.0
+                for q in range(m):
+                    run += xs[k + q]
             else:
-                acc += (x[min(k, n - 1), c] - ref) - (x[min(max(k - m, 0), n - 1), c] - ref)
-            out[k, c] = ref + acc / m
-    for k in range(n + m - 2, out.shape[0]):
+                run += xs[k + m - 1] - xs[k - 1]
+            out[k, c] = ref + run / m
+    for k in range(n + m - 2, total):
         out[k] = x[n - 1]
     return out
 
@@ -336,11 +356,20 @@ class _Feed:
 
 @dataclass(frozen=True, eq=False)
 class _Attempt:
-    """Filtered positions (n, 3) m, source line per sample, duration s."""
+    """Filtered positions (n, 3) m, duration s; curve parameter u (m) of the unfiltered
+    samples and the filter length m (the source lines of the kept one: :func:`_lines`)."""
 
     pos: np.ndarray
-    line: np.ndarray
     duration: float
+    u: np.ndarray
+    m: int
+
+
+def _lines(fb: "_Feed", att: _Attempt) -> np.ndarray:
+    """Source line of each filtered sample: that of the move at the centre of its window."""
+    centre = np.clip(np.arange(len(att.pos)) - (att.m - 1) // 2, 0, len(att.u) - 1)
+    seg_at = np.searchsorted(fb.block.seg_u0, att.u[centre], side="right") - 1
+    return fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
 
 
 def _grid(block: Block) -> tuple[np.ndarray, float]:
@@ -380,11 +409,51 @@ def _static_limits(fb: _Feed):
     return ceil, tan, kappa, feed, curv
 
 
-def _centred_mean(x: np.ndarray, m: int) -> np.ndarray:
-    """Centred moving average over m (odd) samples, zero outside; shape of x (N, 3)."""
-    h = m // 2
-    c = np.cumsum(np.vstack([np.zeros((h + 1, 3)), x, np.zeros((h, 3))]), axis=0)
-    return (c[m:] - c[:-m]) / m
+@njit(cache=True)
+def _centred_mean(x, m):
+    """Centred moving average over m (odd) samples, zero outside; shape of x (N, 3).
+
+    A running sum over the zero-padded samples, differenced (one pass, no padded copy).
+    """
+    n, h = x.shape[0], m // 2
+    total = n + 2 * h + 1  # zeros (h + 1), x, zeros (h)
+    out = np.empty_like(x)
+    for col in range(x.shape[1]):
+        c = np.empty(total)
+        acc = 0.0
+        for i in range(total):
+            j = i - h - 1
+            acc = acc + (x[j, col] if 0 <= j < n else 0.0) if i > 0 else 0.0
+            c[i] = acc
+        for k in range(n):
+            out[k, col] = (c[k + m] - c[k]) / m
+    return out
+
+
+@njit(cache=True)
+def _compensation(d1, d2, ud, coef, m):
+    """:func:`_rounding_compensation` after its scalar ``coef = -s2 / 2``, compiled."""
+    n = d1.shape[0]
+    off = np.empty((n, 3))
+    for k in range(n):
+        speed = math.sqrt(d1[k, 0] * d1[k, 0] + d1[k, 1] * d1[k, 1] + d1[k, 2] * d1[k, 2])
+        t0, t1, t2 = d1[k, 0] / speed, d1[k, 1] / speed, d1[k, 2] / speed
+        dot = 0.0
+        dot += d2[k, 0] * t0
+        dot += d2[k, 1] * t1
+        dot += d2[k, 2] * t2
+        w = coef * (ud[k] * ud[k])
+        off[k, 0] = w * (d2[k, 0] - dot * t0)
+        off[k, 1] = w * (d2[k, 1] - dot * t1)
+        off[k, 2] = w * (d2[k, 2] - dot * t2)
+    odd = m | 1
+    off = _centred_mean(_centred_mean(off, odd), odd)
+    for k in range(n):
+        ramp = min(max(min(k, n - 1 - k) / (2.0 * m), 0.0), 1.0)
+        f = ramp * ramp * (3.0 - 2.0 * ramp)
+        for i in range(3):
+            off[k, i] = off[k, i] * f
+    return off
 
 
 def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
@@ -397,16 +466,8 @@ def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
     over the filter length, so it adds no jerk step where the curvature jumps, and it
     fades in and out over the first and last ``2 m`` samples (at rest at both ends).
     """
-    speed = np.linalg.norm(d1, axis=1)
-    t = d1 / speed[:, None]
-    normal = d2 - np.sum(d2 * t, axis=1)[:, None] * t
     s2 = (m * m - 1) * dt * dt / 12.0
-    off = -0.5 * s2 * (ud**2)[:, None] * normal
-    odd = m | 1
-    off = _centred_mean(_centred_mean(off, odd), odd)
-    n = len(off)
-    ramp = np.clip(np.minimum(np.arange(n), n - 1 - np.arange(n)) / (2.0 * m), 0.0, 1.0)
-    return off * (ramp * ramp * (3.0 - 2.0 * ramp))[:, None]
+    return _compensation(d1, d2, ud, -0.5 * s2, m)
 
 
 def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensate: bool):
@@ -426,32 +487,62 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensa
     u, ud = _sample(fb.nodes, v, ceil, acc_t, dt, fb.budget - m - 3)
     if u.size == 0:
         raise _too_long(int(fb.seg_lines[0]), dt)
-    p, d1, d2, _ = fb.block.curve.evaluate(u)
+    p, d1, d2 = fb.block.curve.evaluate(u, order=2)
     p[0], p[-1] = fb.first, fb.last
     if compensate:
         p += _rounding_compensation(d1, d2, ud, m, dt)
     pos = _moving_average(p, m, 3)
-    fv, fa, fj = finite_differences(pos, dt)
     dist, near = deviation_m(pos, fb.table)
     n = len(pos)
     axes = lim.present  # the others do not move (checked before planning)
-    r_v = np.max(np.abs(fv[:, axes]) / lim.vmax_m_s[axes], axis=1)
-    r_a = np.max(np.abs(fa[:, axes]) / lim.amax_m_s2[axes], axis=1)
-    r_j = np.max(np.abs(fj[:, axes]) / lim.jmax_m_s3[axes], axis=1)
-    r_s, r_d = np.zeros(len(fv)), np.zeros(len(fv))
-    r_s[:n] = np.linalg.norm(fv[:n], axis=1) / (fb.seg_feed[near] * (1.0 + SPEED_MARGIN))
-    r_d[:n] = dist / fb.tol_m
-    centre = np.clip(np.arange(n) - (m - 1) // 2, 0, len(u) - 1)
-    seg_at = np.searchsorted(fb.block.seg_u0, u[centre], side="right") - 1
-    line = fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
-    ok = 1.0 - _MARGIN
-    # speed enters velocities linearly, rounding and accelerations/jerk about quadratically
-    f_acc = ok / np.maximum(np.maximum(r_a, r_j), ok)
-    f_speed = np.minimum(
-        ok / np.maximum(np.maximum(r_v, r_s), ok), np.sqrt(ok / np.maximum(r_d, ok))
-    )
-    f_speed = np.minimum(f_speed, np.sqrt(f_acc))
-    return _Attempt(pos, line, (n - 1) * dt), f_speed, f_acc, u
+    f_speed, f_acc = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
+                              lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
+                              fb.seg_feed[near] * (1.0 + SPEED_MARGIN), fb.tol_m, 1.0 - _MARGIN)
+    return _Attempt(pos, (n - 1) * dt, u, m), f_speed, f_acc, u
+
+
+@njit(cache=True)
+def _factors(pos, dt, vmax, amax, jmax, axes, dist, feed, tol, ok):
+    """Per filtered sample (and the 3 at rest after it), the factors of the speed ceiling
+    and of ``A_t`` that would bring it within the limits (1 where clean).
+
+    The finite differences of :func:`feedplan.check.finite_differences` and the worst
+    ratio over the axes ``axes`` (limits ``vmax``, ``amax``, ``jmax`` of those axes) of
+    velocity, acceleration and jerk; the path speed over ``feed`` (the feed with its
+    margin, per sample); the distance ``dist`` over ``tol``. Speed enters velocities
+    linearly, rounding and accelerations/jerk about quadratically.
+    """
+    n = pos.shape[0]
+    rows = n + 3
+    f_speed, f_acc = np.empty(rows), np.empty(rows)
+    # p: pos held 3 samples before and after; v, a, j as numpy's diff of it over dt
+    v = np.empty((rows + 2, 3))
+    a = np.empty((rows + 1, 3))
+    for i in range(rows + 2):
+        for c in range(3):
+            v[i, c] = (pos[min(max(i - 2, 0), n - 1), c] - pos[min(max(i - 3, 0), n - 1), c]) / dt
+    for i in range(rows + 1):
+        for c in range(3):
+            a[i, c] = (v[i + 1, c] - v[i, c]) / dt
+    for k in range(rows):
+        r_v = r_a = r_j = -np.inf
+        for q in range(axes.shape[0]):
+            c = axes[q]
+            r_v = max(r_v, abs(v[k + 2, c]) / vmax[q])
+            r_a = max(r_a, abs(a[k + 1, c]) / amax[q])
+            r_j = max(r_j, abs((a[k + 1, c] - a[k, c]) / dt) / jmax[q])
+        r_s = r_d = 0.0
+        if k < n:
+            sq = 0.0
+            sq += v[k + 2, 0] * v[k + 2, 0]
+            sq += v[k + 2, 1] * v[k + 2, 1]
+            sq += v[k + 2, 2] * v[k + 2, 2]
+            r_s = math.sqrt(sq) / feed[k]
+            r_d = dist[k] / tol
+        fa = ok / max(max(r_a, r_j), ok)
+        fs = min(ok / max(max(r_v, r_s), ok), math.sqrt(ok / max(r_d, ok)))
+        f_acc[k], f_speed[k] = fa, min(fs, math.sqrt(fa))
+    return f_speed, f_acc
 
 
 def _converge(
@@ -505,6 +596,14 @@ def _joints(curve):
     jumps = np.linalg.norm(d_kappa, axis=1) > _JUMP_MIN_PER_M
     kinks = np.linalg.norm(d_tan, axis=1) > 1e-9
     return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
+
+
+def _near(nodes: np.ndarray, u: float, reach: float) -> np.ndarray:
+    """Indices of the sorted ``nodes`` where ``abs(nodes - u) <= reach``, found by bisection
+    (not a pass over every node per joint: blocks of many arcs or kinks)."""
+    pad = 1e-12 * (abs(u) + reach)  # beyond it the float difference cannot be within reach
+    lo, hi = np.searchsorted(nodes, (u - reach - pad, u + reach + pad))
+    return lo + np.flatnonzero(np.abs(nodes[lo:hi] - u) <= reach)
 
 
 def _plan_feed(
@@ -576,13 +675,13 @@ def _plan_feed(
         acc_node = np.minimum(_AT_SHARE * j_path * T, a_path)
         reach = v_top * T  # the filter window around a jump
         for ub, d in zip(u_jump, d_kappa):
-            near = np.abs(fb.nodes - ub) <= reach
+            near = _near(fb.nodes, ub, reach)
             with np.errstate(divide="ignore"):
                 v2 = np.min((1.0 - _JUMP_AT_SHARE) * jmax * T / np.abs(d[ax]))
             ceil[near] = np.minimum(ceil[near], math.sqrt(v2))
             acc_node[near] = np.minimum(acc_node[near], _JUMP_AT_SHARE * j_path[near] * T)
         for uk, d in zip(u_kink, d_tan):
-            near = np.abs(fb.nodes - uk) <= spacing  # the speed while crossing it
+            near = _near(fb.nodes, uk, spacing)  # the speed while crossing it
             with np.errstate(divide="ignore"):
                 v_jerk = np.min(jmax * T * dt / np.abs(d[ax]))
             v_cut = 8.0 * tol_m / (T * np.linalg.norm(d))  # corner cut ~ v T |dt| / 8
@@ -597,7 +696,7 @@ def _plan_feed(
             f"line {segs[0].line}: no plan within the limits and the tolerance "
             f"after {_ROUNDS} slow-down rounds"
         )
-    return best.pos, best.line
+    return best.pos, _lines(fb, best)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -630,6 +729,22 @@ def _axis_speed_m_s(seg, vmax: np.ndarray) -> float:
     return float(np.min(vmax[m] / d[m])) if m.any() else math.inf
 
 
+def _allowed_speeds(segs, vmax: np.ndarray) -> np.ndarray:
+    """:func:`_axis_speed_m_s` of every move (inf for a move of length 0), lines at once."""
+    n = len(segs)
+    length = np.fromiter((s.length for s in segs), float, n)
+    arc = np.fromiter((isinstance(s, Arc) for s in segs), bool, n)
+    allowed = np.full(n, np.inf)
+    for k in np.flatnonzero(arc & (length > 0)):
+        allowed[k] = _axis_speed_m_s(segs[k], vmax)
+    lines = np.flatnonzero(~arc & (length > 0))
+    start, end = _line_arrays(segs, lines)
+    d = np.abs(end - start) / length[lines, None]
+    with np.errstate(divide="ignore", invalid="ignore"):  # 0 / 0 where masked
+        allowed[lines] = np.min(np.where((d > 0) & (vmax > 0), vmax / d, np.inf), axis=1)
+    return allowed
+
+
 def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
     """Feed of every move (m/s; rapids inf), capped at what the axes allow along it.
 
@@ -640,25 +755,22 @@ def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
         Largest path speed the axes allow somewhere along each move, m/s.
     warnings : list of str
     """
-    out, allowed = np.empty(len(path.segments)), np.empty(len(path.segments))
-    over = []
-    for k, s in enumerate(path.segments):
-        allowed[k] = _axis_speed_m_s(s, limits.vmax_m_s) if s.length > 0 else np.inf
-        if s.rapid:
-            out[k] = np.inf
-            continue
-        if feed_m_s is not None:
-            out[k] = feed_m_s
-        elif math.isfinite(s.feed_m_s) and s.feed_m_s > 0:
-            out[k] = s.feed_m_s
-        else:
-            where = f"line {s.line}" if s.line else f"move {k + 1}"
+    segs = path.segments
+    n = len(segs)
+    allowed = _allowed_speeds(segs, limits.vmax_m_s)
+    rapid = np.fromiter((s.rapid for s in segs), bool, n)
+    if feed_m_s is not None:
+        out = np.full(n, float(feed_m_s))
+    else:
+        out = np.fromiter((s.feed_m_s for s in segs), float, n)
+        for k in np.flatnonzero(~rapid & ~(np.isfinite(out) & (out > 0)))[:1]:
+            where = f"line {segs[k].line}" if segs[k].line else f"move {k + 1}"
             raise OptionError(f"{where}: no feed programmed (F); give feed_m_s")
-        if out[k] > allowed[k]:
-            over.append(k)
-            out[k] = allowed[k]
+    out[rapid] = np.inf
+    over = np.flatnonzero(~rapid & (out > allowed))
+    out[over] = allowed[over]
     warnings = []
-    if over:
+    if over.size:
         k = over[0]
         seg = path.segments[k]
         given = feed_m_s if feed_m_s is not None else seg.feed_m_s
@@ -672,7 +784,7 @@ def _feeds(path: Path, limits: AxisLimits, feed_m_s: float | None):
 
 def _move_times(path: Path, feeds: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     """Least motion time of each move, s: at its feed or the axis speed, no ramps."""
-    length = np.array([s.length for s in path.segments])
+    length = np.fromiter((s.length for s in path.segments), float, len(path.segments))
     with np.errstate(over="ignore"):
         return length / np.minimum(feeds, allowed)
 
@@ -730,6 +842,26 @@ def program_tolerance_m(path: Path, tol_m: float) -> float:
     return float(np.clip(min(each, default=tol_m), *TOL_RANGE_M))
 
 
+def _line_arrays(segs, idx: np.ndarray):
+    """Start and end points (len(idx), 3) m of the lines ``segs[idx]``."""
+    start = np.array([segs[k].start for k in idx]).reshape(-1, 3)
+    end = np.array([segs[k].end for k in idx]).reshape(-1, 3)
+    return start, end
+
+
+def _to_inspect(segs, present: np.ndarray) -> list:
+    """The moves :func:`_validate` must look at one by one, in order: arcs, and the lines
+    that fail its checks (a point beyond the bounds or not finite, a move of an absent
+    axis), found for all lines at once."""
+    arc = np.fromiter((isinstance(s, Arc) for s in segs), bool, len(segs))
+    lines = np.flatnonzero(~arc)
+    start, end = _line_arrays(segs, lines)
+    ok = np.all((np.abs(start) <= MAX_COORD_M) & (np.abs(end) <= MAX_COORD_M), axis=1)
+    ok &= ~np.any((np.abs(end - start) > 1e-12) & ~present, axis=1)
+    arc[lines[~ok]] = True
+    return [segs[k] for k in np.flatnonzero(arc)]
+
+
 def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float) -> None:
     if feed_m_s is not None and not (math.isfinite(feed_m_s) and feed_m_s > 0):
         raise OptionError(f"feed_m_s must be a positive finite number, got {feed_m_s!r}")
@@ -738,7 +870,8 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
                           f"got {tol_m!r}")
     if not (DT_RANGE_S[0] <= dt <= DT_RANGE_S[1]):
         raise OptionError(f"dt must be in [{DT_RANGE_S[0]:g}, {DT_RANGE_S[1]:g}] s, got {dt!r}")
-    for s in path.segments:
+    present = limits.present
+    for s in _to_inspect(path.segments, present):
         pts = np.concatenate([s.start, s.end, s.center if isinstance(s, Arc) else ()])
         if not np.all(np.abs(pts) <= MAX_COORD_M):  # also nan (paths built by hand)
             raise ToolpathError(f"a point beyond {MAX_COORD_M:g} m or not finite", line=s.line)
@@ -749,7 +882,7 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
         if isinstance(s, Arc) and s.length > 1e-12:
             i, j, _ = PLANES[s.plane]
             span[i] = span[j] = s.radius
-        for k in np.flatnonzero((span > 1e-12) & ~limits.present):
+        for k in np.flatnonzero((span > 1e-12) & ~present):
             raise ToolpathError(
                 f"moves axis {AXES[k]}, which the machine lacks (0 limits: it must not move)",
                 line=s.line,
