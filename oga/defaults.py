@@ -336,3 +336,7 @@ ROBUST_SUBSET = 8
 #: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
 #: be chosen by its median ratio on the typical ones.
 ROBUST_WORST_GOAL = 0.9
+
+# identify speed -------------------------------------------------------------------------------
+#: Shortest interval between two progress reports of an identification fit, s.
+IDENT_PROGRESS_EVERY_S = 0.5

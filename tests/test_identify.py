@@ -258,3 +258,27 @@ def test_library_entry_is_the_callable_package(ucp):
     idle = oga.identify.read_trace("t_s,x_cmd_m,x_act_m\n0,0,0\n0.001,0,0\n", kp=3.0, kf=0.8)
     with pytest.raises(oga.InputError, match="no axis moves in the trace"):
         oga.identify(idle, ucp)
+
+
+def test_progress_rises_through_every_fit_to_one(ucp, excite_short, monkeypatch):
+    """``oga.identify(..., progress=)``: each fit (the held-out refit too) an equal share, the
+    fraction rising through the solver's evaluations, never falling, 1 at the end."""
+    import oga.identify.fit as fit_module
+    from oga.identify.trace import Trace
+    from oga.identify.workflow import identify
+
+    monkeypatch.setattr(fit_module, "IDENT_PROGRESS_EVERY_S", 0.0)  # every evaluation
+    true_machine, kp = random_cascade(ucp, "x", np.random.default_rng(3))
+    ch = synthetic_trace(excite_short, true_machine, ["x"], kp, 0.8, noise_m=1e-7,
+                         quantum_m=1e-7, seed=3)
+    n = len(excite_short)
+    trace = Trace(dt_s=excite_short.dt, n=n, axes={"x": AxisTrace(
+        cmd_m=ch["x_cmd_m"], act_m=ch["x_act_m"], kp_m_min_per_mm=np.full(n, kp),
+        kf=np.full(n, 0.8))}, source="short")
+    seen = []
+    ident = identify(trace, ucp, holdout_fraction=0.25, progress=seen.append)
+    assert ident.holdout["x"]["rms_heldout_m"] < 1e-6
+    assert seen == sorted(seen) and seen[-1] == 1.0 and 0.0 < seen[0] < 0.1
+    first, second = [f for f in seen if f < 0.5], [f for f in seen if 0.5 < f < 1.0]
+    assert len(set(first)) > 50 and len(set(second)) > 50  # both fits report as they go
+    assert 0.5 in seen  # the first fit's end

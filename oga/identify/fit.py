@@ -35,7 +35,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from oga.defaults import IDENT_CONFIDENCE, IDENT_MAX_DEAD_SAMPLES, IDENT_STARTS
+from oga.defaults import (
+    IDENT_CONFIDENCE,
+    IDENT_MAX_DEAD_SAMPLES,
+    IDENT_PROGRESS_EVERY_S,
+    IDENT_STARTS,
+)
 from oga.errors import InputError, OgaError
 from oga.identify.trace import AxisTrace, TraceError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Cascade, Machine, Timing
@@ -223,8 +228,35 @@ def check_fit_input(base: Machine, axis: str, tr: AxisTrace, dt: float) -> None:
         raise TraceError(f"axis {axis}: the trace must move the axis (>= 10 um) over >= 200 samples")
 
 
+class _Progress:
+    """The fraction of a fit done, reported to ``report`` (at most every
+    ``IDENT_PROGRESS_EVERY_S``): each of ``planned`` solves an equal share, inside a solve its
+    residual evaluations against its budget. Never falls; 1 only at the end."""
+
+    def __init__(self, report, planned: int):
+        self.report, self.planned = report, planned
+        self.solves, self.calls, self.budget = 0, 0, 1
+        self.last = -math.inf
+
+    def start(self, budget: int) -> None:
+        self.calls, self.budget = 0, max(budget, 1)
+
+    def tick(self) -> None:
+        """One residual evaluation."""
+        self.calls += 1
+        now = time.monotonic()
+        if self.report is not None and now - self.last >= IDENT_PROGRESS_EVERY_S:
+            self.last = now
+            inside = min(self.calls / self.budget, 0.99)
+            self.report(min((self.solves + inside) / self.planned, 0.99))
+
+    def solved(self) -> None:
+        self.solves = min(self.solves + 1, self.planned - 1)
+
+
 def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
-             max_dead: int = IDENT_MAX_DEAD_SAMPLES, starts: int = IDENT_STARTS) -> AxisFit:
+             max_dead: int = IDENT_MAX_DEAD_SAMPLES, starts: int = IDENT_STARTS,
+             progress=None) -> AxisFit:
     """Fit the cascade of ``axis`` of ``base`` to the trace ``tr`` (period ``dt``).
 
     Parameters
@@ -240,6 +272,10 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
         Largest dead time searched, samples.
     starts : int
         Starting points of the Stribeck velocity (multi-start).
+    progress : callable, optional
+        Called with the fraction done (0..1, never falling) at least every
+        ``IDENT_PROGRESS_EVERY_S`` of work while the solver runs, and with 1 at the end; an
+        exception it raises ends the fit (a cancelled job).
 
     Returns
     -------
@@ -256,10 +292,13 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
     # tiny matrices (the sub-step exponentials of every trial plant) and a tall Jacobian: a
     # BLAS thread pool costs far more than it gives here (16 ms instead of 0.14 ms a packing)
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit_axis(base, axis, tr, dt, max_dead, starts, t_start)
+        fit = _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress)
+    if progress is not None:
+        progress(1.0)
+    return fit
 
 
-def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start) -> AxisFit:
+def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFit:
     """:func:`fit_axis` inside one BLAS thread."""
     from scipy.optimize import least_squares
     from scipy.stats import norm
@@ -270,13 +309,23 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start) -> AxisFit:
     model = _Model(base, axis, tr, dt, mass0)
     lo, hi = _bounds(cas0, mass0)
     x_base = np.clip(_x0(cas0), lo, hi)
+    # solves: two per dead time searched, the two best refined, the further starts
+    done = _Progress(progress, 2 * (max_dead + 1) + 2 + max(starts - 1, 0))
+
+    def residual(x, dead, lag):
+        done.tick()
+        return model.residual(x, dead, lag)
+
     def solve(x0, dead, lag, nfev):
+        done.start(nfev * (x0.size + 1))  # each evaluation and its finite-difference Jacobian
         try:
-            return least_squares(model.residual, np.clip(x0, lo + 1e-9, hi - 1e-9), args=(dead, lag),
-                                 bounds=(lo, hi), x_scale="jac", method="trf",
-                                 diff_step=1e-6, max_nfev=nfev)
+            r = least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9), args=(dead, lag),
+                              bounds=(lo, hi), x_scale="jac", method="trf",
+                              diff_step=1e-6, max_nfev=nfev)
         except (ValueError, np.linalg.LinAlgError) as err:
             raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
+        done.solved()
+        return r
 
     # the logging lag from the steady following error; the dead time upwards from 0, each fit
     # from the base values (a warm start carries a force lag that stands in for dead time),
