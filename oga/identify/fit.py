@@ -5,8 +5,9 @@ mass, Coulomb/static/Stribeck/viscous friction, dead time ``d`` samples), closed
 recorded position loop: ``u_k = Kp_k (cmd_k - p_k) + Kf_k ff_k`` with the recorded gains
 and setpoints. The simulated positions, shifted by ``l`` samples of measurement lag (a
 recorder that logs the position ``l`` periods late), are fitted to the measured ones by
-:func:`scipy.optimize.least_squares` (trust-region reflective, bounds, finite-difference
-Jacobian) over
+:func:`scipy.optimize.least_squares` (trust-region reflective, bounds; the Jacobian from
+forward-mode derivatives through the simulation, :mod:`oga.identify.sensitivity`: one pass
+instead of a simulation per parameter) over
 
     x = [log Kv, log Tn, log force lag, Fc, Fs - Fc, log vs, B]
 
@@ -57,6 +58,10 @@ _SEARCH_NFEV = 15
 _FINAL_NFEV = 40
 #: Second starting point of the dead-time search: the base's friction forces times this.
 _FRICTION_START = 4.0
+#: Relative step of the central differences of the packed parameters in ``x`` (the Jacobian).
+_PACK_STEP = 1e-6
+#: Entries of ``x`` clamped at 0 by the model (Fc, Fs - Fc, B): one-sided steps there.
+_CLAMPED = (3, 4, 6)
 
 
 class IdentifyError(OgaError, RuntimeError):
@@ -158,6 +163,28 @@ class _Model:
         from oga.identify.sim import simulate_forces
 
         return simulate_forces(self.params(x, dead), self.p0, self.cmd, self.ff, self.kp, self.kf)
+
+    def jacobian(self, x, dead: int, lag: int) -> np.ndarray:
+        """d :meth:`residual` / dx, um per unit of ``x``, shape (N - lag, 7): forward-mode
+        derivatives through the simulation (:mod:`oga.identify.sensitivity`) in one pass, the
+        packed parameters' derivatives in ``x`` by central differences (a few small matrix
+        exponentials each; one-sided where a clamped entry sits at 0)."""
+        from oga.identify.sensitivity import positions_and_sensitivities
+
+        params = self.params(x, dead)
+        dpar = np.empty((x.size, params.size))
+        for j in range(x.size):
+            h = _PACK_STEP * max(1.0, abs(x[j]))
+            up, down = x.copy(), x.copy()
+            up[j] += h
+            down[j] -= h
+            if j in _CLAMPED and down[j] < 0.0:
+                dpar[j] = (self.params(up, dead) - params) / h
+            else:
+                dpar[j] = (self.params(up, dead) - self.params(down, dead)) / (2 * h)
+        _, dp = positions_and_sensitivities(params, dpar, self.p0, self.cmd, self.ff, self.kp,
+                                            self.kf)
+        return dp[: dp.shape[0] - lag] * 1e6
 
     def residual(self, x, dead: int, lag: int) -> np.ndarray:
         """Simulated minus measured positions, um (the simulation ``lag`` samples earlier)."""
@@ -316,12 +343,16 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
         done.tick()
         return model.residual(x, dead, lag)
 
+    def jacobian(x, dead, lag):
+        done.tick()
+        return model.jacobian(x, dead, lag)
+
     def solve(x0, dead, lag, nfev):
-        done.start(nfev * (x0.size + 1))  # each evaluation and its finite-difference Jacobian
+        done.start(2 * nfev)  # each evaluation and its Jacobian
         try:
-            r = least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9), args=(dead, lag),
-                              bounds=(lo, hi), x_scale="jac", method="trf",
-                              diff_step=1e-6, max_nfev=nfev)
+            r = least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9), jac=jacobian,
+                              args=(dead, lag), bounds=(lo, hi), x_scale="jac", method="trf",
+                              max_nfev=nfev)
         except (ValueError, np.linalg.LinAlgError) as err:
             raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
         done.solved()
@@ -393,7 +424,8 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     def log_param(name, i, scaled):
         v = math.exp(x[i]) * (ratio if scaled else 1.0)
         rel = math.sqrt(sd[i] ** 2 + (rel_m ** 2 if scaled else 0.0))
-        vals[name], los[name], his[name] = v, v * math.exp(-z * rel), v * math.exp(z * rel)
+        w = min(z * rel, 700.0)  # an unidentifiable parameter: an interval of (0, inf)
+        vals[name], los[name], his[name] = v, v * math.exp(-w), v * math.exp(w)
 
     def lin_param(name, value, var):
         v = value * ratio
