@@ -3,9 +3,9 @@ uncertainty section, and the fit's recovery of parameters drawn at random (synth
 from the simulator, with measurement noise and encoder quantisation).
 
 The recovery test runs 20 seeded draws on a short identification program (10 mm travel,
-0.5 s slow passes, sweep 4-20 Hz: 13.9 s, every parameter still visible; 2-4 s of CPU a fit) with
-the force channel recorded (from positions alone mass, Kv and the forces scale together);
-``bench/bench_identify.py`` runs 100 on the full 52 s program.
+0.5 s slow passes, sweep 4-20 Hz: 13.9 s, every parameter still visible; 1.3-2.8 s of CPU a
+fit, 41 s for the 20) with the force channel recorded (from positions alone mass, Kv and the
+forces scale together); ``bench/bench_identify.py`` runs 100 on the full 52 s program.
 """
 
 from __future__ import annotations

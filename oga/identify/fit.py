@@ -258,7 +258,7 @@ def check_fit_input(base: Machine, axis: str, tr: AxisTrace, dt: float) -> None:
 class _Progress:
     """The fraction of a fit done, reported to ``report`` (at most every
     ``IDENT_PROGRESS_EVERY_S``): each of ``planned`` solves an equal share, inside a solve its
-    residual evaluations against its budget. Never falls; 1 only at the end."""
+    evaluations (residuals and Jacobians) against its budget. Never falls; 1 only at the end."""
 
     def __init__(self, report, planned: int):
         self.report, self.planned = report, planned
@@ -269,7 +269,7 @@ class _Progress:
         self.calls, self.budget = 0, max(budget, 1)
 
     def tick(self) -> None:
-        """One residual evaluation."""
+        """One evaluation (a residual or a Jacobian)."""
         self.calls += 1
         now = time.monotonic()
         if self.report is not None and now - self.last >= IDENT_PROGRESS_EVERY_S:
