@@ -263,6 +263,7 @@ def test_library_entry_is_the_callable_package(ucp):
 def test_progress_rises_through_every_fit_to_one(ucp, excite_short, monkeypatch):
     """``oga.identify(..., progress=)``: each fit (the held-out refit too) an equal share, the
     fraction rising through the solver's evaluations, never falling, 1 at the end."""
+    import oga
     import oga.identify.fit as fit_module
     from oga.identify.trace import Trace
     from oga.identify.workflow import identify
@@ -282,6 +283,20 @@ def test_progress_rises_through_every_fit_to_one(ucp, excite_short, monkeypatch)
     first, second = [f for f in seen if f < 0.5], [f for f in seen if 0.5 < f < 1.0]
     assert len(set(first)) > 50 and len(set(second)) > 50  # both fits report as they go
     assert 0.5 in seen  # the first fit's end
+
+    # the report of a stored job, rebuilt from its summary and machine file, is this report
+    from oga.identify.report import identify_report
+    from oga.identify.workflow import identification_from_summary
+
+    summary = ident.summary()
+    assert identify_report(identification_from_summary(summary, trace, ucp, ident.toml)) == \
+        identify_report(ident)
+    summary["axes"]["x"]["ci_high"]["stribeck_m_s"] = None  # inf stored as JSON null
+    page = identify_report(identification_from_summary(summary, trace, ucp, ident.toml))
+    assert "<th>stribeck_m_s</th>" in page and "</td><td>nan</td>" in page
+    del summary["axes"]["x"]["values"]
+    with pytest.raises(oga.InputError, match="stored identification is incomplete: KeyError"):
+        identification_from_summary(summary, trace, ucp, ident.toml)
 
 
 @pytest.mark.parametrize("seed", [0, 3, 5])

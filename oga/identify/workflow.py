@@ -77,9 +77,13 @@ def identification_from_summary(summary: dict, trace: Trace, base: Machine,
     InputError
         MachineError for a machine file that does not load; a summary without its keys.
     """
+    import math
     import tomllib
 
     from oga.machine import machine_from_dict
+
+    def numbers(table: dict) -> dict:  # a stored summary holds None for inf and nan (JSON)
+        return {k: math.nan if v is None else float(v) for k, v in table.items()}
 
     try:
         machine = machine_from_dict(tomllib.loads(toml), where="identified machine")
@@ -88,7 +92,8 @@ def identification_from_summary(summary: dict, trace: Trace, base: Machine,
             fits[a] = AxisFit(
                 status=s["status"], cascade=machine.axis(a).cascade,
                 dead_time_samples=int(s["dead_time_samples"]), lag_samples=int(s["lag_samples"]),
-                values=s["values"], ci_low=s["ci_low"], ci_high=s["ci_high"],
+                values=numbers(s["values"]), ci_low=numbers(s["ci_low"]),
+                ci_high=numbers(s["ci_high"]),
                 mass_identified=bool(s["mass_identified"]), residual_rms_m=s["residual_rms_m"],
                 noise_rms_m=s["noise_rms_m"], force_residual_rms_n=s["force_residual_rms_n"],
                 candidates=[tuple(c) for c in s["candidates"]], fit_time_s=s["fit_time_s"],
@@ -96,7 +101,9 @@ def identification_from_summary(summary: dict, trace: Trace, base: Machine,
         holdout = {a: s["holdout"] for a, s in summary["axes"].items() if "holdout" in s}
         return Identification(status=summary["status"], machine=machine, toml=toml, fits=fits,
                               holdout=holdout, trace=trace, base=base, time_s=summary["time_s"])
-    except (KeyError, TypeError, tomllib.TOMLDecodeError) as err:
+    except (KeyError, TypeError, ValueError, tomllib.TOMLDecodeError) as err:
+        if isinstance(err, InputError):
+            raise
         raise InputError(f"the stored identification is incomplete: {err!r}") from None
 
 
