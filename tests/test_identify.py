@@ -11,6 +11,7 @@ forces scale together); ``bench/bench_identify.py`` runs 100 on the full 52 s pr
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -276,10 +277,16 @@ def test_progress_rises_through_every_fit_to_one(ucp, excite_short, monkeypatch)
     trace = Trace(dt_s=excite_short.dt, n=n, axes={"x": AxisTrace(
         cmd_m=ch["x_cmd_m"], act_m=ch["x_act_m"], kp_m_min_per_mm=np.full(n, kp),
         kf=np.full(n, 0.8))}, source="short")
-    seen = []
-    ident = identify(trace, ucp, holdout_fraction=0.25, progress=seen.append)
+    seen, cpu = [], [time.process_time()]
+
+    def progress(f):
+        seen.append(f)
+        cpu.append(time.process_time())
+
+    ident = identify(trace, ucp, holdout_fraction=0.25, progress=progress)
     assert ident.holdout["x"]["rms_heldout_m"] < 1e-6
     assert seen == sorted(seen) and seen[-1] == 1.0 and 0.0 < seen[0] < 0.1
+    assert np.max(np.diff(cpu)) < 2.0  # a report at least every 2 s of work (0.4 s measured)
     first, second = [f for f in seen if f < 0.5], [f for f in seen if 0.5 < f < 1.0]
     assert len(set(first)) > 50 and len(set(second)) > 50  # both fits report as they go
     assert 0.5 in seen  # the first fit's end
