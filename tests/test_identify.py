@@ -340,3 +340,25 @@ def test_jacobian_is_the_derivative_of_the_simulation(ucp, excite_short, seed):
         fd = (model.residual(up, dead, 1) - model.residual(down, dead, 1)) / (2 * h)
         err = np.linalg.norm(jac[:, j] - fd) / np.linalg.norm(fd)
         assert err < (0.2 if seed == 3 else 1e-3), (j, err)
+
+
+def test_jacobian_falls_back_to_differences_where_the_tangent_overflows(ucp, excite_short,
+                                                                       monkeypatch):
+    import oga.identify.sensitivity as sens
+    from oga.identify.fit import _Model, _x0
+
+    true_machine, kp = random_cascade(ucp, "x", np.random.default_rng(0))
+    ch = synthetic_trace(excite_short, true_machine, ["x"], kp, 0.8, seed=0)
+    n = len(excite_short)
+    tr = AxisTrace(cmd_m=ch["x_cmd_m"], act_m=ch["x_act_m"], kp_m_min_per_mm=np.full(n, kp),
+                   kf=np.full(n, 0.8))
+    cas, dead = true_machine.axis("x").cascade, true_machine.timing.dead_time_samples
+    model, x = _Model(ucp, "x", tr, excite_short.dt, cas.mass_kg), _x0(cas)
+    exact = model.jacobian(x, dead, 0)
+    real = sens.positions_and_sensitivities
+    monkeypatch.setattr(sens, "positions_and_sensitivities",
+                        lambda *a: (real(*a)[0], np.full((n, 7), np.inf)))
+    fallback = model.jacobian(x, dead, 0)
+    assert np.all(np.isfinite(fallback))
+    for j in range(7):
+        assert np.linalg.norm(fallback[:, j] - exact[:, j]) < 1e-2 * np.linalg.norm(exact[:, j])

@@ -184,7 +184,17 @@ class _Model:
                 dpar[j] = (self.params(up, dead) - self.params(down, dead)) / (2 * h)
         _, dp = positions_and_sensitivities(params, dpar, self.p0, self.cmd, self.ff, self.kp,
                                             self.kf)
-        return dp[: dp.shape[0] - lag] * 1e6
+        jac = dp[: dp.shape[0] - lag] * 1e6
+        if np.all(np.isfinite(jac)):
+            return jac
+        # a tangent that overflowed (a trial plant at the edge of stability): forward differences
+        f0 = self.residual(x, dead, lag)
+        for j in range(x.size):
+            h = _PACK_STEP * max(1.0, abs(x[j]))
+            step = x.copy()
+            step[j] += h
+            jac[:, j] = (self.residual(step, dead, lag) - f0) / h
+        return jac
 
     def residual(self, x, dead: int, lag: int) -> np.ndarray:
         """Simulated minus measured positions, um (the simulation ``lag`` samples earlier)."""
