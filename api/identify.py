@@ -7,7 +7,7 @@ from __future__ import annotations
 from api.storage import TRACE_PREFIX
 from oga.machine import Machine
 
-__all__ = ["identify_options", "read_job_trace", "run_identification"]
+__all__ = ["identify_options", "read_job_trace", "run_identification", "identification_report"]
 
 
 def identify_options(body) -> dict:
@@ -34,11 +34,25 @@ def read_job_trace(text: str, toolpath_format: str, machine: Machine, options: d
 
 
 def run_identification(text: str, toolpath_format: str, machine: Machine, options: dict,
-                       source: str = ""):
+                       source: str = "", progress=None):
     """Identify ``machine``'s traced axes from the job's trace
-    (:class:`oga.identify.workflow.Identification`)."""
+    (:class:`oga.identify.workflow.Identification`), reporting the fraction done to
+    ``progress``."""
     from oga.identify.workflow import identify
 
     trace, axes = read_job_trace(text, toolpath_format, machine, options, source)
     return identify(trace, machine, axes=axes, name=options["name"],
-                    holdout_fraction=options["holdout"])
+                    holdout_fraction=options["holdout"], progress=progress)
+
+
+def identification_report(text: str, toolpath_format: str, machine: Machine, options: dict,
+                          source: str, summary: dict, toml: bytes) -> str:
+    """The fit report (HTML, as ``oga identify --report``) of a succeeded job, rebuilt from
+    what it stored: its trace read again, its summary and identified machine file; the
+    fitted model is simulated on the trace again, nothing is fitted again."""
+    from oga.identify.report import identify_report
+    from oga.identify.workflow import identification_from_summary
+
+    trace, _ = read_job_trace(text, toolpath_format, machine, options, source)
+    return identify_report(identification_from_summary(summary, trace, machine,
+                                                       toml.decode("utf-8")))

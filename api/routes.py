@@ -231,12 +231,13 @@ def get_summary(job_id: str, request: Request) -> dict:
     200: {"content": {"text/html": {}}, "description": "the report, one self-contained page"},
     **{code: {"description": _ERRORS[code]["description"], "content": {"application/json": {
         "schema": {"$ref": "#/components/schemas/ErrorBody"}}}} for code in (404, 409, 422)}},
-    response_class=HTMLResponse, summary="The optimisation report of a succeeded job")
+    response_class=HTMLResponse, summary="The report of a succeeded job")
 def get_report(job_id: str, request: Request) -> Response:
     """As ``oga optimize --report``. Rebuilt from what the job stored: its toolpath is planned
     again (the setpoint hash must match the summary's) and the baseline gains and the stored
     table are replayed on the model; nothing is searched again. 409 until the job has
-    succeeded (a failed job stores no schedule to replay)."""
+    succeeded (a failed job stores no schedule to replay). An identification job: its fit
+    report (as ``oga identify --report``), the fitted model simulated on its trace again."""
     from feedplan.read import read_toolpath
     from oga.options import options_from_dict
     from oga.pipeline import plan_toolpath
@@ -246,10 +247,15 @@ def get_report(job_id: str, request: Request) -> Response:
     row = store.get(job_id, with_toolpath=True)
     if row is None:
         raise HTTPException(404, f"no job {job_id!r}")
-    _no_table(row)
     blob = store.table(row.id)
     if row.status != "succeeded" or blob is None or row.summary is None:
         raise HTTPException(409, f"job {row.id} is {row.status}: no report")
+    if is_identification(row):  # the fit report (as oga identify --report)
+        from api.identify import identification_report
+
+        page = identification_report(row.toolpath, row.toolpath_format, machine_from_dict(
+            row.machine), row.options, row.source, row.summary, blob)
+        return HTMLResponse(page, headers={"X-Oga-Job-Id": row.id})
     table = table_from_npz(blob)
     machine = machine_from_dict(row.machine)
     options = options_from_dict(row.options)

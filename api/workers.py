@@ -156,7 +156,7 @@ def run_claimed(store: Store, job: JobRow) -> str:
             from api.identify import run_identification
 
             ident = run_identification(job.toolpath, job.toolpath_format, machine, job.options,
-                                       job.source)
+                                       job.source, progress=progress)
             store.succeed(job.id, job.attempts, json_safe(ident.summary()),
                           ident.toml.encode("utf-8"))
             return "succeeded"

@@ -362,3 +362,7 @@ BLEND_TOL_FRACTION = 0.5
 #: share of the feed; below, an exact stop (planned exactly by ruckig) is as fast (measured on
 #: ucp710 at F3000: a 20 deg kink blended at 0.17 F saves 2 %, a 45 deg one at 0.1 F loses 1 %).
 BLEND_MIN_SPEED_SHARE = 0.15
+
+# identify speed -------------------------------------------------------------------------------
+#: Shortest interval between two progress reports of an identification fit, s.
+IDENT_PROGRESS_EVERY_S = 0.5

@@ -3,7 +3,9 @@ returns, and the answers to bad traces (422 naming the column and the row)."""
 
 from __future__ import annotations
 
+import html
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -76,12 +78,15 @@ def test_identify_job_returns_a_machine_file_that_loads(any_client, trace, tmp_p
     job = client.get(f"/v1/jobs/{job_id}").json()
     assert job["status"] == "queued" and job["toolpath_format"] == "trace-csv"
     assert job["links"]["machine"] == f"/v1/jobs/{job_id}/machine" and "table" not in job["links"]
-    assert client.get(f"/v1/jobs/{job_id}/machine").status_code == 409  # not run yet
+    for route in ("machine", "report"):  # not run yet
+        r = client.get(f"/v1/jobs/{job_id}/{route}")
+        assert r.status_code == 409 and "is queued" in r.json()["message"], route
 
     app = client.app
     assert run_claimed(app.state.store, app.state.store.claim(OWNER)) == "succeeded"
     assert client.get(f"/v1/jobs/{job_id}").json()["status"] == "succeeded"
     r = client.get(f"/v1/jobs/{job_id}/machine")
+    r_machine = r.text
     assert r.status_code == 200 and r.headers["content-type"].startswith("application/toml")
     assert r.headers["x-oga-job-id"] == job_id and "trace-identified.toml" in r.headers[
         "content-disposition"]
@@ -102,10 +107,19 @@ def test_identify_job_returns_a_machine_file_that_loads(any_client, trace, tmp_p
     assert x["values"]["kv_n_s_m"] == pytest.approx(cas.kv_n_s_m)
     assert x["ci_low"]["kv_n_s_m"] < cas.kv_n_s_m < x["ci_high"]["kv_n_s_m"]
     assert 0 < x["residual_rms_m"] < 1e-6
-    # an identification has no gain table, no optimisation report
-    for route in ("table", "report"):
-        r = client.get(f"/v1/jobs/{job_id}/{route}")
-        assert r.status_code == 409 and "/machine" in r.json()["message"], route
+    # an identification has no gain table
+    r = client.get(f"/v1/jobs/{job_id}/table")
+    assert r.status_code == 409 and "/machine" in r.json()["message"]
+    # its report is the fit report, rebuilt from what the job stored (as oga identify --report)
+    r = client.get(f"/v1/jobs/{job_id}/report")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert r.headers["x-oga-job-id"] == job_id
+    page = r.text
+    assert "<h1>oga identify: ucp710-identified</h1>" in page and "<h2>Axis x</h2>" in page
+    assert "Trace trace.csv: " in page and page.count("<svg") == 2  # fit and friction curve
+    assert f"<th>kv_n_s_m</th><td>{x['values']['kv_n_s_m']:.6g}</td>" in page
+    assert f"Residual RMS {x['residual_rms_m'] * 1e6:.4g} um" in page
+    assert f"<pre>{html.escape(r_machine)}</pre>" in page  # the machine file the job returned
 
 
 def _rows(text: str, row: int, edit) -> str:
@@ -188,3 +202,36 @@ def test_machine_of_an_optimisation_job_is_409_and_identify_jobs_cancel(client, 
     assert client.get("/v1/jobs/nope/machine").status_code == 404
     job_id = client.post("/v1/identify", json=request(trace[0])).json()["id"]
     assert client.delete(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
+
+
+def test_a_fit_job_reports_rising_progress(tmp_path):
+    """A real ``oga serve``: an identification with a held-out refit (two fits of a 13.9 s
+    trace) reports a rising fraction while it runs (its work between two reports is bounded
+    in CPU time in ``test_identify.py``; whether ``/healthz`` calls a job stalled depends on
+    the CPU its niced worker gets, so it is not asserted here)."""
+    from test_api_server import Server, wait_for
+
+    base = load_machine("ucp710")
+    program = excite_program(base, ["x"], travel_mm=10.0, pass_s=0.5,
+                             sweep_hz=(4.0, 7.0, 10.0, 15.0, 20.0))
+    sp = plan_toolpath(read_toolpath(program, "gcode"), base, feed_m_s=None, tol_m=2e-5)
+    ch = synthetic_trace(sp, base, ["x"], 3.0, 0.8, noise_m=1e-7, quantum_m=1e-7, seed=5)
+    t = ch.pop("t_s")
+    server = Server(tmp_path / "oga.db", 1, tmp_path / "serve.log")
+    try:
+        r = server.http.post("/v1/identify", json=request(trace_csv(t, ch), holdout=0.25))
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        wait_for(server, job_id, ("running", "succeeded", "failed"))
+        seen, t_end = [], time.monotonic() + 900
+        while time.monotonic() < t_end:
+            job = server.http.get(f"/v1/jobs/{job_id}").json()
+            if job["status"] != "running":
+                break
+            seen.append(job["progress"])
+            time.sleep(0.1)
+        assert job["status"] == "succeeded", job
+        assert seen == sorted(seen) and len({f for f in seen if 0 < f < 1}) >= 3, seen
+        assert server.http.get(f"/v1/jobs/{job_id}/report").status_code == 200
+    finally:
+        server.stop()

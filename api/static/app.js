@@ -269,17 +269,18 @@ function showJob(job) {
   $("job-error").replaceChildren(...(job.error ? errorNodes(job.error, "") : []));
 }
 
-// The report and table buttons, which only an optimisation has.
+// The table buttons, which only an optimisation has (every succeeded job has a report).
 function showDownloads(on) {
-  $("open-report").hidden = !on;
+  $("open-report").hidden = false;
   document.querySelector("#results .downloads").hidden = !on;
 }
 
-// An identification job (POST /v1/identify) has a machine file, not a table: say where it is.
+// An identification job (POST /v1/identify) has a machine file and its fit report, not a
+// table: say where the file is.
 async function showIdentified(job) {
   showDownloads(false);
   $("outcome").textContent = `An identification: the identified machine file is at ` +
-                             `GET ${job.links.machine} (this page shows optimisations).`;
+                             `GET ${job.links.machine}; the report shows the fit.`;
 }
 
 // The outcome in one line, from the job's summary (as `oga optimize --summary`).

@@ -6,7 +6,7 @@ Per axis, from the start point (every axis at 0, programme coordinates), inside
 1. constant-speed passes in both directions at speeds inside and well above the
    base machine's Stribeck band (:data:`oga.defaults.EXCITE_STRIBECK_MULTIPLES`) and at
    fractions of the axis speed limit (:data:`oga.defaults.EXCITE_VMAX_FRACTIONS`): the
-   friction curve (slow passes are shortened to 3 s);
+   friction curve (slow passes are shortened to 3 s, ``pass_s``);
 2. velocity steps: three collinear moves at rising, then falling feeds, each way;
 3. a swept-frequency section: reversing moves at :data:`oga.defaults.EXCITE_SWEEP_HZ`,
    the amplitude limited so the acceleration stays within half the planning limit
@@ -44,7 +44,8 @@ def _feed(v_m_s: float) -> str:
     return f"F{v_m_s * 60e3:.4f}"
 
 
-def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_TRAVEL_MM) -> str:
+def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_TRAVEL_MM, *,
+                   pass_s: float = _PASS_S, sweep_hz=EXCITE_SWEEP_HZ) -> str:
     """The identification program of ``axes`` on ``machine`` (G-code, mm, absolute).
 
     Parameters
@@ -55,6 +56,10 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
         Axes to identify (each a cascade axis of the machine).
     travel_mm : float
         Free travel per axis in the positive direction from the start point, mm.
+    pass_s : float
+        Longest constant-speed pass, s (the slow passes last this long each way).
+    sweep_hz : sequence of float
+        Frequencies of the swept section, Hz (each runs 4 cycles).
 
     Returns
     -------
@@ -64,7 +69,8 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
     Raises
     ------
     OptionError
-        Unknown, repeated or non-cascade axis, or travel out of (1, 10000] mm.
+        Unknown, repeated or non-cascade axis, travel out of (1, 10000] mm, a pass not in
+        (0, 60] s or a sweep frequency not in (0, 100] Hz.
     """
     if not axes or len(set(axes)) != len(axes):
         raise OptionError(f"--axes: give distinct axes, got {','.join(axes)}")
@@ -75,6 +81,10 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
             raise OptionError(f"--axes: axis {a} of {machine.name} is not a cascade axis")
     if not (1.0 < travel_mm <= 10000.0):
         raise OptionError(f"--travel-mm must be in (1, 10000], got {travel_mm}")
+    if not (0.0 < pass_s <= 60.0):
+        raise OptionError(f"pass_s must be in (0, 60] s, got {pass_s}")
+    if not sweep_hz or not all(0.0 < f <= 100.0 for f in sweep_hz):
+        raise OptionError(f"sweep_hz: give frequencies in (0, 100] Hz, got {list(sweep_hz)}")
     lim = machine.planning_limits()
     out = [f"(oga excite: identification program for {machine.name}, axes {','.join(axes)}, "
            f"travel {travel_mm:g} mm)", "G21 G90 G94 G17", "G1 " + " ".join(f"{a.upper()}0" for a in axes)
@@ -88,7 +98,7 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
         L = a.upper()
         out.append(f"(axis {a}: constant-speed passes, both directions)")
         for v in speeds:
-            length = min(travel_mm, v * 1e3 * _PASS_S)
+            length = min(travel_mm, v * 1e3 * pass_s)
             out += [f"G1 {L}{length:.4f} {_feed(v)}", f"G1 {L}0"]
         out.append(f"(axis {a}: velocity steps)")
         steps = [f * vmax for f in EXCITE_VMAX_FRACTIONS[1:]]
@@ -98,7 +108,7 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
             out.append(f"G1 {L}{travel_mm * (len(steps) - k - 1) / len(steps):.4f} {_feed(v)}")
         out.append(f"(axis {a}: swept frequency)")
         mid = travel_mm / 2
-        for f in EXCITE_SWEEP_HZ:
+        for f in sweep_hz:
             amp_mm = min(travel_mm / 10, 0.5 * amax / (2 * math.pi * f) ** 2 * 1e3)
             v = min(vmax, 4 * amp_mm * 1e-3 * f)
             out.append(f"G1 {L}{mid:.4f} {_feed(vmax / 4)}")

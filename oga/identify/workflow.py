@@ -13,7 +13,7 @@ from oga.identify.trace import AxisTrace, Trace
 from oga.identify.write import identified_machine, machine_toml
 from oga.machine import Machine
 
-__all__ = ["Identification", "identify", "axes_to_fit"]
+__all__ = ["Identification", "identify", "axes_to_fit", "identification_from_summary"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,6 +66,47 @@ class Identification:
         }
 
 
+def identification_from_summary(summary: dict, trace: Trace, base: Machine,
+                                toml: str) -> Identification:
+    """The :class:`Identification` a stored job stands for, rebuilt from what it stored (no
+    fit runs again): its :meth:`~Identification.summary`, its trace, base machine and
+    identified machine file (``toml``). For the report of a finished job.
+
+    Raises
+    ------
+    InputError
+        MachineError for a machine file that does not load; a summary without its keys.
+    """
+    import math
+    import tomllib
+
+    from oga.machine import machine_from_dict
+
+    def numbers(table: dict) -> dict:  # a stored summary holds None for inf and nan (JSON)
+        return {k: math.nan if v is None else float(v) for k, v in table.items()}
+
+    try:
+        machine = machine_from_dict(tomllib.loads(toml), where="identified machine")
+        fits = {}
+        for a, s in summary["axes"].items():
+            fits[a] = AxisFit(
+                status=s["status"], cascade=machine.axis(a).cascade,
+                dead_time_samples=int(s["dead_time_samples"]), lag_samples=int(s["lag_samples"]),
+                values=numbers(s["values"]), ci_low=numbers(s["ci_low"]),
+                ci_high=numbers(s["ci_high"]),
+                mass_identified=bool(s["mass_identified"]), residual_rms_m=s["residual_rms_m"],
+                noise_rms_m=s["noise_rms_m"], force_residual_rms_n=s["force_residual_rms_n"],
+                candidates=[tuple(c) for c in s["candidates"]], fit_time_s=s["fit_time_s"],
+                n_samples=trace.n - int(s["lag_samples"]))
+        holdout = {a: s["holdout"] for a, s in summary["axes"].items() if "holdout" in s}
+        return Identification(status=summary["status"], machine=machine, toml=toml, fits=fits,
+                              holdout=holdout, trace=trace, base=base, time_s=summary["time_s"])
+    except (KeyError, TypeError, ValueError, tomllib.TOMLDecodeError) as err:
+        if isinstance(err, InputError):
+            raise
+        raise InputError(f"the stored identification is incomplete: {err!r}") from None
+
+
 def _head(tr: AxisTrace, n: int) -> AxisTrace:
     cut = {k: (None if v is None else v[:n]) for k, v in vars(tr).items()}
     return AxisTrace(**cut)
@@ -87,7 +128,7 @@ def axes_to_fit(trace: Trace, machine: Machine, axes=None) -> list[str]:
 
 
 def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = None,
-             holdout_fraction: float = 0.0) -> Identification:
+             holdout_fraction: float = 0.0, progress=None) -> Identification:
     """Fit every cascade parameter of the traced axes of ``machine`` to ``trace``.
 
     Parameters
@@ -103,6 +144,10 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
     holdout_fraction : float
         If > 0, a second fit on the trace without its last ``holdout_fraction``, whose
         prediction of the rest is the held-out check (costs a second fit).
+    progress : callable, optional
+        Called with the fraction done (0..1, never falling) at least every
+        ``IDENT_PROGRESS_EVERY_S`` of work, each fit an equal share; 1 at the end. An
+        exception it raises ends the identification (a cancelled job).
 
     Returns
     -------
@@ -117,14 +162,24 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
     names = axes_to_fit(trace, machine, axes)
     if not (0.0 <= holdout_fraction < 0.9):
         raise InputError(f"holdout_fraction must be in [0, 0.9), got {holdout_fraction}")
-    fits: dict[str, AxisFit] = {a: fit_axis(machine, a, trace.axes[a], trace.dt_s) for a in names}
+    n_fits = len(names) * (2 if holdout_fraction > 0 else 1)
+
+    def share(k: int):
+        """The progress of fit ``k`` of ``n_fits`` as a share of the whole."""
+        if progress is None:
+            return None
+        return lambda f: progress(min((k + f) / n_fits, 1.0))
+
+    fits: dict[str, AxisFit] = {a: fit_axis(machine, a, trace.axes[a], trace.dt_s,
+                                            progress=share(k)) for k, a in enumerate(names)}
     holdout = {}
     if holdout_fraction > 0:
         from oga.simulate import axis_params, simulate_axis
 
         n_fit = int(round(trace.n * (1 - holdout_fraction)))
-        for a in names:
-            part = fit_axis(machine, a, _head(trace.axes[a], n_fit), trace.dt_s)
+        for k, a in enumerate(names):
+            part = fit_axis(machine, a, _head(trace.axes[a], n_fit), trace.dt_s,
+                            progress=share(len(names) + k))
             cmd, ff, kp, kf = axis_inputs(trace.axes[a], trace.dt_s)
             meas = trace.axes[a].act_m
             p, _ = simulate_axis(axis_params(identified_machine(machine, {a: part}), a), meas[0],

@@ -1,0 +1,167 @@
+"""Forward-mode derivatives of a cascade axis's simulated positions with respect to its plant
+parameters: the fit's Jacobian in one pass instead of a re-simulation per parameter.
+
+:func:`positions_and_sensitivities` simulates the axis exactly as
+:func:`oga.simulate.simulate_axis` does (the same arithmetic: the same positions to the last
+bit) and carries, beside the state ``(p, v, F, I)`` and the dead-time line, its derivatives
+along ``D`` directions of the packed parameters (:func:`oga.simulate.axis_params`): the
+sub-step mechanics' coefficients, ``Kv``, ``1/Tn``, the friction's ``Fc``, ``Fs - Fc`` and
+``1/vs``, and the lifted map over Te. The derivative follows the branch the nominal
+simulation takes at each period (the lifted map where it is exact, else the sub-steps with
+the velocity PI, its force limit and anti-windup, and the friction through its slope), as
+:mod:`oga.tangent` does for the gains; it is exact for the computation performed, except
+where the axis sticks (the friction's slope there limited: see :func:`_advance_sens`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from oga.simulate import (
+    _DEAD,
+    _DFS,
+    _FC,
+    _INV_EPS,
+    _INV_TN,
+    _INV_VS,
+    _KV,
+    _LIFTED,
+    _NSUB,
+    _lifted,
+    _lifted_guard,
+    _mechanics,
+    _pi_coefs,
+    _pi_substep,
+    _smooth_sign,
+    _substep_coefs,
+    friction_and_slope,
+)
+
+__all__ = ["positions_and_sensitivities"]
+
+
+@njit(cache=True, inline="always")
+def _friction_terms(params, v):
+    """``(ds, dx, dv)``: the Coulomb + Stribeck force's derivative at ``v`` (velocity held) is
+    ``ds dFc + dx d(Fs - Fc) + dv d(1/vs)``. The Stribeck term's derivative is taken even
+    where its value is cut (there it is below an ulp of the force, or the term is zero)."""
+    s = _smooth_sign(v * params[_INV_EPS])
+    r = v * params[_INV_VS]
+    r2 = r * r
+    ex = math.exp(-r2) if r2 < 700.0 else 0.0
+    return s, s * ex, -2.0 * r * v * params[_DFS] * s * ex
+
+
+@njit(cache=True)
+def _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud):
+    """:func:`oga.simulate._advance` (no load) of one Te, the tangents ``dp, dv, df, di`` (D,)
+    advanced in place; ``dud`` (D,) the derivatives of the command ``ud``; ``dc`` (D, 10)
+    the directions' :func:`oga.simulate._substep_coefs`."""
+    nd = dpar.shape[0]
+    if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
+        return p, v, f, i  # at rest and not driven: nothing moves (as the simulator)
+    fn, slope = friction_and_slope(params, v)
+    fs, fx, fv = _friction_terms(params, v)
+    if params[_LIFTED] != 0.0 and _lifted_guard(params, v, f, i, ud, fn):
+        for d in range(nd):
+            q = dpar[d]
+            dfn = slope * dv[d] + fs * q[_FC] + fx * q[_DFS] + fv * q[_INV_VS]
+            lp, lv, lf, li = _lifted(params, dp[d], dv[d], df[d], di[d], dud[d], dfn)
+            cp, cv, cf, ci = _lifted(q, 0.0, v, f, i, ud, fn)  # its coefficients moved
+            dp[d], dv[d], df[d], di[d] = lp + cp, lv + cv, lf + cf, li + ci
+        return _lifted(params, p, v, f, i, ud, fn)
+    c = _substep_coefs(params)
+    pi = _pi_coefs(params)
+    kv, inv_tn, h, _flim = pi
+    # the friction's slope is steep near v = 0 (Fc / smoothing velocity): held over a sub-step
+    # it makes the nominal velocity chatter about 0 (bounded by the friction itself) and the
+    # tangent grow without bound. Limited to the slope that stops the velocity's tangent in
+    # one sub-step (v's factor c2 + c8 slope = 0): the derivative of an axis that sticks.
+    stick = c[2] / -c[8]
+    for j in range(int(params[_NSUB])):
+        if j > 0:
+            fn, slope = friction_and_slope(params, v)
+            fs, fx, fv = _friction_terms(params, v)
+        slope = min(slope, stick)
+        fc, i_next, linear, integrating = _pi_substep(ud, v, i, pi)
+        e = ud - v
+        w = e + i * inv_tn
+        for d in range(nd):
+            q = dpar[d]
+            dfn = slope * dv[d] + fs * q[_FC] + fx * q[_DFS] + fv * q[_INV_VS]
+            de = dud[d] - dv[d]
+            dfc = 0.0  # a limited force command does not move
+            if linear:
+                dfc = kv * (de + di[d] * inv_tn + i * q[_INV_TN]) + q[_KV] * w
+            if integrating:  # a frozen integral does not move either
+                di[d] += h * de
+            k = dc[d]
+            p0, v0, f0 = dp[d], dv[d], df[d]
+            dp[d] = (p0 + c[0] * v0 + c[1] * f0 + c[5] * dfc + c[6] * dfn
+                     + k[0] * v + k[1] * f + k[5] * fc + k[6] * fn)
+            dv[d] = (c[2] * v0 + c[3] * f0 + c[7] * dfc + c[8] * dfn
+                     + k[2] * v + k[3] * f + k[7] * fc + k[8] * fn)
+            df[d] = c[4] * f0 + c[9] * dfc + k[4] * f + k[9] * fc
+        i = i_next
+        p, v, f = _mechanics(c, p, v, f, fc, fn)
+    return p, v, f, i
+
+
+@njit(cache=True)
+def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp):
+    n = pd.shape[0]
+    nd = dpar.shape[0]
+    dc = np.empty((nd, 10))
+    for d in range(nd):
+        k = _substep_coefs(dpar[d])
+        for j in range(10):
+            dc[d, j] = k[j]
+    u_hist = np.empty(n)
+    du_hist = np.empty((n, nd))
+    dp, dv, df, di = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
+    dud = np.zeros(nd)
+    p, v, f, i = p0, 0.0, 0.0, 0.0
+    for k in range(n):
+        out_p[k] = p
+        u_hist[k] = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
+        for d in range(nd):
+            out_dp[k, d] = dp[d]
+            du_hist[k, d] = -kp_si[k] * dp[d]
+        m = k - dead
+        ud = u_hist[m] if m >= 0 else 0.0  # the dead-time line starts empty (at rest)
+        for d in range(nd):
+            dud[d] = du_hist[m, d] if m >= 0 else 0.0
+        p, v, f, i = _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud)
+
+
+def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: float, pd, vd,
+                                kp_si, kf) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate a cascade axis from rest at ``p0`` and the derivatives of its positions.
+
+    Parameters
+    ----------
+    params : ndarray
+        :func:`oga.simulate.axis_params` of a cascade axis (its dead time included).
+    dparams : ndarray, shape (D, len(params))
+        Directions in the packed parameters (e.g. their derivatives with respect to D
+        fitted quantities); only the entries the kernel uses matter (mechanics, PI,
+        friction, lifted map), the others (limits, guards, sizes) are ignored.
+    p0 : float
+    pd, vd, kp_si, kf : ndarray, shape (N,), float64, contiguous
+        Setpoints (m, m/s) and gains (1/s, factor) per sample.
+
+    Returns
+    -------
+    p : ndarray, shape (N,)
+        Positions, m (equal to :func:`oga.simulate.simulate_axis`'s).
+    dp : ndarray, shape (N, D)
+        Their derivatives along each direction, m per unit of the direction.
+    """
+    n = pd.shape[0]
+    out_p, out_dp = np.empty(n), np.empty((n, dparams.shape[0]))
+    _run_sens(params, np.ascontiguousarray(dparams, dtype=np.float64), float(p0), pd, vd, kp_si,
+              kf, int(params[_DEAD]), out_p, out_dp)
+    return out_p, out_dp
