@@ -767,7 +767,7 @@ def simulate_axis(
         An input neither one number nor N of them.
     """
     n = np.shape(pd)[0]
-    # fresh writeable C-contiguous float64 copies: one compiled signature of run
+    # writeable C-contiguous float64 arrays: one compiled signature of run
     pd, vd = _vector(pd, "pd", n), _vector(vd, "vd", n)
     kp, kf_a = _vector(kp_si, "kp_si", n), _vector(kf, "kf", n)
     p_act = np.empty(n)
@@ -813,7 +813,11 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def _vector(x, name: str, n: int) -> np.ndarray:
-    """``x`` (scalar or shape (n,)) as a new float64 array of shape (n,)."""
+    """``x`` (scalar or shape (n,)) as a writeable C-contiguous float64 array of shape (n,):
+    ``x`` itself if it is one (the kernel reads it only), else a new one."""
+    if (isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == (n,)
+            and x.flags.c_contiguous and x.flags.writeable):
+        return x
     out = np.empty(n)
     try:
         out[:] = x
