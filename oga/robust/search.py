@@ -143,15 +143,17 @@ def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range):
     Returns ``(kp, kf, reserve, replays)``: the gains, the reserve, and the baseline's
     replays on every plant of ``scenarios`` (kept: every certificate reuses them).
 
-    Each candidate is replayed in full (:func:`oga.verify.verify`) plant by plant, the
-    plant that exceeded most last time first, until one exceeds a limit; the candidate is
+    Each candidate is replayed in full (:func:`oga.verify.verify`) plant by plant (the
+    corners first, then in the order of the last candidate's excess) until one exceeds a
+    limit; the candidate is
     then refused and the other plants only give their excess (:func:`_replay_excess`: the
     same figures without the contour error), whose largest sets the next reserve.
     """
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     n = len(setpoints)
     reserve = 1.0
-    order = list(range(len(scenarios)))
+    # the corners (the set's extremes) first: where a limit breaks first, usually
+    order = [*range(scenarios.n_monte_carlo, len(scenarios)), *range(scenarios.n_monte_carlo)]
     for k in range(defaults.ROBUST_ROUNDS):
         best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range))
         if best is None:
