@@ -326,6 +326,12 @@ _TABLES: OrderedDict[tuple, tuple[np.ndarray, ...]] = OrderedDict()
 _TABLES_KEPT = 64
 
 
+#: :func:`stable_ends` by (loop key, gain settings): a corner moves X and Y alike (one
+#: computation for both), and a server sees the same uncertainty set again and again.
+_ENDS: OrderedDict[tuple, tuple[float, float]] = OrderedDict()
+_ENDS_KEPT = 1024
+
+
 def _memo(store: OrderedDict, key, kept: int, compute):
     """``store[key]``, computed by ``compute()`` if missing; keeps the ``kept`` latest used."""
     try:
@@ -440,11 +446,19 @@ def stable_ends(machine: Machine, axis: str) -> tuple[float, float]:
     outside the bounds or below the gain margin (``gm = gm(1) - 20 log10 Kp``: no
     crossover search) needs neither the phase margin nor the eigenvalues. The margins that
     are computed are :func:`stable_range`'s (same :func:`_margins`), so the ends are its
-    (tests/test_stability.py compares them over a set of plants). A table
-    :func:`stable_range` already holds is used as is.
+    (tests/test_robust_speed.py compares them over a set of plants). A table
+    :func:`stable_range` already holds is used as is; the ends are memoised by what they
+    depend on (the loop and the gain settings).
     """
     g = machine.gains
     loop_key = _loop_key(machine, axis)
+    return _memo(_ENDS, (loop_key, g.model_dump_json()), _ENDS_KEPT,
+                 lambda: _ends(machine, axis, loop_key))
+
+
+def _ends(machine: Machine, axis: str, loop_key: str) -> tuple[float, float]:
+    """:func:`stable_ends`, computed."""
+    g = machine.gains
     table = _TABLES.get((loop_key, g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm))
     if table is not None:
         r = _summarise(axis, g, *table)
