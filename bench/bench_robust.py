@@ -33,6 +33,7 @@ nothing.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import time
 from pathlib import Path
@@ -41,7 +42,6 @@ for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # one thread, as the real-time target says
 
 from feedplan.read import load_toolpath, read_toolpath  # noqa: E402
-from oga import simulate, stability  # noqa: E402
 from oga.errors import OgaError  # noqa: E402
 from oga.machine import load_machine  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
@@ -75,6 +75,8 @@ def _path(file: Path, lines: int | None):
 def _cold() -> None:
     """Empty the in-process memos (module doc): the stability loops, margin tables and
     ends, and the packed axis parameters."""
+    stability = importlib.import_module("oga.stability")
+    simulate = importlib.import_module("oga.simulate")  # the module, not oga's function
     for memo in (stability._LOOPS, stability._TABLES, stability._ENDS, simulate._PARAMS):
         memo.clear()
 

@@ -150,8 +150,9 @@ class Certificate:
 
 
 def plant_bounds(scenarios: ScenarioSet, axes) -> tuple[dict[str, tuple[float, float]], ...]:
-    """Each plant's stable Kp range per axis of ``axes``, (m/min)/mm (compute once per set:
-    a range costs an eigenvalue sweep)."""
+    """Each plant's stable Kp range per axis of ``axes``, (m/min)/mm: the ends of
+    :func:`oga.stability.stable_range`, by :func:`oga.stability.stable_ends` (compute once
+    per set: a range costs a margin sweep)."""
     return tuple({a: tuple(float(k) for k in stable_ends(plant, a)) for a in axes}
                  for plant in scenarios.plants)
 
