@@ -885,7 +885,7 @@ def _at_rest(params: np.ndarray, pd: np.ndarray, vd: np.ndarray) -> bool:
     Then every command is ``Kp (pd - p) + Kf vd = 0`` exactly, the dead-time line, the PI
     integral and the force stay 0, the friction of a zero velocity is 0 (``tanh(0)``), so the
     kernel would return ``p = pd[0]`` and ``u = 0`` at every sample: the replay is skipped
-    (tests/test_simulate.py compares it with the kernel's, bit for bit). An ARX axis is
+    (tests/test_robust_speed.py compares it with the kernel's, bit for bit). An ARX axis is
     always replayed.
     """
     return (params[_KIND] == _CASCADE and bool(np.all(pd == pd[0]))

@@ -145,9 +145,10 @@ def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range):
 
     Each candidate is replayed in full (:func:`oga.verify.verify`) plant by plant (the
     corners first, then in the order of the last candidate's excess) until one exceeds a
-    limit; the candidate is
-    then refused and the other plants only give their excess (:func:`_replay_excess`: the
-    same figures without the contour error), whose largest sets the next reserve.
+    limit; the candidate is then refused and the other plants only give their excess
+    (:func:`_replay_excess`: the same figures without the contour error), whose largest
+    sets the next reserve. The gains, reserves and replays are those of replaying every
+    plant in full (tests/test_robust_speed.py).
     """
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     n = len(setpoints)
