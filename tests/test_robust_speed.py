@@ -8,7 +8,8 @@
 - :func:`oga.simulate.simulate` skipping an axis whose setpoint never moves, against the
   kernel's own replay of that axis, bit for bit;
 - the robust baseline's limit excess from the simulation alone against the one read from
-  full :func:`oga.verify.verify` replays.
+  full :func:`oga.verify.verify` replays, and the baseline found with it (plants replayed
+  in full only until one exceeds) against the previous loop's (every plant in full).
 """
 
 from collections import OrderedDict
@@ -19,10 +20,13 @@ import pytest
 
 import oga.stability as stability
 from feedplan.read import load_toolpath
+from oga import defaults
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
+from oga.ranges import best_fixed_gains
+from oga.robust.certificate import plant_bounds
 from oga.robust.plants import scenario_set
-from oga.robust.search import _excess, _replay_excess
+from oga.robust.search import _excess, _replay_excess, _robust_baseline, design_machine
 from oga.simulate import axis_params, simulate, simulate_axis
 from oga.verify import verify
 
@@ -119,3 +123,26 @@ def test_replay_excess_equals_the_verified_one():
         assert light == _excess([verify(sp, plant, bkp, bkf, bounds)])
         seen.append(light)
     assert min(seen) < 1.0 < max(seen)  # both sides of the limit are compared
+
+
+def test_robust_baseline_equals_replaying_every_plant_in_full():
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), ROBUST, feed_m_s=None, tol_m=2e-5)
+    scen = scenario_set(ROBUST, n=8, seed=11)
+    bounds = plant_bounds(scen, ("x", "z"))
+    kp_range = (max(b[a][0] for b in bounds for a in "xz"),
+                min(b[a][1] for b in bounds for a in "xz"))
+    kp0, kf0, reserve, replays = _robust_baseline(sp, ROBUST, scen, bounds, kp_range)
+    # the previous loop: every candidate replayed in full on every plant
+    ref_reserve, n = 1.0, len(sp)
+    for k in range(defaults.ROBUST_ROUNDS):
+        best = best_fixed_gains(sp, design_machine(ROBUST, ref_reserve, kp_range))
+        bkp, bkf = np.full((n, 3), float(best.kp["x"])), np.full((n, 3), float(best.kf["x"]))
+        full = [verify(sp, p, bkp, bkf, b) for p, b in zip(scen.plants, bounds)]
+        over = _excess(full)
+        if over <= 1.0:
+            break
+        ref_reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
+    assert k > 0  # a candidate was refused: the excess-only path ran
+    assert (kp0, kf0, reserve) == (float(best.kp["x"]), float(best.kf["x"]), ref_reserve)
+    for got, ref in zip(replays, full, strict=True):
+        assert got.metrics == ref.metrics and np.array_equal(got.u, ref.u)
