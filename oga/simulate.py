@@ -166,13 +166,19 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
         coefficients (``11 + nv + nw``). Zero-padded to the longest over the
         machine's axes, so every axis of a machine has the same P.
     """
-    key = (machine.digest(), axis, lifted)
+    return _params_of(machine.digest(), machine, axis, lifted).copy()
+
+
+def _params_of(digest: str, machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
+    """The memoised packed parameters of :func:`axis_params`, not copied (callers must not
+    write them), by the machine's ``digest`` (once per :func:`simulate`, not per axis)."""
+    key = (digest, axis, lifted)
     if key not in _PARAMS:
         if len(_PARAMS) >= 1024:  # a server sees many machines: keep the memo small (a robust
             # certificate alone asks for 3 axes of ~100 plants; an entry is ~0.5 kB)
             _PARAMS.clear()
         _PARAMS[key] = _pack(machine, axis, lifted)
-    return _PARAMS[key].copy()
+    return _PARAMS[key]
 
 
 #: Packed parameters per (machine digest, axis, lifted): the sub-step matrices cost a
@@ -761,7 +767,7 @@ def simulate_axis(
         An input neither one number nor N of them.
     """
     n = np.shape(pd)[0]
-    # fresh writeable C-contiguous float64 copies: one compiled signature of run
+    # writeable C-contiguous float64 arrays: one compiled signature of run
     pd, vd = _vector(pd, "pd", n), _vector(vd, "vd", n)
     kp, kf_a = _vector(kp_si, "kp_si", n), _vector(kf, "kf", n)
     p_act = np.empty(n)
@@ -807,7 +813,11 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 def _vector(x, name: str, n: int) -> np.ndarray:
-    """``x`` (scalar or shape (n,)) as a new float64 array of shape (n,)."""
+    """``x`` (scalar or shape (n,)) as a writeable C-contiguous float64 array of shape (n,):
+    ``x`` itself if it is one (the kernel reads it only), else a new one."""
+    if (isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == (n,)
+            and x.flags.c_contiguous and x.flags.writeable):
+        return x
     out = np.empty(n)
     try:
         out[:] = x
@@ -868,6 +878,20 @@ def _gain_table(value, name: str, n: int) -> np.ndarray:
     return table
 
 
+def _at_rest(params: np.ndarray, pd: np.ndarray, vd: np.ndarray) -> bool:
+    """Whether a cascade axis started at rest at ``pd[0]`` stays there exactly, whatever the
+    gains: its setpoint never moves (``pd == pd[0]``, ``vd == 0`` at every sample).
+
+    Then every command is ``Kp (pd - p) + Kf vd = 0`` exactly, the dead-time line, the PI
+    integral and the force stay 0, the friction of a zero velocity is 0 (``tanh(0)``), so the
+    kernel would return ``p = pd[0]`` and ``u = 0`` at every sample: the replay is skipped
+    (tests/test_robust_speed.py compares it with the kernel's, bit for bit). An ARX axis is
+    always replayed.
+    """
+    return (params[_KIND] == _CASCADE and bool(np.all(pd == pd[0]))
+            and not bool(np.any(vd)))
+
+
 def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Simulation:
     """Simulate every axis of ``machine`` on ``setpoints``, each from rest at its first setpoint.
 
@@ -906,19 +930,26 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         raise OptionError("kp_m_min_per_mm: gains must be positive")
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
-    moving = setpoints.moving_axes
+    digest = machine.digest() if n else ""
     for c, a in enumerate(AXES):
         pd = np.ascontiguousarray(setpoints.pos[:, c])
         if a not in machine.axes:
-            if c in moving:
+            if c in setpoints.moving_axes:
                 raise MachineError(
                     f"machine {machine.name!r} has no axis {a!r}, but the toolpath moves it"
                 )
             pos[:, c] = pd
             continue
+        if not n:
+            pos[:, c] = pd
+            continue
+        params = _params_of(digest, machine, a)
+        if _at_rest(params, pd, setpoints.vel[:, c]):
+            pos[:, c] = pd  # exact rest: u stays 0 (:func:`_at_rest`)
+            continue
         p_act, u_a = simulate_axis(
-            axis_params(machine, a),
-            pd[0] if n else 0.0,
+            params,
+            pd[0],
             pd,
             setpoints.vel[:, c],
             kp[:, c] * KP_SI_PER_M_MIN_PER_MM,

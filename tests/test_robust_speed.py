@@ -1,0 +1,148 @@
+"""The robust search's faster paths give the numbers of the slower ones they replace.
+
+- the stable Kp range: the loop's response in modal form (``oga.stability._modal``) against
+  the batched solve of ``C (zI - A)^-1 B``, and the ends walked lazily
+  (:func:`oga.stability.stable_ends`) against the whole margin table of the previous
+  :func:`oga.stability.stable_range` (solve path, fresh memo), over the plants of ucp710's
+  default uncertainty set;
+- :func:`oga.simulate.simulate` skipping an axis whose setpoint never moves, against the
+  kernel's own replay of that axis, bit for bit;
+- the robust baseline's limit excess from the simulation alone against the one read from
+  full :func:`oga.verify.verify` replays, and the baseline found with it (plants replayed
+  in full only until one exceeds) against the previous loop's (every plant in full).
+"""
+
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import oga.stability as stability
+from feedplan.read import load_toolpath
+from oga import defaults
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.pipeline import plan_toolpath
+from oga.ranges import best_fixed_gains
+from oga.robust.certificate import plant_bounds
+from oga.robust.plants import scenario_set
+from oga.robust.search import _excess, _replay_excess, _robust_baseline, design_machine
+from oga.simulate import axis_params, simulate, simulate_axis
+from oga.verify import verify
+
+DATA = Path(__file__).parent / "data"
+ROBUST = load_machine("ucp710-robust")
+#: 16 Monte Carlo plants and the 32 corners (the extremes of the set)
+PLANTS = scenario_set(ROBUST, n=16, seed=5).plants
+
+
+@pytest.fixture
+def fresh_memo(monkeypatch):
+    """Empty memos of loops, margin tables and ends (restored afterwards)."""
+    for name in ("_LOOPS", "_TABLES", "_ENDS"):
+        monkeypatch.setattr(stability, name, OrderedDict())
+
+
+def test_modal_response_equals_the_solve_on_every_plant():
+    for plant in PLANTS[::3]:
+        for axis in ("x", "z"):
+            loop = stability._Loop(plant, axis)
+            assert loop.modal is not None  # balanced, the set's loops are far from defective
+            exact = stability._response(loop.a, loop.b, loop.c, loop.w, loop.te)
+            assert np.max(np.abs(loop.h / exact - 1.0)) < 1e-9
+            for w in loop.w[::397]:
+                assert abs(loop.response(float(w)) / stability._response(
+                    loop.a, loop.b, loop.c, np.array([w]), loop.te)[0] - 1.0) < 1e-9
+
+
+def test_modal_form_refused_when_defective():
+    # a Jordan block: eigenvectors (numerically) parallel, so the exact solve is kept
+    a = np.array([[0.5, 1.0, 0.0], [0.0, 0.5, 1.0], [0.0, 0.0, 0.5]])
+    assert stability._modal(a, np.ones((3, 1)), np.ones((1, 3)), 0) is None
+
+
+def test_stable_ends_equal_the_previous_stable_range(fresh_memo, monkeypatch):
+    fast = [stability.stable_ends(p, a) for p in PLANTS for a in ("x", "z")]
+    fast_pm = {(i, a): stability._margins(stability._loop(p, a), 2.0).pm_deg
+               for i, p in enumerate(PLANTS[:6]) for a in ("x", "z")}
+    # the previous implementation: the whole table, every response by the batched solve
+    monkeypatch.setattr(stability, "_modal", lambda *args: None)
+    monkeypatch.setattr(stability, "_LOOPS", OrderedDict())
+    monkeypatch.setattr(stability, "_TABLES", OrderedDict())
+    slow = []
+    for p in PLANTS:
+        for a in ("x", "z"):
+            r = stability.stable_range(p, a)
+            slow.append((r.kp_min, r.kp_max))
+    assert fast == slow
+    assert len(set(slow)) > 3  # the set's plants do have different ranges
+    for (i, a), pm in fast_pm.items():
+        ref = stability._margins(stability._loop(PLANTS[i], a), 2.0).pm_deg
+        assert pm == pytest.approx(ref, abs=1e-8)
+
+
+def test_stable_ends_reads_a_memoised_table_and_reports_an_empty_range(fresh_memo):
+    r = stability.stable_range(ROBUST, "x")
+    assert stability.stable_ends(ROBUST, "x") == (r.kp_min, r.kp_max)
+    data = ROBUST.model_dump(mode="json", exclude_none=True)
+    data["gains"]["pm_min_deg"] = 89.9  # no Kp of the grid has that much phase margin
+    strict = machine_from_dict(data)
+    assert all(np.isnan(stability.stable_ends(strict, "x")))  # walked: no table memoised
+    assert stability.stable_range(strict, "x").status == "empty"
+
+
+@pytest.mark.parametrize("program, still", [("reference_xz.ngc", 1), ("circle_r50_f3000.ngc", 2)])
+def test_still_axis_skipped_gives_the_kernels_bits(program, still):
+    sp = plan_toolpath(load_toolpath(DATA / program), ROBUST, feed_m_s=None, tol_m=2e-5)
+    assert still not in sp.moving_axes
+    n = len(sp)
+    rng = np.random.default_rng(3)
+    kp = rng.uniform(1.0, 3.0, (n, 3))  # gains that vary: nothing to do with rest
+    kf = rng.uniform(0.3, 1.0, (n, 3))
+    for plant in PLANTS[::8] + (ROBUST,):
+        sim = simulate(sp, plant, kp, kf)
+        axis = "xyz"[still]
+        pd = np.ascontiguousarray(sp.pos[:, still])
+        p, u = simulate_axis(axis_params(plant, axis), pd[0], pd, sp.vel[:, still],
+                             kp[:, still] * KP_SI_PER_M_MIN_PER_MM, kf[:, still])
+        assert np.array_equal(sim.pos[:, still], p)
+        assert np.array_equal(sim.u[:, still], u)
+        assert not np.any(u)
+        moving = sp.moving_axes[0]  # the moving axes are replayed, not at rest
+        assert np.any(sim.u[:, moving])
+
+
+def test_replay_excess_equals_the_verified_one():
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), ROBUST, feed_m_s=None, tol_m=2e-5)
+    n = len(sp)
+    bounds = {"x": (1.0, 3.0), "z": (1.0, 3.0)}
+    seen = []
+    for plant, (kp, kf) in zip(PLANTS[::4], [(1.3, 0.9), (2.5, 1.0), (3.0, 0.5), (1.0, 0.7)] * 3):
+        bkp, bkf = np.full((n, 3), kp), np.full((n, 3), kf)
+        light = _replay_excess(sp, plant, bkp, bkf)
+        assert light == _excess([verify(sp, plant, bkp, bkf, bounds)])
+        seen.append(light)
+    assert min(seen) < 1.0 < max(seen)  # both sides of the limit are compared
+
+
+def test_robust_baseline_equals_replaying_every_plant_in_full():
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), ROBUST, feed_m_s=None, tol_m=2e-5)
+    scen = scenario_set(ROBUST, n=8, seed=11)
+    bounds = plant_bounds(scen, ("x", "z"))
+    kp_range = (max(b[a][0] for b in bounds for a in "xz"),
+                min(b[a][1] for b in bounds for a in "xz"))
+    kp0, kf0, reserve, replays = _robust_baseline(sp, ROBUST, scen, bounds, kp_range)
+    # the previous loop: every candidate replayed in full on every plant
+    ref_reserve, n = 1.0, len(sp)
+    for k in range(defaults.ROBUST_ROUNDS):
+        best = best_fixed_gains(sp, design_machine(ROBUST, ref_reserve, kp_range))
+        bkp, bkf = np.full((n, 3), float(best.kp["x"])), np.full((n, 3), float(best.kf["x"]))
+        full = [verify(sp, p, bkp, bkf, b) for p, b in zip(scen.plants, bounds)]
+        over = _excess(full)
+        if over <= 1.0:
+            break
+        ref_reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
+    assert k > 0  # a candidate was refused: the excess-only path ran
+    assert (kp0, kf0, reserve) == (float(best.kp["x"]), float(best.kf["x"]), ref_reserve)
+    for got, ref in zip(replays, full, strict=True):
+        assert got.metrics == ref.metrics and np.array_equal(got.u, ref.u)
