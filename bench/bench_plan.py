@@ -59,7 +59,7 @@ from feedplan.fit import blocks_of
 from feedplan.gcode import parse_gcode
 from feedplan.limits import AxisLimits
 from feedplan.path import Line, Path
-from feedplan.plan import FIT_TOL_FRACTION, plan
+from feedplan.plan import FIT_TOL_FRACTION, plan, program_tolerance_m
 from oga.defaults import TOL_M
 from oga.machine import load_machine
 
@@ -234,7 +234,7 @@ def measure(name: str, text: str, limits: AxisLimits, toppra: bool) -> dict:
         sp = plan(path, limits)
         c2, w2 = time.process_time(), time.perf_counter()
     c_check = time.process_time()
-    chk = check_setpoints(sp, path, limits)
+    chk = check_setpoints(sp, path, limits, tol_m=program_tolerance_m(path, TOL_M))  # G64 P
     c3 = time.process_time()
     row = dict(name=name, samples=len(sp), plan_s=sp.duration, ok=chk.ok, dev_um=chk.max_deviation_m * 1e6,
                vaj=(chk.vel_ratio.max(), chk.acc_ratio.max(), chk.jerk_ratio.max()),
