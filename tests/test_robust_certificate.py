@@ -25,7 +25,7 @@ from oga.simulate import simulate
 from oga.stability import stable_range
 
 DATA = Path(__file__).parent / "data"
-PRESET = Path(__import__("oga").__file__).parent / "presets" / "ucp710-robust.toml"
+PRESET = Path(__import__("oga").__file__).parent / "presets" / "ucp710.toml"
 
 
 def _toml(data: dict, prefix: str = "") -> str:
@@ -83,14 +83,14 @@ def _replay(sp, plant, kp, kf):
 
 @pytest.fixture(scope="module")
 def case():
-    m = load_machine("ucp710-robust")
+    m = load_machine("ucp710")
     sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
-    return m, sp, optimize(sp, m)
+    return m, sp, optimize(sp, m, {"nominal": True})
 
 
 def test_certificate_figures_match_fresh_simulations_on_machine_files(case, tmp_path):
     m, sp, res = case
-    assert "ucp710-robust" in PRESETS
+    assert "ucp710" in PRESETS and m.axes["x"].uncertainty is not None
     scen = scenario_set(m, n=8, seed=4)
     cert = certify_result(res, scen)
     assert len(cert.plants) == 8 + 32
@@ -150,7 +150,7 @@ def test_stable_range_is_found_on_every_plant_of_the_default_set():
     # a corner whose phase reaches -900 deg exactly at Nyquist once broke the crossing search
     from oga.robust.plants import corner_draws, perturbed_machine
 
-    m = load_machine("ucp710-robust")
+    m = load_machine("ucp710")
     for plant in (perturbed_machine(m, f, d) for f, d in corner_draws(m)[1]):
         for a in ("x", "z"):
             rng = stable_range(plant, a)
