@@ -336,3 +336,9 @@ ROBUST_SUBSET = 8
 #: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
 #: be chosen by its median ratio on the typical ones.
 ROBUST_WORST_GOAL = 0.9
+
+# robust default ------------------------------------------------------------------------------
+#: ``nominal`` option's default: False, the robust search (:mod:`oga.robust`) wherever the
+#: machine has an uncertainty set (a machine without one is always searched nominally); True
+#: searches the exact model only, as before issue 17.
+NOMINAL = False
