@@ -78,7 +78,8 @@ class Server:
 
 def submit(server: Server, program: str, name: str) -> str:
     r = server.http.post("/v1/jobs", json={"toolpath": {"format": "gcode", "content": program,
-                                                        "name": name}, "machine": "ucp710"})
+                                                        "name": name}, "machine": "ucp710",
+                                        "options": {"nominal": True}})
     assert r.status_code == 202, r.text
     return r.json()["id"]
 

@@ -23,7 +23,8 @@ FORMATS = "csv,json,c"
 
 
 def batch(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "oga", "batch", *args, "--format", FORMATS],
+    return subprocess.run([sys.executable, "-m", "oga", "batch", *args, "--format", FORMATS,
+                           "--nominal"],
                           capture_output=True, text=True, timeout=timeout)
 
 
