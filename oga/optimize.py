@@ -328,11 +328,6 @@ def optimize(
     if not isinstance(options, OptimizeOptions):
         options = options_from_dict(options)
     t0 = time.perf_counter()
-    if not options.nominal:
-        from oga.robust.plants import uncertain_axes
-
-        if uncertain_axes(machine):
-            return _robust(setpoints, machine, options, progress, t0)
     if options.mode == "full" and options.np_value < defaults.MPC_MIN_NP:
         raise OptionError(
             f"np: full mode needs a window of at least {defaults.MPC_MIN_NP} samples "
@@ -353,6 +348,11 @@ def optimize(
     for a in moving:
         machine.axis(a)
     kp_bounds = _kp_bounds(machine, options, moving, adjusted)
+    if not options.nominal:  # the checks above hold for the robust search too
+        from oga.robust.plants import uncertain_axes
+
+        if uncertain_axes(machine):
+            return _robust(setpoints, machine, options, progress, t0)
     share = _BASELINE_SHARE if options.baseline == "best" else 0.0
     base_kp, base_kf = _baseline(setpoints, machine, options, moving,
                                  None if progress is None else lambda f: progress(share * f))

@@ -128,6 +128,13 @@ def test_robust_default_prints_and_writes_a_certificate_fresh_simulations_confir
     assert "Figure 7. Certificate ok" in html and f"{c['ratio_worst']:.3f}" in html
     fig8 = html.split('<figure id="fig8">')[1].split("</figure>")[0]
     assert c["worst_plant"] in fig8 and fig8.count("<path") >= 2
+    # the service rebuilds the report of a stored job from its table and summary alone
+    from oga.report import render_report, replay_report_data
+
+    rebuilt = render_report(replay_report_data(sp, m, kp, kf, s))
+    for n in (7, 8):
+        assert (rebuilt.split(f'<figure id="fig{n}">')[1].split("</figure>")[0]
+                == html.split(f'<figure id="fig{n}">')[1].split("</figure>")[0])
 
 
 def test_a_table_the_certificate_refuses_is_not_exported_the_baseline_is(tmp_path, capsys,
