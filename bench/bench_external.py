@@ -51,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", nargs="?", default=str(DEFAULT))
     ap.add_argument("--machine", default="ucp710")
-    ap.add_argument("--options", default="{}", help="optimize options as JSON")
+    ap.add_argument("--options", default='{"nominal": true}',
+                    help="optimize options as JSON (default: the nominal search)")
     args = ap.parse_args(argv)
     machine = load_machine(args.machine)
     options = json.loads(args.options)

@@ -44,6 +44,7 @@ from oga.ranges import best_fixed_gains  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7",
+             nominal=True,
              np=50, lam=0.01)
 
 
@@ -92,7 +93,7 @@ def main() -> None:
     optimize(sp, machine, {**PAPER, "np": 5})  # compile / load caches
     for name in ("reference_xz", "circle_r50_f3000@F8000/mcv-op"):  # each machine's kernels
         if name in planned:
-            optimize(*planned[name], {"np": 40})
+            optimize(*planned[name], {"np": 40, "nominal": True})
     print(f"{'toolpath':22s} {'mode':6s} {'samples':>7s} {'base':>7s} {'rms0 um':>8s} "
           f"{'rms um':>8s} {'max0 um':>8s} {'max um':>8s} {'ratio':>7s} {'RT':>8s} {'RT search':>9s}"
           "  status")

@@ -41,6 +41,7 @@ from oga.optimize import optimize  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7",
+             nominal=True,
              np=50, lam=0.01)
 
 

@@ -14,7 +14,7 @@ machine = load_machine("ucp710")
 setpoints = plan(load_toolpath(here / "data" / "reference_xz.ngc"), machine.planning_limits())
 
 options = {"mode": "paper", "baseline": "1.6,0.9", "adjust": "z", "gains": "kp",
-           "kp_range": "1.0,2.7", "np": 50, "lam": 0.01}
+           "kp_range": "1.0,2.7", "np": 50, "lam": 0.01, "nominal": True}  # the exact model
 result = optimize(setpoints, machine, options)
 kp_z = result.searched_schedule.kp_m_min_per_mm[:, 2]
 print(f"searched: Z Kp between {kp_z.min():.2f} and {kp_z.max():.2f} (m/min)/mm, "

@@ -366,3 +366,9 @@ BLEND_MIN_SPEED_SHARE = 0.15
 # identify speed -------------------------------------------------------------------------------
 #: Shortest interval between two progress reports of an identification fit, s.
 IDENT_PROGRESS_EVERY_S = 0.5
+
+# robust default ------------------------------------------------------------------------------
+#: ``nominal`` option's default: False, the robust search (:mod:`oga.robust`) wherever the
+#: machine has an uncertainty set (a machine without one is always searched nominally); True
+#: searches the exact model only, as before issue 17.
+NOMINAL = False

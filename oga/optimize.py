@@ -4,6 +4,12 @@ The stages: the allowed gain ranges (stability per axis, and the best fixed
 gains when the baseline is ``"best"``), the receding-horizon search
 (:mod:`oga.search`), then a replay of both the baseline and the schedule from
 scratch (:mod:`oga.verify`). Every figure of the result comes from the replays.
+
+Where the machine has an uncertainty set (and the ``nominal`` option is off, the
+default), the search is the robust one (:func:`oga.robust.robust_optimize`): the table is
+the robust schedule only if its certificate passes (worst MSE ratio <= 1 over the set's
+plants, no plant where it alone breaks a limit), else the robust baseline's fixed gains,
+exactly as a nominal schedule that fails its replay is refused (``kept_baseline``).
 """
 
 from __future__ import annotations
@@ -11,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -21,6 +27,9 @@ from oga.errors import MachineError, OptionError
 from oga.machine import Machine
 from oga.options import OptimizeOptions, options_from_dict
 from oga.verify import Verification, verify
+
+if TYPE_CHECKING:
+    from oga.robust.certificate import Certificate
 
 __all__ = ["GainSchedule", "OptimizeResult", "optimize", "setpoints_digest"]
 
@@ -89,6 +98,13 @@ class OptimizeResult:
         window (the replay still checks every committed sample).
     windows : int
         Prediction windows simulated.
+    certificate : Certificate or None
+        Robust search: the candidate schedule against the fixed baseline on every plant
+        of the machine's uncertainty set (:mod:`oga.robust.certificate`); None when the
+        search was nominal (``nominal`` option, or a machine without a set).
+    refusal : tuple of str
+        Robust search: why its schedule was refused (the certificate's reasons), empty
+        when it was not.
     """
 
     status: str
@@ -108,6 +124,34 @@ class OptimizeResult:
     optimize_time_s: float
     fallbacks: int
     windows: int
+    certificate: Certificate | None = None
+    refusal: tuple[str, ...] = ()
+
+    @property
+    def robust(self) -> bool:
+        """True when the robust search ran (the result carries a certificate)."""
+        return self.certificate is not None
+
+    @property
+    def kept_baseline_reason(self) -> str:
+        """Why the table holds the baseline's fixed gains ("" when it holds the schedule)."""
+        if not self.kept_baseline:
+            return ""
+        if self.refusal:
+            return "robustness certificate failed: " + "; ".join(self.refusal)
+        if not self.searched.ok:
+            return "failed verification: " + "; ".join(self.searched.violations)
+        return f"MSE ratio {self.search_ratio_mse:.3f} >= 1"
+
+    def search_kind(self) -> str:
+        """How the schedule was searched, in words (for the summary and the CLI)."""
+        if self.robust:
+            return "robust"
+        from oga.robust.plants import uncertain_axes
+
+        if uncertain_axes(self.machine):
+            return "nominal (requested: nominal option)"
+        return "nominal (the machine has no uncertainty set)"
 
     @property
     def ratio_mse(self) -> float:
@@ -152,8 +196,12 @@ class OptimizeResult:
             "optimized": metrics(self.optimized),
             "ratio_mse": self.ratio_mse,
             "kept_baseline": self.kept_baseline,
-            "search": {"status": self.searched.status, "ratio_mse": self.search_ratio_mse,
+            "kept_baseline_reason": self.kept_baseline_reason,
+            "search": {"kind": self.search_kind(), "status": self.searched.status,
+                       "ratio_mse": self.search_ratio_mse,
                        "violations": list(self.searched.violations)},
+            "certificate": (self.certificate.summary() if self.robust
+                            else {"status": "none", "reasons": [self.search_kind()]}),
             "limits_ok": self.optimized.limits_ok,
             "stability_ok": self.optimized.stability_ok,
             "violations": list(self.optimized.violations),
@@ -266,13 +314,14 @@ def optimize(
     OptimizeResult
         ``status`` tells whether the exported schedule passed verification: the
         searched one, or the baseline's fixed gains when the search failed or did
-        not beat them (``kept_baseline``).
+        not beat them, or (robust search) its certificate failed (``kept_baseline``).
 
     Raises
     ------
     OptionError
         Inconsistent options (an adjusted axis that does not move, a Kp range
-        outside the stable range, no feasible baseline).
+        outside the stable range, no feasible baseline; with the robust search, the
+        paper mode or an explicit baseline).
     """
     from oga.simulate import axis_params, rest_state
 
@@ -299,6 +348,11 @@ def optimize(
     for a in moving:
         machine.axis(a)
     kp_bounds = _kp_bounds(machine, options, moving, adjusted)
+    if not options.nominal:  # the checks above hold for the robust search too
+        from oga.robust.plants import uncertain_axes
+
+        if uncertain_axes(machine):
+            return _robust(setpoints, machine, options, progress, t0)
     share = _BASELINE_SHARE if options.baseline == "best" else 0.0
     base_kp, base_kf = _baseline(setpoints, machine, options, moving,
                                  None if progress is None else lambda f: progress(share * f))
@@ -416,3 +470,51 @@ def optimize(
         fallbacks=int(stats[STAT_FALLBACK]),
         windows=int(stats[STAT_WINDOWS]),
     )
+
+
+def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:
+    """:func:`optimize` by the robust search: its schedule if certified, else its baseline,
+    verified on the nominal machine (the same replays and summary as the nominal path)."""
+    from oga.robust.search import robust_optimize
+
+    for field, given, why in (
+            ("mode", options.mode != "full", "the paper's search sees the nominal model only"),
+            ("baseline", options.baseline != "best",
+             "the robust search picks the equal fixed gains that keep the limits on every "
+             "plant of the set")):
+        if given:
+            raise OptionError(
+                f"{field}: {why}; machine {machine.name} has an uncertainty set, so the search "
+                "is robust: add nominal (--nominal) to search its nominal model only")
+    if progress is not None:
+        progress(0.0)
+    rob = robust_optimize(setpoints, machine, options)
+    res = rob.result
+    n = len(setpoints)
+    fixed_kp = np.tile([res.baseline_kp[a] for a in AXES], (n, 1))
+    fixed_kf = np.tile([res.baseline_kf[a] for a in AXES], (n, 1))
+    searched_schedule = rob.schedule if rob.status == "ok" else res.searched_schedule
+    for arr in (fixed_kp, fixed_kf, searched_schedule.kp_m_min_per_mm, searched_schedule.kf):
+        arr.flags.writeable = False
+    baseline = verify(setpoints, machine, fixed_kp, fixed_kf, res.kp_bounds)
+    searched = verify(setpoints, machine, searched_schedule.kp_m_min_per_mm,
+                      searched_schedule.kf, res.kp_bounds)
+    refusal = () if rob.status == "ok" else (rob.certificate.reasons or (
+        "the robust search found no schedule that passes its checks: "
+        + "; ".join(res.searched.violations or ("see its certificate",)),))
+    kept_baseline = bool(refusal) or not (searched.ok
+                                          and searched.metrics.mse_m2 < baseline.metrics.mse_m2)
+    if kept_baseline:
+        schedule, optimized = GainSchedule(kp_m_min_per_mm=fixed_kp, kf=fixed_kf), baseline
+    else:
+        schedule, optimized = searched_schedule, searched
+    if progress is not None:
+        progress(1.0)
+    return OptimizeResult(
+        status=optimized.status, setpoints=setpoints, machine=machine, options=options,
+        schedule=schedule, baseline_kp=dict(res.baseline_kp), baseline_kf=dict(res.baseline_kf),
+        baseline=baseline, optimized=optimized, searched_schedule=searched_schedule,
+        searched=searched, kept_baseline=kept_baseline, adjusted=res.adjusted,
+        kp_bounds=res.kp_bounds, optimize_time_s=time.perf_counter() - t0,
+        fallbacks=res.fallbacks, windows=res.windows, certificate=rob.certificate,
+        refusal=refusal)

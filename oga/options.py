@@ -1,7 +1,7 @@
 """Options of the gain search: one pydantic model for library, CLI and API.
 
 Field names are the CLI flags of ``oga optimize`` (``np``, ``lam``, ``adjust``,
-``gains``, ``baseline``, ``kp_range``, ``feed``, ``tolerance``); unknown keys
+``gains``, ``baseline``, ``kp_range``, ``nominal``, ``feed``, ``tolerance``); unknown keys
 are refused. Defaults come from :mod:`oga.defaults`.
 """
 
@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, StrictBool, ValidationError, field_validator,
+                      model_validator)
 
 from oga import defaults
 from oga.errors import OptionError
@@ -62,6 +63,11 @@ class OptimizeOptions(BaseModel):
         axes' lag, so without it the gains drift there unchecked, and the jerk
         limit then keeps them from coming back in time for the next curve.
         None: the mode's default (:data:`oga.defaults.ANCHOR`).
+    nominal : bool
+        True: search the machine's nominal model only (bit-identical to the search before
+        the robust one). False (:data:`oga.defaults.NOMINAL`): where the machine has an
+        uncertainty set, the robust search (:mod:`oga.robust`) and its certificate; a
+        machine without a set is searched nominally either way.
     feed_mm_per_min : float or None
         Overrides the program's feed.
     tolerance_mm : float
@@ -81,6 +87,7 @@ class OptimizeOptions(BaseModel):
     knot: Annotated[int, Field(ge=2, le=1000)] | None = None
     lam: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     anchor: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    nominal: StrictBool = defaults.NOMINAL
     feed_mm_per_min: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(
         None, alias="feed"
     )

@@ -17,7 +17,13 @@ Figures (x axis: path length s in mm unless stated):
 5. per contouring axis, the following error ``pd - p`` against the machine's limit
    where it sets one;
 6. per contouring axis, the phase and gain margins against Kp with the stable
-   range, the criteria and the gains used.
+   range, the criteria and the gains used;
+
+and, for a table of the robust search (:mod:`oga.robust`), its certificate:
+
+7. the distribution of the MSE ratio schedule / baseline over the plants of the
+   uncertainty set (sorted, with its median, 90th percentile, worst and the bound 1);
+8. the contour error of the schedule and of the baseline on the worst plant.
 
 Long series are decimated (:func:`decimate`): per bucket the first, the smallest
 and the largest sample survive, so peaks are kept.
@@ -37,8 +43,8 @@ from oga.defaults import REPORT_MAX_POINTS
 from oga.machine import Machine
 from oga.verify import Verification
 
-__all__ = ["ReportData", "curvature", "decimate", "render_report", "replay_report_data",
-           "report_data"]
+__all__ = ["CertificateData", "ReportData", "curvature", "decimate", "render_report",
+           "replay_report_data", "report_data"]
 
 #: Colours of the |CE| scale, low to high (viridis-like).
 _CE_COLOURS = ("#440154", "#472d7b", "#3b528b", "#2c728e", "#21918c", "#28ae80", "#5ec962",
@@ -46,6 +52,27 @@ _CE_COLOURS = ("#440154", "#472d7b", "#3b528b", "#2c728e", "#21918c", "#28ae80",
 #: Colours of the series: baseline, optimised/schedule, third (curvature, limits).
 _BASE, _OPT, _GREY, _LIMIT = "#d95f02", "#1b9e77", "#888888", "#c00000"
 _UM, _MM = 1e6, 1e3
+
+
+@dataclass(frozen=True, eq=False)
+class CertificateData:
+    """What figures 7 and 8 draw of a robust table's certificate.
+
+    Attributes
+    ----------
+    summary : dict
+        The summary's ``certificate`` (:meth:`oga.robust.certificate.Certificate.summary`).
+    ratio : ndarray, shape (P,)
+        MSE ratio schedule / baseline per plant.
+    schedule, baseline : Verification
+        Replays of the certified schedule and of the baseline on the worst plant (the same
+        object when the schedule is not at hand: a stored job whose table is the baseline).
+    """
+
+    summary: dict
+    ratio: np.ndarray
+    schedule: Verification
+    baseline: Verification
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,6 +91,8 @@ class ReportData:
         Replays of the fixed baseline gains and of the schedule.
     summary : dict
         The summary JSON (:meth:`oga.optimize.OptimizeResult.summary`).
+    certificate : CertificateData or None
+        The robust search's certificate; None for a nominal search (no figures 7, 8).
     """
 
     setpoints: Setpoints
@@ -73,6 +102,7 @@ class ReportData:
     baseline: Verification
     optimized: Verification
     summary: dict
+    certificate: CertificateData | None = None
 
 
 def report_data(job_or_result) -> ReportData:
@@ -81,9 +111,15 @@ def report_data(job_or_result) -> ReportData:
         return job_or_result
     result = getattr(job_or_result, "result", job_or_result)
     summary = job_or_result.summary()
+    cert = None
+    if result.certificate is not None:
+        worst = result.certificate.worst_plant
+        cert = CertificateData(summary=summary["certificate"], ratio=result.certificate.ratio,
+                               schedule=worst.schedule, baseline=worst.baseline)
     return ReportData(setpoints=result.setpoints, machine=result.machine,
                       kp_m_min_per_mm=result.schedule.kp_m_min_per_mm, kf=result.schedule.kf,
-                      baseline=result.baseline, optimized=result.optimized, summary=summary)
+                      baseline=result.baseline, optimized=result.optimized, summary=summary,
+                      certificate=cert)
 
 
 def replay_report_data(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm: np.ndarray,
@@ -105,6 +141,13 @@ def replay_report_data(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm: 
     ------
     PlanError
         The setpoints are not those the table was computed for.
+
+    Notes
+    -----
+    A robust job's worst plant is drawn again from the machine's set (the summary's seed
+    and counts) and the table's gains and the baseline replayed on it; where the table
+    holds the baseline (the schedule was refused), the refused schedule is not stored and
+    figure 8 shows the baseline alone.
     """
     from oga.errors import PlanError
     from oga.optimize import setpoints_digest
@@ -116,10 +159,27 @@ def replay_report_data(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm: 
     bounds = {a: tuple(b) for a, b in summary["kp_bounds_m_min_per_mm"].items()}
     base_kp = np.tile([summary["baseline"]["kp"][a] for a in AXES], (n, 1))
     base_kf = np.tile([summary["baseline"]["kf"][a] for a in AXES], (n, 1))
+    cert = None
+    sc = summary.get("certificate", {})
+    if "ratio_per_plant" in sc:
+        from oga.robust.plants import scenario_set
+        from oga.stability import stable_range
+
+        scen = scenario_set(machine, n=sc["monte_carlo"], seed=sc["seed"],
+                            corners=sc["corners"] > 0)
+        plant = scen.plants[scen.labels.index(sc["worst_plant"])]
+        pb = {a: (float(r.kp_min), float(r.kp_max))
+              for a, r in ((a, stable_range(plant, a)) for a in bounds)}
+        base = verify(setpoints, plant, base_kp, base_kf, pb)
+        cert = CertificateData(
+            summary=sc, ratio=np.array(list(sc["ratio_per_plant"].values())),
+            schedule=base if summary["kept_baseline"]
+            else verify(setpoints, plant, kp_m_min_per_mm, kf, pb),
+            baseline=base)
     return ReportData(setpoints=setpoints, machine=machine, kp_m_min_per_mm=kp_m_min_per_mm,
                       kf=kf, baseline=verify(setpoints, machine, base_kp, base_kf, bounds),
                       optimized=verify(setpoints, machine, kp_m_min_per_mm, kf, bounds),
-                      summary=summary)
+                      summary=summary, certificate=cert)
 
 
 # --- series helpers -----------------------------------------------------------------------------
@@ -422,12 +482,11 @@ def _fig_gains(d: ReportData, max_points: int) -> tuple[str, str]:
     return _svg(w, y + ph + 40, "".join(body), "gains"), caption
 
 
-def _fig_ce(d: ReportData, max_points: int) -> tuple[str, str]:
-    sp = d.setpoints
+def _ce_panel(sp: Setpoints, series, max_points: int) -> str:
+    """The contour error of replays ``series`` ((ce_um, colour, label), ...) against path
+    length, feed samples only."""
     s = sp.s * _MM
     feed = ~sp.rapid
-    series = [(v.ce * _UM, colour, name) for v, colour, name in
-              ((d.baseline, _BASE, "baseline"), (d.optimized, _OPT, "optimised"))]
     panel = _Panel(80, 28, 960, 200, (s[0], s[-1]),
                    _limits(*(np.where(feed, c, np.nan) for c, _, _ in series), include=[0.0]))
     for ce, colour, _ in series:
@@ -435,7 +494,15 @@ def _fig_ce(d: ReportData, max_points: int) -> tuple[str, str]:
         idx = decimate(ce, max_points)
         panel.line(s[idx], ce[idx], colour)
     panel.legend([(name, colour) for _, colour, name in series])
-    body = [panel.render("s (mm)", "CE (um)")]
+    return panel.render("s (mm)", "CE (um)")
+
+
+def _fig_ce(d: ReportData, max_points: int) -> tuple[str, str]:
+    sp = d.setpoints
+    feed = ~sp.rapid
+    series = [(v.ce * _UM, colour, name) for v, colour, name in
+              ((d.baseline, _BASE, "baseline"), (d.optimized, _OPT, "optimised"))]
+    body = [_ce_panel(sp, series, max_points)]
     mags = [np.abs(c[feed]) for c, _, _ in series]
     top = max(float(m.max(initial=0.0)) for m in mags) or 1.0
     edges = np.linspace(0.0, top, 41)
@@ -548,6 +615,49 @@ def _fig_stability(d: ReportData) -> tuple[str, str]:
     return _svg(1100, y + 10, "".join(body), "stability"), caption
 
 
+def _fig_ratio(c: CertificateData) -> tuple[str, str]:
+    sc = c.summary
+    ratio = np.sort(c.ratio)
+    frac = np.arange(1, len(ratio) + 1) / len(ratio)
+    panel = _Panel(80, 28, 960, 220, _limits(ratio, include=[0.0, 1.0], pad=0.03),
+                   (0.0, 1.02))
+    panel.line(np.concatenate([[ratio[0]], ratio]), np.concatenate([[0.0], frac]), _OPT,
+               width=1.5, step=True)
+    for key, label, colour in (("ratio_median", "median", _GREY), ("ratio_p90", "p90", _GREY),
+                               ("ratio_worst", "worst", _BASE)):
+        panel.vline(sc[key], colour)
+        panel.text(float(panel.px(sc[key])) + 3, 44 if key != "ratio_p90" else 58,
+                   f"{label} {sc[key]:.3f}", colour)
+    panel.vline(1.0, _LIMIT, dash=None)
+    panel.text(float(panel.px(1.0)) - 3, 240, "bound 1", _LIMIT, anchor="end")
+    panel.legend([(f"{sc['plants']} plants ({sc['monte_carlo']} Monte Carlo, seed "
+                   f"{sc['seed']}; {sc['corners']} corners)", _OPT)])
+    body = panel.render("MSE(CE) ratio schedule / baseline on the same plant",
+                        "share of plants")
+    caption = (f"Certificate {sc['status']}: the MSE(CE) ratio of the schedule to the fixed "
+               "baseline on each plant of the machine's uncertainty set, sorted (the share of "
+               "plants at or below each ratio), with the median, 90th percentile and worst, "
+               "and the bound 1 (a worse table is not exported). Plants where a limit breaks: "
+               f"schedule {len(sc['breaks']['schedule'])}, baseline "
+               f"{len(sc['breaks']['baseline'])}, schedule only "
+               f"{len(sc['breaks']['schedule-only'])}.")
+    return _svg(1100, 300, body, "certificate ratio"), caption
+
+
+def _fig_worst_plant(d: ReportData, max_points: int) -> tuple[str, str]:
+    c = d.certificate
+    replays = ((c.baseline, _BASE, "baseline"),) + (
+        () if c.schedule is c.baseline else ((c.schedule, _OPT, "schedule"),))
+    series = [(v.ce * _UM, colour, f"{name}: rms {v.metrics.rms_m * _UM:.3g} um, max "
+               f"{v.metrics.max_abs_m * _UM:.3g} um") for v, colour, name in replays]
+    caption = (f"Contour error on the worst plant of the certificate, {c.summary['worst_plant']} "
+               f"(MSE ratio {c.summary['ratio_worst']:.3f}): the schedule and the fixed baseline "
+               "replayed on it (feed samples; signed for a planar path)."
+               + (" The refused schedule is not stored with the job: the baseline alone."
+                  if c.schedule is c.baseline else ""))
+    return _svg(1100, 280, _ce_panel(d.setpoints, series, max_points), "worst plant"), caption
+
+
 # --- tables and page ------------------------------------------------------------------------------
 
 def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
@@ -618,14 +728,17 @@ def render_report(job_or_result, *, title: str | None = None,
     title = title or f"oga report: {sm['toolpath']}"
     figures = [_fig_path(d, max_points), _fig_gains(d, max_points), _fig_ce(d, max_points),
                _fig_commands(d, max_points), _fig_following(d, max_points), _fig_stability(d)]
+    if d.certificate is not None:
+        figures += [_fig_ratio(d.certificate), _fig_worst_plant(d, max_points)]
     status = sm["status"]
     head = (f"<p>Machine <b>{html.escape(sm['machine'])}</b>, {sm['samples']} samples "
             f"({sm['duration_s']:.3f} s), contouring axes {', '.join(sm['contouring_axes'])}, "
             f"adjusted {', '.join(sm['adjusted'])} ({', '.join(sm['gains'])}). Status "
             f'<b class="status-{html.escape(status)}">{html.escape(status)}</b>; MSE(CE) ratio '
             f"{_cell(sm['ratio_mse'])}"
-            + ("; the searched schedule was not kept, the table holds the baseline gains"
-               if sm["kept_baseline"] else "") + ".</p>")
+            + (f"; the searched schedule was not kept "
+               f"({html.escape(sm.get('kept_baseline_reason', ''))}), the table holds the "
+               "baseline gains" if sm["kept_baseline"] else "") + ".</p>")
     metric_rows = []
     for key in ("mse_ce_um2", "rms_ce_um", "max_ce_um", "p95_ce_um"):
         metric_rows.append((key, sm["baseline"][key], sm["optimized"][key]))
@@ -645,6 +758,8 @@ def render_report(job_or_result, *, title: str | None = None,
     hashes = [("toolpath_sha256", sm["toolpath_sha256"]), ("setpoints_sha256",
               sm["setpoints_sha256"]), ("machine_sha256", sm["machine_sha256"])]
     parts += ["<h2>Hashes and versions</h2>", _table(hashes + _versions(), "meta"),
-              "<h2>Summary and options</h2>", _table(_flatten(sm), "summary"),
+              "<h2>Summary and options</h2>",
+              _table([r for r in _flatten(sm)
+                      if not r[0].startswith("certificate.ratio_per_plant.")], "summary"),
               "</body></html>"]
     return "\n".join(parts)

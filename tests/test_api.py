@@ -27,7 +27,7 @@ DATA = __import__("pathlib").Path(__file__).parent / "data"
 
 #: A short XZ contour (line, arc, line; about 1 s of motion at F3000).
 PROGRAM = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nG2 X13 Z5 I0 K5\nG1 X25 Z5\nM2\n"
-OPTIONS: dict = {}  # the defaults of oga optimize
+OPTIONS: dict = {"nominal": True}  # the nominal search (robust runs: test_robust_cli.py)
 
 
 def body(content: str = PROGRAM, fmt: str = "gcode", **extra) -> dict:
@@ -493,7 +493,8 @@ def test_progress_moves_through_planning_the_baseline_and_the_search():
 
     text = (DATA / "reference_xz.ngc").read_text()
     machine, seen = load_machine("ucp710"), []
-    job = run_job(text, "gcode", machine, options_from_dict({}), progress=seen.append)
+    job = run_job(text, "gcode", machine, options_from_dict({"nominal": True}),
+                  progress=seen.append)
     assert seen == sorted(seen) and seen[-1] == 1.0
     planning = [f for f in seen if f <= PLAN_SHARE]
     grid = [f for f in seen if PLAN_SHARE < f <= PLAN_SHARE + (1 - PLAN_SHARE) / 2]

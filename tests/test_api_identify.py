@@ -196,7 +196,8 @@ def test_halsampler_trace_with_named_columns(client, trace):
 
 def test_machine_of_an_optimisation_job_is_409_and_identify_jobs_cancel(client, trace):
     program = "G21 G90 G18\nG1 X0 Z0 F3000\nG1 X8\nM2\n"
-    opt = client.post("/v1/jobs", json={"toolpath": {"format": "gcode", "content": program}})
+    opt = client.post("/v1/jobs", json={"toolpath": {"format": "gcode", "content": program},
+                                        "options": {"nominal": True}})
     r = client.get(f"/v1/jobs/{opt.json()['id']}/machine")
     assert r.status_code == 409 and "optimises a toolpath" in r.json()["message"]
     assert client.get("/v1/jobs/nope/machine").status_code == 404

@@ -26,7 +26,8 @@ HEALTH_MAX_S = 0.1
 
 
 def _gcode(content: str, name: str) -> dict:
-    return {"toolpath": {"format": "gcode", "content": content, "name": name}}
+    return {"toolpath": {"format": "gcode", "content": content, "name": name},
+            "options": {"nominal": True}}
 
 
 NORMAL = [_gcode(SHORT.replace("F3000", f"F{feed}"), f"short_f{feed}.ngc")

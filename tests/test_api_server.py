@@ -81,7 +81,8 @@ class Server:
 
 def submit(server: Server, program: str, name: str) -> str:
     r = server.http.post("/v1/jobs", json={"toolpath": {"format": "gcode", "content": program,
-                                                        "name": name}, "machine": "ucp710"})
+                                                        "name": name}, "machine": "ucp710",
+                                        "options": {"nominal": True}})
     assert r.status_code == 202, r.text
     return r.json()["id"]
 
@@ -111,7 +112,8 @@ def cli_table(tmp_path_factory) -> str:
     """``oga optimize --out`` on reference_xz.ngc: the table the API must reproduce byte for byte."""
     out = tmp_path_factory.mktemp("cli") / "table.csv"
     subprocess.run([sys.executable, "-m", "oga", "optimize", str(DATA / "reference_xz.ngc"),
-                    "--machine", "ucp710", "--out", str(out)], check=True, capture_output=True)
+                    "--machine", "ucp710", "--nominal", "--out", str(out)], check=True,
+                   capture_output=True)
     return out.read_text()
 
 

@@ -30,13 +30,14 @@ def _default_sigint() -> None:
 
 
 def batch(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "oga", "batch", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "oga", "batch", *args, "--nominal"],
+                          capture_output=True,
                           text=True, timeout=300)
 
 
 @pytest.fixture(scope="module")
 def reference():
-    job = run_job(SHORT, "gcode", load_machine("ucp710"), options_from_dict({}),
+    job = run_job(SHORT, "gcode", load_machine("ucp710"), options_from_dict({"nominal": True}),
                   source="short.ngc")
     assert job.result.status == "ok", job.result.optimized.violations
     return job
@@ -114,7 +115,7 @@ def _start_batch(src: Path, out: Path, *args: str) -> subprocess.Popen:
     pytest itself was started.
     """
     return subprocess.Popen([sys.executable, "-m", "oga", "batch", str(src), "--out", str(out),
-                             *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             "--nominal", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True, preexec_fn=_default_sigint)
 
 

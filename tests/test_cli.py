@@ -38,7 +38,7 @@ def test_plan_writes_setpoints_and_summary(tmp_path, capsys):
 def test_optimize_writes_table_and_summary(tmp_path):
     out, summ = tmp_path / "t.csv", tmp_path / "s.json"
     code = main(["optimize", str(DATA / "short_xz.ngc"), "--baseline", "1.6,0.9", "--adjust", "z",
-                 "--gains", "kp", "--kp-range", "1.0,2.7", "--mode", "paper",
+                 "--gains", "kp", "--kp-range", "1.0,2.7", "--mode", "paper", "--nominal",
                  "--out", str(out), "--summary", str(summ)])
     assert code == 0
     s = json.loads(summ.read_text())
@@ -59,7 +59,7 @@ def test_optimize_with_a_following_error_limit_in_the_machine_file(tmp_path, cap
     machine = tmp_path / "mill.toml"
     machine.write_text(text)
     out, summ = tmp_path / "t.csv", tmp_path / "s.json"
-    assert main(["optimize", str(DATA / "short_xz.ngc"), "--machine", str(machine),
+    assert main(["optimize", str(DATA / "short_xz.ngc"), "--machine", str(machine), "--nominal",
                  "--out", str(out), "--summary", str(summ)]) == 0
     printed = capsys.readouterr().out
     assert "(limit 150.0)" in printed and "limits ok" in printed
@@ -68,7 +68,7 @@ def test_optimize_with_a_following_error_limit_in_the_machine_file(tmp_path, cap
     assert 0.0 < s["ferror_ratio_to_limit"]["x"] <= 1.0 and s["ferror_ratio_to_limit"]["z"] is None
     # a limit no equal fixed gains keep: exit 2, naming the option to give
     machine.write_text(text.replace("ferror_max_m = 1.5e-4", "ferror_max_m = 1e-6"))
-    assert main(["optimize", str(DATA / "short_xz.ngc"), "--machine", str(machine),
+    assert main(["optimize", str(DATA / "short_xz.ngc"), "--machine", str(machine), "--nominal",
                  "--out", str(out)]) == 2
     assert "following-error" in capsys.readouterr().err
 
@@ -93,7 +93,8 @@ def test_bad_machine_and_option_exit_2(tmp_path, capsys):
     assert "nosuch" in capsys.readouterr().err
     assert main(["optimize", *args, "--np", "0"]) == 2
     assert "np" in capsys.readouterr().err
-    assert main(["optimize", *args, "--kp-range", "1.0,9.0", "--baseline", "3.0,0.8"]) == 2
+    assert main(["optimize", *args, "--kp-range", "1.0,9.0", "--baseline", "3.0,0.8",
+                 "--nominal"]) == 2
 
 
 def oga(*args: str, cwd=None) -> subprocess.CompletedProcess:
@@ -177,7 +178,7 @@ def test_batch_creates_its_output_folder_but_not_its_parents(tmp_path):
     r = oga("batch", str(DATA / "short_xz.ngc"), "--out", str(tmp_path / "new"), "--np", "0")
     _one_line_error(r, "--np")  # bad options: refused before DIR is created
     assert not (tmp_path / "new").exists()
-    r = oga("batch", str(DATA / "short_xz.ngc"), "--out", str(tmp_path / "new"))
+    r = oga("batch", str(DATA / "short_xz.ngc"), "--out", str(tmp_path / "new"), "--nominal")
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in (tmp_path / "new").iterdir()) == [
         "short_xz.csv", "short_xz.summary.json"]

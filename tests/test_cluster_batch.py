@@ -23,7 +23,8 @@ FORMATS = "csv,json,c"
 
 
 def batch(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "oga", "batch", *args, "--format", FORMATS],
+    return subprocess.run([sys.executable, "-m", "oga", "batch", *args, "--format", FORMATS,
+                           "--nominal"],
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -91,7 +92,7 @@ def _processing(client: Client) -> dict[str, list[str]]:
 def test_a_worker_killed_mid_batch_costs_a_retry_only(cluster, programs, local_run, tmp_path):
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "oga", "batch", *programs, "--out", str(out),
-                             "--scheduler", cluster.address, "--format", FORMATS],
+                             "--scheduler", cluster.address, "--format", FORMATS, "--nominal"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     with Client(cluster.address, set_as_default=False) as client:
         workers = {info["name"]: addr
@@ -127,7 +128,7 @@ def test_sigint_cancels_the_batch_tasks_on_the_cluster(cluster, tmp_path):
     for k in range(4):
         (src / f"long{k}.ngc").write_text(LONG.replace("X1000", f"X{1000 + k}"))
     proc = subprocess.Popen([sys.executable, "-m", "oga", "batch", str(src), "--out",
-                             str(tmp_path / "out"), "--scheduler", cluster.address],
+                             str(tmp_path / "out"), "--scheduler", cluster.address, "--nominal"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     with Client(cluster.address, set_as_default=False) as client:
         t_end = time.monotonic() + 120

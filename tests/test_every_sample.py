@@ -68,7 +68,7 @@ FERROR_M = 0.7e-3
 @pytest.mark.parametrize("ferror", [None, FERROR_M])
 def test_exported_schedule_and_baseline_keep_every_limit_at_every_sample(ucp, rapids, ferror):
     machine = ucp if ferror is None else with_ferror(ucp, ferror)
-    r = optimize(rapids, machine, {})
+    r = optimize(rapids, machine, {"nominal": True})
     assert r.status == "ok" and not r.kept_baseline and r.ratio_mse < 0.5
     kp = r.schedule.kp_m_min_per_mm
     if ferror is None:  # the search did act during the rapids
@@ -145,7 +145,7 @@ def test_an_impossible_stability_margin_is_named(ucp, tmp_path, capsys):
     data["gains"]["pm_min_deg"] = 89.0  # ucp710's best phase margin is 88.7 deg (Kp 0.5)
     with pytest.raises(MachineError, match=r"no Kp of the grid meets PM >= 89.0 deg, GM >= 10"):
         optimize(plan(load_toolpath(DATA / "short_xz.ngc"), ucp.planning_limits()),
-                 machine_from_dict(data), {})
+                 machine_from_dict(data), {"nominal": True})
     path = tmp_path / "pm89.json"
     path.write_text(machine_from_dict(data).model_dump_json())
     out = tmp_path / "t.csv"
@@ -159,7 +159,7 @@ def test_an_impossible_stability_margin_is_named(ucp, tmp_path, capsys):
 def test_report_shades_the_rapids_on_the_command_and_following_error_figures(ucp, rapids):
     from oga.report import render_report
 
-    r = optimize(rapids, ucp, {})
+    r = optimize(rapids, ucp, {"nominal": True})
     edges = np.flatnonzero(np.diff(np.r_[0, rapids.rapid.astype(int), 0]))
     runs = len(edges) // 2
     assert runs == 2  # the two G0 moves of the program

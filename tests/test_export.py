@@ -35,7 +35,7 @@ SOURCE = 'we"ird\\ n\u00e4me??=.ngc'
 
 @pytest.fixture(scope="module")
 def job():
-    job = run_job(PROGRAM, "gcode", load_machine("ucp710"), options_from_dict({}),
+    job = run_job(PROGRAM, "gcode", load_machine("ucp710"), options_from_dict({"nominal": True}),
                   source=SOURCE)
     assert job.result.status == "ok", job.result.optimized.violations
     return job

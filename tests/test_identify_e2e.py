@@ -47,7 +47,7 @@ def setup():
     program = excite_program(base, ["x", "z"], travel_mm=50.0)
     sp = plan_toolpath(read_toolpath(program, "gcode"), base, feed_m_s=None, tol_m=2e-5)
     ref = plan_toolpath(load_toolpath(DATA), base, feed_m_s=None, tol_m=2e-5)
-    with_truth = optimize(ref, true, {})
+    with_truth = optimize(ref, true, {"nominal": True})
     return base, true, sp, ref, with_truth
 
 
@@ -108,7 +108,7 @@ def test_identified_table_holds_on_the_true_plant(setup, case):
     if case == "late_act":
         assert all(f.lag_samples == 1 for f in ident.fits.values())
     assert ident.machine.timing.dead_time_samples == true.timing.dead_time_samples
-    table = optimize(ref, ident.machine, {}).schedule
+    table = optimize(ref, ident.machine, {"nominal": True}).schedule
     replay = verify(ref, true, table.kp_m_min_per_mm, table.kf, with_truth.kp_bounds)
     ratio = replay.metrics.mse_m2 / with_truth.baseline.metrics.mse_m2
     assert replay.ok, replay.violations

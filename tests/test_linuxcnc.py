@@ -42,7 +42,8 @@ POST = 50
 
 def _job(name):
     text, fmt = read_file(DATA / name)
-    job = run_job(text, fmt, load_machine("ucp710"), options_from_dict(None), source=name)
+    job = run_job(text, fmt, load_machine("ucp710"), options_from_dict({"nominal": True}),
+                  source=name)
     assert job.result.status == "ok"
     return job
 
@@ -390,7 +391,7 @@ def test_api_table_format_linuxcnc_is_a_zip_of_the_files(ref, tmp_path):
     with TestClient(app) as client:
         job_id = client.post("/v1/jobs", json={
             "toolpath": {"format": "gcode", "content": text, "name": "reference_xz.ngc"},
-            "machine": "ucp710", "options": {}}).json()["id"]
+            "machine": "ucp710", "options": {"nominal": True}}).json()["id"]
         store = app.state.store
         run_claimed(store, store.claim(_owner(12345)))
         r = client.get(f"/v1/jobs/{job_id}/table", params={"format": "linuxcnc"})

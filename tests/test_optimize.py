@@ -26,7 +26,8 @@ from oga.simulate import simulate
 from oga.verify import command_ratios, verify
 
 DATA = Path(__file__).parent / "data"
-PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7")
+PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7",
+             nominal=True)  # the exact-model search (ucp710 has an uncertainty set)
 
 
 def eq2_peaks(u, te, mask):
@@ -114,14 +115,14 @@ def test_verify_checks_the_following_error_limit(short, machine):
 
 
 def test_full_mode_keeps_the_following_error_limit(short, machine):
-    free = optimize(short, machine, {})
+    free = optimize(short, machine, {"nominal": True})
     limit = 0.15e-3  # below the free schedule's lag on both axes, and the best fixed gains'
     assert np.all(_lag(short, machine, free.schedule.kp_m_min_per_mm,
                        free.schedule.kf)[[0, 2]] > limit)
     base = free.baseline_kp["x"], free.baseline_kf["x"]
     assert _lag(short, machine, *base)[0] > limit
     m = _with_ferror(machine, x=limit, z=limit)
-    r = optimize(short, m, {})
+    r = optimize(short, m, {"nominal": True})
     assert r.status == "ok" and not r.kept_baseline
     assert r.ratio_mse <= 0.35
     # the best fixed gains are those that keep it, the schedule keeps it: fresh replays
@@ -136,7 +137,7 @@ def test_full_mode_keeps_the_following_error_limit(short, machine):
     assert r.summary()["baseline"]["violations"] == []
     # fixed gains given by the user that break the limit: the schedule keeps it, the
     # summary says the baseline does not
-    r = optimize(short, m, {"baseline": "3.0,0.8"})
+    r = optimize(short, m, {"nominal": True, "baseline": "3.0,0.8"})
     assert r.status == "ok" and np.all(
         _lag(short, m, r.schedule.kp_m_min_per_mm, r.schedule.kf)[[0, 2]] <= limit)
     assert any("axis x: following error" in v for v in r.summary()["baseline"]["violations"])
@@ -149,7 +150,7 @@ def test_full_mode_restores_feasibility_when_a_limit_lies_ahead(short, machine, 
     # falls behind until eq. 2 breaks inside a commit
     limit = 0.3e-3
     m = _with_ferror(machine, x=limit, z=limit)
-    r = optimize(short, m, {"baseline": "1.0,0.0"})
+    r = optimize(short, m, {"nominal": True, "baseline": "1.0,0.0"})
     assert r.status == "ok" and not r.kept_baseline and r.fallbacks == 0
     kp, kf = r.schedule.kp_m_min_per_mm, r.schedule.kf
     assert np.all(_lag(short, m, kp, kf)[[0, 2]] <= limit)
@@ -159,7 +160,7 @@ def test_full_mode_restores_feasibility_when_a_limit_lies_ahead(short, machine, 
         v, a, j = eq2_peaks(sim.u[:, k], short.dt, slice(None))
         assert v <= lim.vmax_m_s[k] and a <= lim.amax_m_s2[k] and j <= lim.jmax_m_s3[k] * (1 + 1e-9)
     monkeypatch.setattr(defaults, "MPC_RESTORE", 0)
-    r0 = optimize(short, m, {"baseline": "1.0,0.0"})
+    r0 = optimize(short, m, {"nominal": True, "baseline": "1.0,0.0"})
     assert r0.fallbacks > 0 and not r0.searched.ok and r0.status == "failed"
 
 
@@ -178,11 +179,11 @@ def test_full_mode_sees_an_axis_settle_after_it_stops(machine, monkeypatch):
                                             base["kf"]["x"]).pos)[feed]
         return np.mean(ce**2) / np.mean(ce0**2)
 
-    r = optimize(sp, machine, {})
+    r = optimize(sp, machine, {"nominal": True})
     assert r.status == "ok" and not r.kept_baseline
     assert ratio(r) == pytest.approx(r.ratio_mse, rel=1e-9) and r.ratio_mse <= 0.35
     monkeypatch.setattr(defaults, "MPC_SETTLE_TAIL", 0)
-    r0 = optimize(sp, machine, {})
+    r0 = optimize(sp, machine, {"nominal": True})
     assert r0.status == "ok" and ratio(r0) > 1.3 * r.ratio_mse  # measured 0.51 against 0.30
 
 
@@ -219,7 +220,7 @@ def test_paper_mode_follows_the_published_rules(short, machine):
 
 
 def test_full_mode_beats_the_fixed_baseline_within_every_limit(short, machine):
-    r = optimize(short, machine, {"baseline": "3.0,0.8"})
+    r = optimize(short, machine, {"nominal": True, "baseline": "3.0,0.8"})
     assert r.status == "ok"
     assert r.ratio_mse <= 0.35  # the target of the full mode
     kp, kf = r.schedule.kp_m_min_per_mm, r.schedule.kf
@@ -238,7 +239,7 @@ def test_full_mode_beats_the_fixed_baseline_within_every_limit(short, machine):
 
 
 def test_exported_table_is_never_worse_than_the_baseline(short, machine):
-    for opts in (PAPER, {"baseline": "3.0,0.8"}):
+    for opts in (PAPER, {"nominal": True, "baseline": "3.0,0.8"}):
         r = optimize(short, machine, opts)
         worse = not r.searched.ok or r.search_ratio_mse >= 1.0
         assert r.kept_baseline == worse
@@ -253,7 +254,7 @@ def test_full_mode_meets_the_target_on_a_circle_at_another_feed(machine):
     # both axes reverse twice per turn (friction glitches); the target holds there too
     sp = plan(load_toolpath(DATA / "circle_r50_f3000.ngc"), machine.planning_limits(),
               feed_m_s=5000 / 60e3)
-    r = optimize(sp, machine)
+    r = optimize(sp, machine, {"nominal": True})
     assert r.status == "ok" and not r.kept_baseline and r.adjusted == ("x", "y")
     assert r.ratio_mse <= 0.35
     assert r.optimized.metrics.max_abs_m < r.baseline.metrics.max_abs_m
@@ -266,7 +267,7 @@ def test_full_mode_not_trapped_at_sharp_corners_where_the_planner_stops(machine)
     # held one axis's gains at their bounds, MSE 39000 times the baseline's (the table
     # fell back to the fixed gains). The search must measure what the replay measures.
     sp = plan(load_toolpath(DATA / "sharp_corners_xy.ngc"), machine.planning_limits())
-    r = optimize(sp, machine)
+    r = optimize(sp, machine, {"nominal": True})
     assert r.status == "ok" and not r.kept_baseline
     assert r.search_ratio_mse <= 0.35
 
@@ -278,7 +279,7 @@ def test_full_mode_window_whose_commit_does_not_divide_the_progress_chunk(machin
     # spline interval once shifted the carried plan wrongly (a Kp step of 0.65 per sample,
     # eq. 2 broken). reference_xz has 3004 samples: two calls.
     sp = plan(load_toolpath(DATA / "reference_xz.ngc"), machine.planning_limits())
-    r = optimize(sp, machine, {"np": 300})
+    r = optimize(sp, machine, {"nominal": True, "np": 300})
     assert r.searched.ok and not r.kept_baseline
     assert np.max(r.searched.max_dkp_per_sample) < 0.1
     assert r.search_ratio_mse <= 0.35
@@ -291,16 +292,16 @@ def test_full_mode_window_options(short, machine):
     with pytest.raises(OptionError, match="knot: only full mode"):
         options_from_dict({"mode": "paper", "knot": 10})
     with pytest.raises(OptionError, match="knot: the 100-sample window needs at least 3"):
-        optimize(short, machine, {"np": 100, "knot": 34})
+        optimize(short, machine, {"nominal": True, "np": 100, "knot": 34})
     with pytest.raises(OptionError, match="np: full mode needs a window of at least 40"):
-        optimize(short, machine, {"np": 39})
+        optimize(short, machine, {"nominal": True, "np": 39})
 
 
 def test_unknown_axis_or_range_outside_stability_refused(short, machine):
     with pytest.raises(OptionError, match="adjust"):
-        optimize(short, machine, {"adjust": "y", "baseline": "3.0,0.8"})
+        optimize(short, machine, {"nominal": True, "adjust": "y", "baseline": "3.0,0.8"})
     with pytest.raises(OptionError, match="stable range"):
-        optimize(short, machine, {"kp_range": "1.0,3.5", "baseline": "3.0,0.8"})
+        optimize(short, machine, {"nominal": True, "kp_range": "1.0,3.5", "baseline": "3.0,0.8"})
 
 
 # --- export ---------------------------------------------------------------------------

@@ -88,6 +88,7 @@ def _run_job(page, server: Server, running_shot: Path | None = None) -> dict:
     moves (or the job has finished, on a machine faster than the page's polling)."""
     finished = ("['succeeded', 'failed', 'cancelled']"
                 ".includes(document.getElementById('job-status').textContent)")
+    page.check("#nominal")  # the nominal search: the robust one is tested in test_robust_cli.py
     page.click("#submit")
     if running_shot is not None:
         page.wait_for_function(f"document.getElementById('job-progress').value > 0 || {finished}",

@@ -82,7 +82,8 @@ def outputs(tmp_path_factory):
     """
     out = tmp_path_factory.mktemp("replay")
     table, summary, setpoints = out / "T.csv", out / "S.json", out / "P.csv"
-    assert main(["optimize", str(PROGRAM), "--out", str(table), "--summary", str(summary)]) == 0
+    assert main(["optimize", str(PROGRAM), "--out", str(table), "--summary", str(summary),
+                 "--nominal"]) == 0
     assert main(["plan", str(PROGRAM), "--out", str(setpoints)]) == 0
     return {
         "table": read_csv(table),

@@ -22,7 +22,7 @@ from oga.report import _command_derivatives, curvature, decimate, render_report
 
 DATA = Path(__file__).parent / "data"
 PAPER = {"mode": "paper", "baseline": "1.6,0.9", "adjust": "z", "gains": "kp",
-         "kp_range": "1.0,2.7"}
+         "kp_range": "1.0,2.7", "nominal": True}  # the exact-model search
 #: The figures: path, gains/curvature, contour error, velocity command, following error,
 #: stability.
 FIGURES = 6
@@ -30,7 +30,8 @@ FIGURES = 6
 
 def _job(options: dict):
     text = (DATA / "short_xz.ngc").read_text()
-    return run_job(text, "gcode", load_machine("ucp710"), options_from_dict(options),
+    return run_job(text, "gcode", load_machine("ucp710"),
+                   options_from_dict({"nominal": True, **options}),
                    source="short_xz.ngc")
 
 
@@ -160,7 +161,7 @@ def test_following_error_figure_draws_the_limit_where_set(full_job):
     for a in ("x", "z"):
         data["axes"][a]["limits"]["ferror_max_m"] = 1.5e-4
     text = (DATA / "short_xz.ngc").read_text()
-    job = run_job(text, "gcode", machine_from_dict(data), options_from_dict({}),
+    job = run_job(text, "gcode", machine_from_dict(data), options_from_dict({"nominal": True}),
                   source="short_xz.ngc")
     limited = figure(render_report(job), 5)
     assert limited.count(">limit</text>") == 2  # one panel per contouring axis
@@ -226,7 +227,7 @@ def test_cli_optimize_writes_the_report(tmp_path):
     out, report = tmp_path / "t.csv", tmp_path / "sub" / "r.html"
     report.parent.mkdir()  # oga creates no folder for an output file
     code = main(["optimize", str(DATA / "short_xz.ngc"), "--baseline", "1.6,0.9", "--adjust", "z",
-                 "--gains", "kp", "--kp-range", "1.0,2.7", "--mode", "paper",
+                 "--gains", "kp", "--kp-range", "1.0,2.7", "--mode", "paper", "--nominal",
                  "--out", str(out), "--report", str(report)])
     assert code == 0 and out.exists()
     page = Page(report.read_text(encoding="utf-8"))

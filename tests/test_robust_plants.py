@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from oga.errors import MachineError
-from oga.machine import FACTOR_FIELDS, load_machine
+from oga.machine import FACTOR_FIELDS, PRESETS, load_machine, machine_from_dict
 from oga.robust.plants import (
     corner_draws,
     monte_carlo_draws,
@@ -14,13 +14,18 @@ from oga.robust.plants import (
     scenario_set,
 )
 
-ROBUST = load_machine("ucp710-robust")
-NOMINAL = load_machine("ucp710")
+ROBUST = load_machine("ucp710")
+_data = ROBUST.model_dump(mode="json", exclude_none=True)
+for _ax in _data["axes"].values():
+    _ax.pop("uncertainty")
+NOMINAL = machine_from_dict(_data)
 
 
-def test_robust_preset_is_ucp710_plus_the_documented_set():
+def test_ucp710_preset_carries_the_documented_set():
     a = ROBUST.model_dump(exclude={"name", "source"})
     b = NOMINAL.model_dump(exclude={"name", "source"})
+    assert "ucp710-robust" not in PRESETS  # the set lives in ucp710 itself
+    assert load_machine("mcv-op").axes["x"].uncertainty is None  # ARX axes: no set (preset doc)
     for ax in a["axes"].values():
         unc = ax.pop("uncertainty")
         assert unc["coulomb_n"] == unc["static_n"] == unc["viscous_n_s_m"] == (0.5, 1.5)

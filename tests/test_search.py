@@ -190,7 +190,8 @@ def test_an_unseen_axis_keeps_its_gain_with_lambda_zero(short, machine):
     """Z rests on its setpoint along the first line: until its motion enters the
     horizon no candidate can change the cost, and the gain must not drift."""
     n_pred = 50
-    r = optimize(short, machine, dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp",
+    r = optimize(short, machine, dict(nominal=True, mode="paper", baseline="1.6,0.9", adjust="z",
+                                      gains="kp",
                                       kp_range="1.0,2.7", np=n_pred, lam=0.0))
     kpz = r.searched_schedule.kp_m_min_per_mm[:, 2]
     z_starts = int(np.argmax(np.abs(short.vel[:, 2]) > 0.0))
@@ -206,7 +207,7 @@ def test_the_choice_is_the_least_cost_combination(short, machine, adjust):
     window keeps eq. 2, or violates it least), with the contour error of each
     predicted point to the polyline computed directly."""
     n_pred, lam = 30, 0.01
-    r = optimize(short, machine, dict(mode="paper", baseline="1.6,0.9", adjust=adjust,
+    r = optimize(short, machine, dict(nominal=True, mode="paper", baseline="1.6,0.9", adjust=adjust,
                                       gains="kp", kp_range="1.0,2.7", np=n_pred, lam=lam))
     kp_s = r.searched_schedule.kp_m_min_per_mm
     pd = np.ascontiguousarray(short.pos)
@@ -273,7 +274,8 @@ def reference_paper(machine):
     """reference_xz's program, its setpoints and paper mode with the published settings."""
     path = load_toolpath(DATA / "reference_xz.ngc")
     sp = plan(path, machine.planning_limits())
-    r = optimize(sp, machine, dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp",
+    r = optimize(sp, machine, dict(nominal=True, mode="paper", baseline="1.6,0.9", adjust="z",
+                                      gains="kp",
                                    kp_range="1.0,2.7", np=50, lam=0.01))
     return path, sp, r
 

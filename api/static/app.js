@@ -149,6 +149,7 @@ function checked(name) {
 
 function options() {
   const opts = { mode: $("mode").value, gains: checked("gains") };
+  if ($("nominal").checked) opts.nominal = true;
   const adjust = checked("adjust");
   if (adjust.length) opts.adjust = adjust;
   if ($("baseline").value === "fixed") {

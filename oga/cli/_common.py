@@ -66,6 +66,10 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
     p.add_argument("--anchor", type=float, default=None, metavar="MU",
                    help="weight pulling the gains back to the baseline (0: the paper's cost)")
+    p.add_argument("--nominal", action="store_true", default=None,
+                   help="search the machine's nominal model only (default: where the machine "
+                        "has an uncertainty set, as ucp710 has, the robust search and its "
+                        "certificate)")
 
 
 def options_from_args(args: argparse.Namespace, fields: tuple[str, ...] = ()):
@@ -92,7 +96,7 @@ def flag_message(err: OptionError) -> OptionError:
 
 #: The flags of add_search_args and add_toolpath_args that are fields of OptimizeOptions.
 _SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot", "lam",
-                 "anchor", "feed", "tolerance")
+                 "anchor", "nominal", "feed", "tolerance")
 
 
 def load_inputs(args: argparse.Namespace):

@@ -500,8 +500,12 @@ def _line(task: _Task, outcome: dict) -> str:
     if outcome["status"] != "ok":
         return f"FAILED   {outcome['reason']}"
     s = outcome["summary"]
+    cert = s["certificate"]
+    robust = (f", certificate {cert['status']} (median {cert['ratio_median']:.3f}, worst "
+              f"{cert['ratio_worst']:.3f})" if "ratio_worst" in cert else "")
+    kept = f"; baseline kept: {s['kept_baseline_reason']}" if s["kept_baseline"] else ""
     return (f"ok       {FilePath(task.file).name}: MSE ratio {s['ratio_mse']:.3f}, CE rms "
-            f"{s['optimized']['rms_ce_um']:.3f} um ({outcome['time_s']:.1f} s)")
+            f"{s['optimized']['rms_ce_um']:.3f} um{robust}{kept} ({outcome['time_s']:.1f} s)")
 
 
 def _report(tasks, skipped, outcomes: dict[int, dict], out: FilePath, wall_s: float) -> None:

@@ -19,7 +19,7 @@ from oga.cli._common import (
 )
 from oga.cli._progress import ProgressBar
 
-__all__ = ["register", "run"]
+__all__ = ["register", "run", "certificate_lines"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -85,10 +85,13 @@ def run(args: argparse.Namespace) -> int:
         for a in res.adjusted))
     if b["violations"]:  # fixed gains given by the user (the best fixed gains keep the limits)
         print("warning: the baseline's fixed gains break: " + "; ".join(b["violations"]))
+    if res.robust:
+        for line in certificate_lines(summary["certificate"]):
+            print(line)
+    else:
+        print(f"search: {res.search_kind()}")
     if res.kept_baseline:
-        why = ("failed verification: " + "; ".join(res.searched.violations)
-               if not res.searched.ok else f"MSE ratio {res.search_ratio_mse:.3f} >= 1")
-        print(f"warning: the searched schedule was not kept ({why}); "
+        print(f"warning: the searched schedule was not kept ({res.kept_baseline_reason}); "
               "the table holds the baseline's fixed gains")
     if res.status != "ok":
         print("verification FAILED, no table written: " + "; ".join(res.optimized.violations),
@@ -97,3 +100,21 @@ def run(args: argparse.Namespace) -> int:
     write_text(args.out, table_csv(res))
     print(f"limits ok, stability ok -> {args.out}")
     return 0
+
+
+def certificate_lines(cert: dict) -> list[str]:
+    """The certificate of a summary (``summary["certificate"]``) as the lines printed."""
+    br = cert["breaks"]
+    s, b = cert["schedule"], cert["baseline"]
+    axes = [a for a in s["track_max_um"] if s["track_max_um"][a] or b["track_max_um"][a]]
+    return [
+        f"certificate {cert['status']}: {cert['plants']} plants of the uncertainty set "
+        f"({cert['monte_carlo']} Monte Carlo, seed {cert['seed']}; {cert['corners']} corners)",
+        f"  MSE ratio to the fixed baseline: median {cert['ratio_median']:.3f}, "
+        f"p90 {cert['ratio_p90']:.3f}, worst {cert['ratio_worst']:.3f} ({cert['worst_plant']})",
+        f"  plants where a limit breaks: schedule {len(br['schedule'])}, baseline "
+        f"{len(br['baseline'])}, schedule only {len(br['schedule-only'])}",
+        f"  largest CE (um): schedule {s['max_ce_um']:.3f}, baseline {b['max_ce_um']:.3f}; "
+        "largest following error (um): " + ", ".join(
+            f"{a} {s['track_max_um'][a]:.1f} (baseline {b['track_max_um'][a]:.1f})" for a in axes),
+    ]

@@ -65,7 +65,9 @@ def run_oga(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool =
     """The exported schedule of :func:`oga.optimize.optimize`, as its verification replayed it.
 
     ``parameters`` are the optimisation options (:data:`OGA_PARAMETERS`); ``tune`` has
-    no effect (the search is the tuning).
+    no effect (the search is the tuning). The search is nominal unless ``nominal=False``
+    is given: the controllers are compared on the nominal model, against the nominal best
+    fixed gains (``oga optimize`` searches robustly where the machine has an uncertainty set).
 
     Raises
     ------
@@ -76,7 +78,7 @@ def run_oga(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool =
 
     check_parameters("oga", parameters, OGA_PARAMETERS)
     _no_load("oga", load_n)
-    res = optimize(setpoints, machine, parameters)
+    res = optimize(setpoints, machine, {"nominal": True, **parameters})
     kp, kf = res.schedule.kp_m_min_per_mm, res.schedule.kf
     moving = list(setpoints.moving_axes)
     notes = [f"options: mode {res.options.mode}, gains {','.join(res.options.gains)}, "

@@ -146,6 +146,7 @@ class Certificate:
             "breaks": {w: list(self.breaks(w)) for w in ("schedule", "baseline", "schedule-only")},
             "schedule": largest("schedule"),
             "baseline": largest("baseline"),
+            "ratio_per_plant": {p.label: float(r) for p, r in zip(self.plants, self.ratio)},
         }
 
 
