@@ -488,7 +488,7 @@ def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:
                 "is robust: add nominal (--nominal) to search its nominal model only")
     if progress is not None:
         progress(0.0)
-    rob = robust_optimize(setpoints, machine, options)
+    rob = robust_optimize(setpoints, machine, options, progress=progress)
     res = rob.result
     n = len(setpoints)
     fixed_kp = np.tile([res.baseline_kp[a] for a in AXES], (n, 1))

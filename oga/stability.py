@@ -19,7 +19,7 @@ they depend on, not by axis name.
 ``H`` is evaluated in modal form, ``z^-d sum_i r_i / (z - p_i)`` over the poles of the
 balanced axis (:func:`_modal`; the exact solve of ``C (zI - A)^-1 B`` where the poles are
 near-defective): the same values to 1e-13 relative (7e-14 at most over the 96 plants of
-ucp710-robust's default set), several times cheaper. Where only the ends of the stable
+ucp710's default set), several times cheaper. Where only the ends of the stable
 range are wanted (the robust search's ~100 plants), :func:`stable_ends` walks the grid
 upwards and stops where the lowest run ends.
 """

@@ -15,7 +15,7 @@ from oga.pipeline import plan_toolpath
 from oga.robust.certificate import certify
 from oga.robust.multi import multi_search
 from oga.robust.plants import perturbed_machine, scenario_set
-from oga.robust.search import design_machine, robust_optimize
+from oga.robust.search import PROGRESS_ROUNDS, design_machine, robust_optimize
 from oga.stability import stable_range
 from oga.verify import verify
 
@@ -24,12 +24,12 @@ DATA = Path(__file__).parent / "data"
 
 @pytest.fixture(scope="module")
 def short_xz():
-    m = load_machine("ucp710-robust")
+    m = load_machine("ucp710")
     return m, plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
 
 
 def test_design_machine_scales_the_limits_and_cuts_the_kp_bounds_only():
-    m = load_machine("ucp710-robust")
+    m = load_machine("ucp710")
     d = design_machine(m, 0.8, (1.2, 2.3))
     for a in ("x", "y", "z"):
         lim, dl = m.axes[a].limits, d.axes[a].limits
@@ -47,7 +47,11 @@ def _fixed(n, kp, kf):
 def test_robust_table_and_baseline_hold_on_every_plant(short_xz):
     m, sp = short_xz
     scen = scenario_set(m, n=8, seed=9)
-    r = robust_optimize(sp, m, scenarios=scen)
+    seen = []
+    r = robust_optimize(sp, m, scenarios=scen, progress=seen.append)
+    # progress: rising through the stable ranges, every baseline replay and every round
+    assert np.all(np.diff(seen) > 0) and 0 < seen[0] and seen[-1] <= 1.0
+    assert len(seen) > len(scen) and seen[-1] >= PROGRESS_ROUNDS
     n = len(sp)
     kp0, kf0 = r.result.baseline_kp["x"], r.result.baseline_kf["x"]
     bkp, bkf = _fixed(n, kp0, kf0)

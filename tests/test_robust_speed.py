@@ -31,7 +31,7 @@ from oga.simulate import axis_params, simulate, simulate_axis
 from oga.verify import verify
 
 DATA = Path(__file__).parent / "data"
-ROBUST = load_machine("ucp710-robust")
+ROBUST = load_machine("ucp710")
 #: 16 Monte Carlo plants and the 32 corners (the extremes of the set)
 PLANTS = scenario_set(ROBUST, n=16, seed=5).plants
 

@@ -14,6 +14,7 @@ plant where the schedule breaks a check the baseline keeps on that plant.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -168,6 +169,7 @@ def certify(
     scenarios: ScenarioSet | None = None,
     bounds: tuple[dict[str, tuple[float, float]], ...] | None = None,
     baseline_replays: tuple[Verification, ...] | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> Certificate:
     """Replay a schedule and the fixed baseline on every plant of ``machine``'s set.
 
@@ -189,6 +191,8 @@ def certify(
     baseline_replays : tuple of Verification, optional
         The baseline's replays on ``scenarios`` (one per plant, with ``bounds``), when
         already made: a search certifying several tables against one baseline replays it once.
+    progress : callable, optional
+        Called with the share of the plants replayed (0..1) after each plant.
 
     Returns
     -------
@@ -208,6 +212,8 @@ def certify(
             baseline=(verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bnd)
                       if baseline_replays is None else baseline_replays[i]),
         ))
+        if progress is not None:
+            progress((i + 1) / len(scenarios))
     ratio = np.array([p.ratio for p in replays])
     reasons = []
     if ratio.max() > 1.0:

@@ -19,7 +19,7 @@ plan is linearised on every plant around its own prediction, and
   following-error limits times a ``reserve`` (<= 1) that covers the plants outside the
   set; the Kp bounds are the range stable on every plant of the whole scenario set.
 
-Measured on reference_xz (ucp710-robust, baseline Kp 1.3, Kf 0.9, replayed on the nominal
+Measured on reference_xz (ucp710, baseline Kp 1.3, Kf 0.9, replayed on the nominal
 plant, the 32 corners and 8 (first and last item) or 24 Monte Carlo plants; ratios median /
 p90 / worst, limit breaks of the schedule, which the baseline keeps everywhere):
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,7 +137,7 @@ def _replay_excess(setpoints, plant, kp, kf) -> float:
                float(np.nanmax(np.append(ferror, 0.0))))
 
 
-def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range):
+def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range, progress=None):
     """The best equal fixed gains that keep the limits and stability on every plant, found
     as the best fixed gains of a design machine whose limit reserve is cut until they do.
 
@@ -148,21 +149,26 @@ def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range):
     limit; the candidate is then refused and the other plants only give their excess
     (:func:`_replay_excess`: the same figures without the contour error), whose largest
     sets the next reserve. The gains, reserves and replays are those of replaying every
-    plant in full (tests/test_robust_speed.py).
+    plant in full (tests/test_robust_speed.py). ``progress(f)``: f in [0, 1) after each
+    replay, each candidate an equal share of :data:`~oga.defaults.ROBUST_ROUNDS`.
     """
+    progress = _Progress(progress)
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     n = len(setpoints)
     reserve = 1.0
     # the corners (the set's extremes) first: where a limit breaks first, usually
     order = [*range(scenarios.n_monte_carlo, len(scenarios)), *range(scenarios.n_monte_carlo)]
     for k in range(defaults.ROBUST_ROUNDS):
-        best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range))
+        share = 1.0 / defaults.ROBUST_ROUNDS
+        best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range),
+                                progress=lambda f, k=k: progress(share * (k + 0.5 * f)))
         if best is None:
             break
         kp0, kf0 = float(best.kp[moving[0]]), float(best.kf[moving[0]])
         bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
         replays, excess = {}, {}
-        for i in order:
+        for j, i in enumerate(order):
+            progress(share * (k + 0.5 + 0.5 * j / len(order)))
             if max(excess.values(), default=0.0) > 1.0:
                 excess[i] = _replay_excess(setpoints, scenarios.plants[i], bkp, bkf)
             else:
@@ -182,6 +188,7 @@ def robust_optimize(
     machine: Machine,
     options: OptimizeOptions | dict | None = None,
     scenarios: ScenarioSet | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> RobustResult:
     """The robust schedule of ``setpoints`` over ``machine``'s uncertainty set (module doc).
 
@@ -194,6 +201,9 @@ def robust_optimize(
         Full-mode options; ``baseline`` is set by the robust search.
     scenarios : ScenarioSet, optional
         Default :func:`oga.robust.plants.scenario_set` of ``machine``.
+    progress : callable, optional
+        Called with the fraction done (0..1, never falling) after each replay or search step:
+        the stable ranges, the baseline (:data:`PROGRESS_BASELINE`), then the rounds.
 
     Returns
     -------
@@ -215,6 +225,7 @@ def robust_optimize(
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")
+    report = _Progress(progress)
     bounds = plant_bounds(scenarios, moving)
     nominal = perturbed_machine(machine, {}, 0, machine.name)
     nominal_bounds = plant_bounds(ScenarioSet(
@@ -223,8 +234,10 @@ def robust_optimize(
     kp_lo = max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving)
     kp_hi = min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving)
     n = len(setpoints)
-    kp0, kf0, base_reserve, base_replays = _robust_baseline(setpoints, machine, scenarios, bounds,
-                                                            (kp_lo, kp_hi))
+    report(PROGRESS_BOUNDS)
+    kp0, kf0, base_reserve, base_replays = _robust_baseline(
+        setpoints, machine, scenarios, bounds, (kp_lo, kp_hi),
+        report.between(PROGRESS_BOUNDS, PROGRESS_BASELINE))
     bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
     for arr in (bkp, bkf):
         arr.flags.writeable = False
@@ -234,11 +247,15 @@ def robust_optimize(
     rejected: set[int] = set()  # plants whose joining made the schedule worse
     reserve, best, last = base_reserve, None, None
     for rounds in range(1, defaults.ROBUST_ROUNDS + 1):
+        step = (PROGRESS_ROUNDS - PROGRESS_BASELINE) / defaults.ROBUST_ROUNDS
+        lo = PROGRESS_BASELINE + step * (rounds - 1)
+        report(lo)
         found = multi_search(setpoints, (nominal,) + tuple(scenarios.plants[i] for i in active),
                              (base_nominal,) + tuple(base_replays[i] for i in active), options,
                              kp0, kf0, (kp_lo, kp_hi), reserve)
+        report(lo + 0.5 * step)
         cert = certify(setpoints, machine, found.kp, found.kf, bkp, bkf, scenarios, bounds,
-                       base_replays)
+                       base_replays, progress=report.between(lo + 0.5 * step, lo + step))
         only = cert.breaks("schedule-only")
         key = (not _meets_goals(cert), len(only), cert.worst)
         if best is None or key < best[0]:
@@ -259,6 +276,7 @@ def robust_optimize(
         if worst is not None and worst not in active:  # the worst plant joins the search
             active = (active + [worst])[-(defaults.ROBUST_ACTIVE - 1):]
     _key, found, cert, active, reserve = best
+    report(PROGRESS_ROUNDS)
     searched_schedule = GainSchedule(kp_m_min_per_mm=found.kp, kf=found.kf)
     alpha = (1.0, 1.0)
     if cert.worst > defaults.ROBUST_WORST_GOAL or cert.breaks("schedule-only"):
@@ -285,6 +303,27 @@ def robust_optimize(
                         certificate=cert, reserve=reserve, kp_max=kp_hi, rounds=rounds,
                         alpha=alpha, baseline_reserve=base_reserve,
                         active=tuple(scenarios.labels[i] for i in active))
+
+
+#: Progress fractions at the end of the stable ranges, of the baseline and of the rounds
+#: (the shrink and the final replay take the rest).
+PROGRESS_BOUNDS, PROGRESS_BASELINE, PROGRESS_ROUNDS = 0.05, 0.35, 0.95
+
+
+class _Progress:
+    """A progress callback that never falls (or does nothing without one)."""
+
+    def __init__(self, callback: Callable[[float], None] | None):
+        self._callback, self._done = callback, 0.0
+
+    def __call__(self, fraction: float) -> None:
+        if self._callback is not None and fraction > self._done:
+            self._done = min(fraction, 1.0)
+            self._callback(self._done)
+
+    def between(self, lo: float, hi: float) -> Callable[[float], None]:
+        """A callback mapping 0..1 onto ``lo..hi`` of this one."""
+        return lambda f: self(lo + (hi - lo) * f)
 
 
 def _meets_goals(cert: Certificate) -> bool:
