@@ -6,7 +6,7 @@ are imported lazily, so the CLI can read the store's defaults without FastAPI.
 
 from __future__ import annotations
 
-import importlib
+from oga._lazy import lazy_exports
 
 _EXPORTS = {
     "Settings": "api.app",
@@ -18,15 +18,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
-    try:
-        module = _EXPORTS[name]
-    except KeyError:
-        raise AttributeError(f"module 'api' has no attribute {name!r}") from None
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return __all__
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -10,6 +10,8 @@ import importlib
 import sys
 import types
 
+from oga._lazy import lazy_exports
+
 __version__ = "0.1.0"
 
 # name -> module that defines it
@@ -43,16 +45,13 @@ _SUBMODULES = ("compare", "defaults", "export", "identify", "machine", "options"
 __all__ = sorted(_EXPORTS) + ["identify", "__version__"]
 
 
+_export = lazy_exports(globals(), _EXPORTS)[0]
+
+
 def __getattr__(name: str):
     if name in _SUBMODULES:
         return importlib.import_module(f"oga.{name}")  # the import binds it here
-    try:
-        module = _EXPORTS[name]
-    except KeyError:
-        raise AttributeError(f"module 'oga' has no attribute {name!r}") from None
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
+    return _export(name)
 
 
 def __dir__():

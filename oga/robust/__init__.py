@@ -10,7 +10,7 @@ uncertainty set, unless the ``nominal`` option is set. The names below load lazi
 
 from __future__ import annotations
 
-import importlib
+from oga._lazy import lazy_exports
 
 # name -> module that defines it
 _EXPORTS = {
@@ -26,15 +26,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
-    try:
-        module = _EXPORTS[name]
-    except KeyError:
-        raise AttributeError(f"module 'oga.robust' has no attribute {name!r}") from None
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return __all__
+__getattr__, __dir__ = lazy_exports(globals(), _EXPORTS)

@@ -1,0 +1,26 @@
+"""Lazy package attributes: ``package.name`` imports its defining module on first use."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+
+
+def lazy_exports(namespace: dict, exports: dict[str, str]) -> tuple[Callable, Callable]:
+    """The module ``__getattr__`` and ``__dir__`` of a package whose ``exports`` (name ->
+    defining module) load on first use and are then bound in ``namespace`` (its globals)."""
+    package = namespace["__name__"]
+
+    def __getattr__(name: str):
+        try:
+            module = exports[name]
+        except KeyError:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}") from None
+        value = getattr(importlib.import_module(module), name)
+        namespace[name] = value
+        return value
+
+    def __dir__():
+        return sorted(exports)
+
+    return __getattr__, __dir__
