@@ -149,8 +149,8 @@ def test_a_table_the_certificate_refuses_is_not_exported_the_baseline_is(tmp_pat
 
     real = rs.robust_optimize
 
-    def worse(setpoints, machine, options=None, scenarios=None):
-        rob = real(setpoints, machine, options, scenarios)
+    def worse(setpoints, machine, options=None, scenarios=None, progress=None):
+        rob = real(setpoints, machine, options, scenarios, progress)
         n = len(setpoints)
         bkp = np.tile([rob.result.baseline_kp[a] for a in "xyz"], (n, 1))
         bkf = np.tile([rob.result.baseline_kf[a] for a in "xyz"], (n, 1))
