@@ -32,7 +32,7 @@ def test_nominal_schedule_is_bit_identical_to_main(name, samples, digest):
     m = load_machine("ucp710")
     sp = plan_toolpath(load_toolpath(DATA / name), m, feed_m_s=None, tol_m=2e-5)
     assert len(sp) == samples
-    s = optimize(sp, m).searched_schedule
+    s = optimize(sp, m, {"nominal": True}).searched_schedule
     h = hashlib.sha256()
     h.update(np.ascontiguousarray(s.kp_m_min_per_mm).tobytes())
     h.update(np.ascontiguousarray(s.kf).tobytes())
