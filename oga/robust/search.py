@@ -158,8 +158,8 @@ def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range, progress=N
     reserve = 1.0
     # the corners (the set's extremes) first: where a limit breaks first, usually
     order = [*range(scenarios.n_monte_carlo, len(scenarios)), *range(scenarios.n_monte_carlo)]
+    share = 1.0 / defaults.ROBUST_ROUNDS
     for k in range(defaults.ROBUST_ROUNDS):
-        share = 1.0 / defaults.ROBUST_ROUNDS
         best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range),
                                 progress=lambda f, k=k: progress(share * (k + 0.5 * f)))
         if best is None:
@@ -246,8 +246,8 @@ def robust_optimize(
     active: list[int] = []  # plants of the set searched on besides the nominal one
     rejected: set[int] = set()  # plants whose joining made the schedule worse
     reserve, best, last = base_reserve, None, None
+    step = (PROGRESS_ROUNDS - PROGRESS_BASELINE) / defaults.ROBUST_ROUNDS
     for rounds in range(1, defaults.ROBUST_ROUNDS + 1):
-        step = (PROGRESS_ROUNDS - PROGRESS_BASELINE) / defaults.ROBUST_ROUNDS
         lo = PROGRESS_BASELINE + step * (rounds - 1)
         report(lo)
         found = multi_search(setpoints, (nominal,) + tuple(scenarios.plants[i] for i in active),
