@@ -366,3 +366,11 @@ BLEND_MIN_SPEED_SHARE = 0.15
 # identify speed -------------------------------------------------------------------------------
 #: Shortest interval between two progress reports of an identification fit, s.
 IDENT_PROGRESS_EVERY_S = 0.5
+
+# identify start -------------------------------------------------------------------------------
+#: Where the trace records the drive force, the fit starts from its friction: a regression of
+#: the force over the samples moving faster than this (m/s; well above any Stribeck band).
+IDENT_FORCE_REGRESSION_V_M_S = 0.01
+#: The recorded force joins the fit's residual weighted by its noise, taken as at least this
+#: share of its RMS (a drive's force carries model errors far above its sensor noise).
+IDENT_FORCE_NOISE_SHARE = 0.01
