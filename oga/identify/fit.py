@@ -16,14 +16,20 @@ mass, ``Kv``, every friction force and the force limit by one factor leaves ever
 position unchanged (divide the equation of motion by the mass), so they determine
 ``Kv/m``, ``Fc/m``, ...; a fit at the base mass is then the same plant as far as any
 table can tell. Where the trace records the drive force, the force is linear in that
-factor, and the mass is its least-squares solution; every force-like parameter is
-rescaled with it.
+factor: the force joins the residual (weighted by its noise, at least
+``IDENT_FORCE_NOISE_SHARE`` of its RMS) with the factor as an eighth entry of ``x``, the mass
+is the factor's least-squares solution at the optimum and every force-like parameter is
+rescaled with it. Positions alone leave the fit in a low-friction minimum on high friction and
+a slow loop (bench draws 30, 48: Kv and Coulomb 15-60 % low at a residual a few times the
+noise); the force pins the friction, and its regressions (:func:`friction_from_force`,
+:func:`velocity_loop_from_force`) give the second start.
 
 The logging lag ``l`` comes from the steady following error at constant speed
 (:func:`logging_lag`: there the loop's error does not depend on the plant). The dead time
 ``d`` is searched by the nonlinear fit itself (a linear ARX fit of the velocity, tried
 first, picks the wrong delay under encoder quantisation): upwards from 0, each fit from the
-base values, until the residual clearly rises; the least residual wins. Multi-start over the Stribeck velocity (the fit is not convex in it). Confidence intervals from the Jacobian at the optimum,
+base values, until the residual clearly rises (with a force channel: every ``d``); the least
+residual wins. Multi-start over the Stribeck velocity (the fit is not convex in it). Confidence intervals from the Jacobian at the optimum,
 ``cov = (J'J)^-1 s^2`` with ``s^2`` the residual variance.
 """
 
