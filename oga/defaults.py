@@ -374,3 +374,8 @@ IDENT_FORCE_REGRESSION_V_M_S = 0.01
 #: The recorded force joins the fit's residual weighted by its noise, taken as at least this
 #: share of its RMS (a drive's force carries model errors far above its sensor noise).
 IDENT_FORCE_NOISE_SHARE = 0.01
+#: A fit is ``poor`` where its position residual exceeds this many times the trace's noise,
+#: or its force residual this share of the recorded force's RMS (100 bench draws, see
+#: bench/bench_identify.py: right fits 0.1-5 %, wrong minima 19-72 %).
+IDENT_POOR_NOISE_RATIO = 10.0
+IDENT_POOR_FORCE_SHARE = 0.05

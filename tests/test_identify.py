@@ -246,6 +246,31 @@ def _check_recovery(ucp, sp, seed):
         assert abs(fit.values[name] - getattr(true, name)) < 5 * half + 1e-3 * getattr(true, name)
 
 
+def test_a_force_the_model_cannot_explain_is_poor(ucp, excite_short):
+    """Positions of one plant, the force of another (Coulomb friction 500 N more): no fit
+    explains both, and the force residual marks the fit poor."""
+    from oga.defaults import IDENT_POOR_FORCE_SHARE, IDENT_POOR_NOISE_RATIO
+
+    true_machine, kp = random_cascade(ucp, "x", np.random.default_rng(4))
+    cas = true_machine.axis("x").cascade
+    other = true_machine.model_copy(update={"axes": {**true_machine.axes, "x": true_machine.axis(
+        "x").model_copy(update={"cascade": cas.model_copy(update={
+            "coulomb_n": cas.coulomb_n + 500.0, "static_n": cas.static_n + 500.0})})}})
+    ch = synthetic_trace(excite_short, true_machine, ["x"], kp, 0.8, noise_m=1e-7,
+                         quantum_m=1e-7, seed=4)
+    force = synthetic_trace(excite_short, other, ["x"], kp, 0.8, seed=4,
+                            force_noise_n=1.0)["x_force_n"]
+    n = len(excite_short)
+    tr = AxisTrace(cmd_m=ch["x_cmd_m"], act_m=ch["x_act_m"], kp_m_min_per_mm=np.full(n, kp),
+                   kf=np.full(n, 0.8), force_n=force)
+    fit = fit_axis(ucp, "x", tr, excite_short.dt)
+    assert fit.status == "poor"
+    # the force decides: the positions alone pass (8.6 times the noise), the force residual is
+    # 8 % of the force
+    assert fit.residual_rms_m < IDENT_POOR_NOISE_RATIO * fit.noise_rms_m
+    assert fit.force_residual_rms_n > IDENT_POOR_FORCE_SHARE * np.sqrt(np.mean(force ** 2))
+
+
 @pytest.mark.parametrize("delay", [0, 1, 2])
 def test_logging_lag_from_the_steady_following_error(ucp, excite_x, delay):
     from oga.identify.fit import axis_inputs, logging_lag

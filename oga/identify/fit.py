@@ -47,6 +47,8 @@ from oga.defaults import (
     IDENT_FORCE_NOISE_SHARE,
     IDENT_FORCE_REGRESSION_V_M_S,
     IDENT_MAX_DEAD_SAMPLES,
+    IDENT_POOR_FORCE_SHARE,
+    IDENT_POOR_NOISE_RATIO,
     IDENT_PROGRESS_EVERY_S,
     IDENT_STARTS,
 )
@@ -83,8 +85,11 @@ class AxisFit:
     Attributes
     ----------
     status : {"ok", "poor"}
-        ``poor``: the residual RMS exceeds 10x the trace's noise estimate (the model does
-        not explain the trace; the values are then the best the model gives).
+        ``poor``: the residual RMS exceeds ``IDENT_POOR_NOISE_RATIO`` times the trace's noise
+        estimate, or the force residual's ``IDENT_POOR_FORCE_SHARE`` of the recorded force's
+        RMS (the model does not explain the trace; the values are then the best the model
+        gives). On high friction the position residual of a wrong fit can sit as close to the
+        noise as a right one's (bench draw 48: 3.3 times, both); the force tells them apart.
     cascade : Cascade
         The fitted cascade (force limit and friction smoothing from the base).
     dead_time_samples, lag_samples : int
@@ -582,7 +587,10 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     })
     rms = pos_rms(r)
     noise = _noise_rms(model.meas)
-    status = "ok" if rms <= 10 * max(noise, 1e-9) else "poor"
+    status = "ok" if rms <= IDENT_POOR_NOISE_RATIO * max(noise, 1e-9) else "poor"
+    f_level = float(np.sqrt(np.mean(f_meas ** 2))) if f_rms is not None else 0.0
+    if f_rms is not None and f_rms > IDENT_POOR_FORCE_SHARE * f_level:
+        status = "poor"
     return AxisFit(status=status, cascade=cas, dead_time_samples=dead, lag_samples=lag,
                    values=vals, ci_low=los, ci_high=his, mass_identified=tr.force_n is not None,
                    residual_rms_m=rms, noise_rms_m=noise, force_residual_rms_n=f_rms,
