@@ -5,10 +5,12 @@ wide ranges (:func:`oga.identify.sim.random_cascade`: mass 100-2000 kg, friction
 velocity loop 10-80 Hz, Tn 5-30 ms, dead time 0-4 samples); the identification program of
 axis x (about 57 s of motion) is simulated on it at a Kp inside its stable range, Kf 0.8,
 with 0.1 um RMS position noise, 0.1 um quantisation and 1 N RMS force noise; the fit's
-relative errors and CPU time are printed, then the share of draws within the issue's
-bounds (mass, Kv, Tn 5 %, Coulomb 10 % or 2 N, dead time exact).
+relative errors, CPU time, position residual over the noise estimate, force residual as a
+share of the force's RMS and status are printed, then the share of draws within the issue's
+bounds (mass, Kv, Tn 5 %, Coulomb 10 % or 2 N, dead time exact) and the residuals of the fits
+within and out of them (what the ``poor`` thresholds are chosen from).
 
-    python bench/bench_identify.py [--draws N] [--seed S] [--jobs J]
+    python bench/bench_identify.py [--draws N | --only 30,48] [--seed S] [--jobs J]
 """
 
 from __future__ import annotations

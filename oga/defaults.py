@@ -375,7 +375,8 @@ IDENT_FORCE_REGRESSION_V_M_S = 0.01
 #: share of its RMS (a drive's force carries model errors far above its sensor noise).
 IDENT_FORCE_NOISE_SHARE = 0.01
 #: A fit is ``poor`` where its position residual exceeds this many times the trace's noise,
-#: or its force residual this share of the recorded force's RMS (100 bench draws, see
-#: bench/bench_identify.py: right fits 0.1-5 %, wrong minima 19-72 %).
+#: or its force residual this share of the recorded force's RMS (100 bench draws of
+#: bench/bench_identify.py: fits within the bounds 0.15-4.6 %, p95 1.2 %; the 3 out 7.7-28 %;
+#: the position ratio separates nothing below 10: right fits up to 18.7, p95 1.16).
 IDENT_POOR_NOISE_RATIO = 10.0
 IDENT_POOR_FORCE_SHARE = 0.05

@@ -272,6 +272,12 @@ def logging_lag(cmd, ff, kp_si, kf, meas, dt: float) -> int:
     return int(np.clip(np.round(np.median(extra)), 0, _MAX_LAG))
 
 
+def _smooth_rate(x: np.ndarray, dt: float) -> np.ndarray:
+    """Centred difference of ``x`` per second, averaged over 5 samples (against the encoder's
+    noise), shape of ``x``."""
+    return np.convolve(np.gradient(x, dt), np.ones(5) / 5, mode="same")
+
+
 def friction_from_force(meas, force, dt: float, v_min: float = IDENT_FORCE_REGRESSION_V_M_S):
     """Mass, Coulomb and viscous friction from a recorded drive force: least squares of
     ``F = m a + Fc sign(v) + B v`` over the samples moving faster than ``v_min`` (m/s; well
@@ -293,9 +299,8 @@ def friction_from_force(meas, force, dt: float, v_min: float = IDENT_FORCE_REGRE
         None where fewer than 100 samples move that fast, the columns are degenerate or the
         result is not physical (mass <= 0).
     """
-    k = np.ones(5) / 5
-    v = np.convolve(np.gradient(meas, dt), k, mode="same")
-    a = np.convolve(np.gradient(v, dt), k, mode="same")
+    v = _smooth_rate(meas, dt)
+    a = _smooth_rate(v, dt)
     use = np.abs(v) > v_min
     use[:5] = use[-5:] = False
     if use.sum() < 100:
@@ -328,7 +333,7 @@ def velocity_loop_from_force(u, meas, force, dt: float, max_dead: int):
         None where no dead time gives a positive Kv and Tn.
     """
     n = meas.size
-    v = np.convolve(np.gradient(meas, dt), np.ones(5) / 5, mode="same")
+    v = _smooth_rate(meas, dt)
     force = np.asarray(force, dtype=np.float64)
     best = None
     for d in range(min(max_dead, n - 1) + 1):
