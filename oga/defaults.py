@@ -372,3 +372,17 @@ IDENT_PROGRESS_EVERY_S = 0.5
 #: machine has an uncertainty set (a machine without one is always searched nominally); True
 #: searches the exact model only, as before issue 17.
 NOMINAL = False
+
+# identify start -------------------------------------------------------------------------------
+#: Where the trace records the drive force, the fit starts from its friction: a regression of
+#: the force over the samples moving faster than this (m/s; well above any Stribeck band).
+IDENT_FORCE_REGRESSION_V_M_S = 0.01
+#: The recorded force joins the fit's residual weighted by its noise, taken as at least this
+#: share of its RMS (a drive's force carries model errors far above its sensor noise).
+IDENT_FORCE_NOISE_SHARE = 0.01
+#: A fit is ``poor`` where its position residual exceeds this many times the trace's noise,
+#: or its force residual this share of the recorded force's RMS (100 bench draws of
+#: bench/bench_identify.py: fits within the bounds 0.15-4.6 %, p95 1.2 %; the 3 out 7.7-28 %;
+#: the position ratio separates nothing below 10: right fits up to 18.7, p95 1.16).
+IDENT_POOR_NOISE_RATIO = 10.0
+IDENT_POOR_FORCE_SHARE = 0.05

@@ -40,7 +40,7 @@ from oga.simulate import (
     friction_and_slope,
 )
 
-__all__ = ["positions_and_sensitivities"]
+__all__ = ["positions_and_sensitivities", "forces_and_sensitivities"]
 
 
 @njit(cache=True, inline="always")
@@ -111,7 +111,7 @@ def _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud):
 
 
 @njit(cache=True)
-def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp):
+def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp, out_f, out_df):
     n = pd.shape[0]
     nd = dpar.shape[0]
     dc = np.empty((nd, 10))
@@ -126,9 +126,11 @@ def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp):
     p, v, f, i = p0, 0.0, 0.0, 0.0
     for k in range(n):
         out_p[k] = p
+        out_f[k] = f
         u_hist[k] = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
         for d in range(nd):
             out_dp[k, d] = dp[d]
+            out_df[k, d] = df[d]
             du_hist[k, d] = -kp_si[k] * dp[d]
         m = k - dead
         ud = u_hist[m] if m >= 0 else 0.0  # the dead-time line starts empty (at rest)
@@ -160,8 +162,23 @@ def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: flo
     dp : ndarray, shape (N, D)
         Their derivatives along each direction, m per unit of the direction.
     """
-    n = pd.shape[0]
-    out_p, out_dp = np.empty(n), np.empty((n, dparams.shape[0]))
+    p, dp, _, _ = forces_and_sensitivities(params, dparams, p0, pd, vd, kp_si, kf)
+    return p, dp
+
+
+def forces_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: float, pd, vd,
+                             kp_si, kf):
+    """:func:`positions_and_sensitivities` with the drive force (the force lag's output, as
+    :func:`oga.identify.sim.simulate_forces` records it) and its derivatives too.
+
+    Returns
+    -------
+    p, dp, f, df : ndarray, shapes (N,), (N, D), (N,), (N, D)
+        Positions (m), forces (N) and their derivatives along each direction.
+    """
+    n, nd = pd.shape[0], dparams.shape[0]
+    out_p, out_dp = np.empty(n), np.empty((n, nd))
+    out_f, out_df = np.empty(n), np.empty((n, nd))
     _run_sens(params, np.ascontiguousarray(dparams, dtype=np.float64), float(p0), pd, vd, kp_si,
-              kf, int(params[_DEAD]), out_p, out_dp)
-    return out_p, out_dp
+              kf, int(params[_DEAD]), out_p, out_dp, out_f, out_df)
+    return out_p, out_dp, out_f, out_df
