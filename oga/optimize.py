@@ -496,9 +496,10 @@ def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:
     searched_schedule = rob.schedule if rob.status == "ok" else res.searched_schedule
     for arr in (fixed_kp, fixed_kf, searched_schedule.kp_m_min_per_mm, searched_schedule.kf):
         arr.flags.writeable = False
-    baseline = verify(setpoints, machine, fixed_kp, fixed_kf, res.kp_bounds)
-    searched = verify(setpoints, machine, searched_schedule.kp_m_min_per_mm,
-                      searched_schedule.kf, res.kp_bounds)
+    # robust_optimize replayed both on the nominal plant (the machine without its set):
+    # when the certificate failed, the searched schedule it returns is the baseline
+    baseline = res.baseline
+    searched = res.searched if rob.status == "ok" else res.baseline
     refusal = () if rob.status == "ok" else (rob.certificate.reasons or (
         "the robust search found no schedule that passes its checks: "
         + "; ".join(res.searched.violations or ("see its certificate",)),))
