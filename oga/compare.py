@@ -212,7 +212,7 @@ def _row(setpoints: Setpoints, machine: Machine, name: str, tune: bool,
         velocity_ratio=float(ratios[:, 0].max()), accel_ratio=float(ratios[:, 1].max()),
         jerk_ratio=float(ratios[:, 2].max()),
         limits_ok=bool(np.isfinite(m.mse_m2) and np.all(ratios <= 1.0 + _SLACK)
-                       and not np.any(ferror_ratios(m, machine) > 1.0 + _SLACK)),
+                       and not np.any(ferror_ratios(m.track_max_m, machine) > 1.0 + _SLACK)),
         time_s=time.perf_counter() - t0, parameters=dict(run.parameters), notes=run.notes,
         ce_m=ce,
     )

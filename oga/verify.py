@@ -78,11 +78,11 @@ def _where(setpoints: Setpoints, k: int) -> str:
     return f"at sample {k} (t = {k * setpoints.dt:.3f} s, line {setpoints.block[k]}, {kind})"
 
 
-def ferror_ratios(metrics: ContourMetrics, machine: Machine) -> np.ndarray:
+def ferror_ratios(track_max_m, machine: Machine) -> np.ndarray:
     """Largest following error per axis (x, y, z) over the machine's limit (``ferror_max_m``).
 
-    ``metrics.track_max_m`` covers every sample, rapids included
-    (:func:`oga.metrics.contour_metrics`).
+    ``track_max_m`` (3,), m: the largest following error of each axis over every sample,
+    rapids included (``ContourMetrics.track_max_m``, :func:`oga.metrics.contour_metrics`).
 
     Returns
     -------
@@ -91,7 +91,7 @@ def ferror_ratios(metrics: ContourMetrics, machine: Machine) -> np.ndarray:
         machine sets none.
     """
     limit = machine.ferror_limits()
-    return np.where(np.isfinite(limit), np.array(metrics.track_max_m) / limit, np.nan)
+    return np.where(np.isfinite(limit), np.asarray(track_max_m) / limit, np.nan)
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,7 +186,7 @@ def verify(
     ]
     ferror_max = machine.ferror_limits()
     track_max = np.array(metrics.track_max_m)
-    ferror_ratio = ferror_ratios(metrics, machine)
+    ferror_ratio = ferror_ratios(metrics.track_max_m, machine)
     limit_v += [
         f"axis {a}: following error reaches {track_max[k] * 1e3:.4f} mm, "
         f"{ferror_ratio[k]:.3f}x its limit ferror_max_m = {ferror_max[k] * 1e3:.4f} mm "

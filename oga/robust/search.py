@@ -51,7 +51,7 @@ from oga.robust.certificate import Certificate, certify, plant_bounds
 from oga.robust.multi import multi_search
 from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
 from oga.simulate import simulate
-from oga.verify import command_ratios, verify
+from oga.verify import command_ratios, ferror_ratios, verify
 
 __all__ = ["RobustResult", "design_machine", "robust_optimize"]
 
@@ -131,8 +131,7 @@ def _replay_excess(setpoints, plant, kp, kf) -> float:
     its contour error (half its cost; a baseline refused costs no more)."""
     sim = simulate(setpoints, plant, kp, kf)
     track = np.abs(setpoints.pos - sim.pos).max(axis=0)  # contour_metrics' track_max_m
-    limit = plant.ferror_limits()
-    ferror = np.where(np.isfinite(limit), track / limit, np.nan)  # verify.ferror_ratios
+    ferror = ferror_ratios(track, plant)
     return max(float(np.max(command_ratios(sim.u, setpoints, plant))),
                float(np.nanmax(np.append(ferror, 0.0))))
 
