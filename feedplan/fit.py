@@ -15,13 +15,17 @@ rest to rest:
   :data:`CORNER_ANGLE_RAD` are passed as kinks and sharper ones are exact stops;
 * runs of at least :data:`MICRO_RUN_MIN` consecutive short G1 lines (each shorter than
   :data:`MICRO_SEGMENT_M`), as CAM posts write freeform surfaces, are replaced by a
-  least-squares cubic B-spline (curvature-continuous). Every fit is measured both ways
-  against the programmed polyline (each spline point to the polyline, each programmed
-  vertex to the spline); where it deviates by more than ``fit_tol_m`` knots are added
-  there, and a stretch that still fails with a knot at every vertex is split at its
-  sharpest vertex (blended as a corner is, or an exact stop). The fit is local (knots start
-  :data:`FIT_KNOT_SPACING_M` apart and are refined only where the deviation requires),
-  so a sharp feature never produces the overshoot of a global interpolating spline;
+  cubic B-spline (curvature-continuous): first a smoothing fit (least squares plus a
+  penalty on the squared third derivative, :func:`_smooth_fit`: the curvature the jerk
+  limit sees stays smooth where the CAM's chords ripple), else a least-squares fit.
+  Every fit is measured both ways against the programmed polyline (each spline point to
+  the polyline, each programmed vertex to the spline); where the smoothing fit deviates
+  by more than ``fit_tol_m`` it is pulled there (data weights up, penalty down), where the
+  least-squares one does knots are added there, and a stretch that still fails with a
+  knot at every vertex is split at its sharpest vertex (blended as a corner is, or an
+  exact stop). The fit is local (knots start :data:`FIT_KNOT_SPACING_M` apart and are
+  refined only where the deviation requires), so a sharp feature never produces the
+  overshoot of a global interpolating spline;
 * under blending, runs of at least :data:`MICRO_RUN_MIN` consecutive G1 lines each shorter
   than :data:`CHORD_SEGMENT_M` and turning at most :data:`CORNER_ANGLE_RAD` from one to
   the next (a CAM's chords of a curve, longer than micro-segments) are fitted the same
@@ -45,7 +49,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+from scipy import sparse
 from scipy.interpolate import BSpline, make_lsq_spline
+from scipy.linalg import solveh_banded
 
 try:  # scipy's own QR steps (private), for a linear-time make_lsq_spline: see _lsq_coefficients
     from scipy.interpolate import _dierckx
@@ -93,6 +99,12 @@ BLEND_MIN_TURN_RAD = 1e-3
 BLEND_MAX_TURN_RAD = 0.95 * np.pi
 #: Largest number of knot refinements of one fit.
 _FIT_ROUNDS = 12
+#: Smoothing length of a fit, in mean chords of the run (the cut-off wavelength of the
+#: third-derivative penalty, :func:`_smooth_fit`).
+FIT_SMOOTH_LENGTH_CHORDS = 4.0
+#: Rounds of a smoothing fit's reweighting, the weight factor per round near a vertex out of
+#: tolerance, and the share of the tolerance it aims at.
+_SMOOTH_ROUNDS, _SMOOTH_WEIGHT_STEP, _SMOOTH_TOL_SHARE = 10, 4.0, 0.98
 
 _LINE, _ARC, _SPLINE, _QUINTIC = 0, 1, 2, 3
 
@@ -420,6 +432,82 @@ def _lsq(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray) -> BSpline:
     return BSpline(t, c, 3)
 
 
+def _derivative_operator(t: np.ndarray, k: int, n: int) -> sparse.csr_array:
+    """The map of a degree-``k`` spline's ``n`` coefficients (knots ``t``) to those of its
+    derivative (knots ``t[1:-1]``): ``d_i = k (c_{i+1} - c_i) / (t_{i+k+1} - t_{i+1})``, 0 over
+    a knot span of zero length."""
+    span = t[k + 1 : k + n] - t[1:n]
+    f = np.divide(k, span, out=np.zeros_like(span), where=span > 0)
+    return sparse.diags_array([-f, f], offsets=[0, 1], shape=(n - 1, n), format="csr")
+
+
+def _jerk_penalty(t: np.ndarray, n: int) -> sparse.csr_array:
+    """``P`` with ``c^T P c`` the integral of the squared third derivative of the cubic of
+    knots ``t`` and coefficients ``c`` (one column), shape (n, n): the third derivative is
+    constant on each knot span."""
+    d3 = (_derivative_operator(t[2:-2], 1, n - 2) @ _derivative_operator(t[1:-1], 2, n - 1)
+          @ _derivative_operator(t, 3, n))
+    return (d3.T @ sparse.diags_array(np.diff(t[3:-3])) @ d3).tocsr()
+
+
+def _penalised(x, y, w, t, penalty, lam, ends) -> np.ndarray:
+    """Coefficients of the cubic of knots ``t`` that minimises the weighted squared
+    residuals ``w |r(x) - y|^2`` plus ``lam`` times the integral of the squared third
+    derivative, its end coefficients fixed to ``ends`` (shape (2, 3)): one banded
+    symmetric solve (bandwidth 3). Shape (n, 3)."""
+    b = BSpline.design_matrix(x, t, 3).tocsr()
+    n = b.shape[1]
+    a = (b.T @ b.multiply(w[:, None]).tocsr() + lam * penalty).tocsc()
+    rhs = b.T @ (w[:, None] * y)
+    inner = slice(1, n - 1)
+    rhs = rhs[inner] - a[inner, [0]].toarray() @ ends[:1] - a[inner, [n - 1]].toarray() @ ends[1:]
+    sub = a[inner, inner].todia()
+    band = np.zeros((4, n - 2))
+    for k in range(4):  # upper form of solveh_banded
+        band[3 - k, k:] = sub.diagonal(k)
+    c = np.empty((n, 3))
+    c[0], c[-1] = ends
+    c[inner] = solveh_banded(band, rhs, check_finite=False)
+    return c
+
+
+def _smooth_fit(verts: np.ndarray, u: np.ndarray, knots_at: np.ndarray, fit_tol_m: float):
+    """A smooth cubic within the tolerance, or the last try: (spline, deviation per vertex, m).
+
+    A least-squares fit through vertices and chord midpoints follows each chord of a
+    CAM's tessellation, so its curvature ripples at the chord length (line-contouring's
+    16 mm arcs in 1.3 mm chords: curvature 62 +- 60 1/m, which the jerk limit passes at a
+    fraction of the arc's speed). Here the squared third derivative is penalised, over a
+    smoothing length of :data:`FIT_SMOOTH_LENGTH_CHORDS` mean chords, and the data weights
+    raised (and the penalty lowered) where the two-way deviation exceeds the tolerance,
+    :data:`_SMOOTH_ROUNDS` times at most; where it still does, :func:`fit_polyline` fits
+    without the penalty. Measured on line-contouring-xz: 31.4 -> 25.6 s planned.
+    """
+    mid_u = 0.5 * (u[:-1] + u[1:])
+    x = np.empty(2 * u.size - 1)
+    y = np.empty((x.size, 3))
+    x[0::2], x[1::2] = u, mid_u
+    y[0::2], y[1::2] = verts, 0.5 * (verts[:-1] + verts[1:])
+    t = np.concatenate([[u[0]] * 4, u[knots_at], [u[-1]] * 4])
+    n = t.size - 4
+    penalty = _jerk_penalty(t, n)
+    density = x.size / u[-1]  # data points per metre
+    ell = FIT_SMOOTH_LENGTH_CHORDS * u[-1] / (u.size - 1)
+    lam = density * (ell / (2.0 * np.pi)) ** 6  # cut-off wavelength ell of the smoother
+    w = np.ones(x.size)
+    ends = np.vstack([verts[0], verts[-1]])
+    for _ in range(_SMOOTH_ROUNDS):
+        spl = BSpline(t, _penalised(x, y, w, t, penalty, lam, ends), 3)
+        dev = polyline_fit_deviation(spl, verts, u)
+        bad = np.flatnonzero(dev > _SMOOTH_TOL_SHARE * fit_tol_m)
+        if bad.size == 0:
+            break
+        near = np.unique(np.clip(2 * bad[:, None] + np.arange(-3, 4), 0, x.size - 1))
+        w[near] *= _SMOOTH_WEIGHT_STEP
+        lam /= _SMOOTH_WEIGHT_STEP
+    return spl, dev
+
+
 def fit_polyline(verts: np.ndarray, fit_tol_m: float) -> list[tuple[int, int, BSpline, float]]:
     """Fit a run of micro-segments with cubic splines within a tolerance.
 
@@ -445,6 +533,10 @@ def fit_polyline(verts: np.ndarray, fit_tol_m: float) -> list[tuple[int, int, BS
         return [(0, 1, BSpline(np.r_[[0.0] * 4, [u[1]] * 4], c, 3), 0.0)]
     step = max(1, int(round(FIT_KNOT_SPACING_M / (u[-1] / n))))
     knots = set(range(step, n, step))
+    spl, dev = _smooth_fit(verts, u, np.array(sorted(knots), dtype=np.int64), fit_tol_m)
+    bad = np.flatnonzero(dev > fit_tol_m)
+    if bad.size == 0:
+        return [(0, n, spl, float(dev.max()))]
     for _ in range(_FIT_ROUNDS):
         idx = np.array(sorted(knots), dtype=np.int64)
         spl = _lsq(verts, u, idx)

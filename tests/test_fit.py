@@ -150,3 +150,28 @@ def test_short_runs_stay_lines_and_long_runs_become_one_spline():
     assert len(blk.segments) == 50 and blk.fit_deviation_m <= 10e-6
     (blk,) = blocks_of(Path(verts[0], segs[:3]), 10e-6)
     assert blk.curve.kind.tolist() == [0, 0, 0]
+
+
+def test_chords_of_an_arc_fit_a_curve_of_the_arc_curvature():
+    # a CAM's chords of a 16 mm arc, 0.1 - 1.4 mm long in an irregular order (as
+    # line-contouring-xz's contour): the chords' sagitta (up to 15 um) exceeds the fit's
+    # tolerance, so the fit must run between vertices and chords; a least-squares fit does
+    # so by rippling at the chord length (curvature 62 +- 60 1/m there), the smoothing fit
+    # keeps the circle's curvature within 30 % (a least-squares fit: 0.0004 to 21 times it).
+    radius, tol = 16 * MM, 10e-6
+    rng = np.random.default_rng(3)
+    steps = rng.choice([0.1, 0.2, 0.5, 1.0, 1.35, 1.4], size=40) * MM
+    theta = np.concatenate([[0.0], np.cumsum(steps / radius)])
+    verts = np.column_stack([radius * np.sin(theta), np.zeros(theta.size),
+                             radius * np.cos(theta)])
+    parts = fit_polyline(verts, tol)
+    assert len(parts) == 1
+    _, _, spl, dev = parts[0]
+    u = np.linspace(0.0, spl.t[-1], 20001)
+    pts = spl(u)
+    assert two_way(pts, verts) <= tol + 1e-9
+    d1, d2 = spl(u, 1), spl(u, 2)
+    kappa = np.linalg.norm(np.cross(d1, d2), axis=1) / np.linalg.norm(d1, axis=1) ** 3
+    inner = (u > 2 * MM) & (u < spl.t[-1] - 2 * MM)  # away from the clamped ends
+    assert np.abs(kappa[inner] * radius - 1.0).max() < 0.3
+    assert abs(np.linalg.norm(d1, axis=1) - 1.0).max() < 5e-3  # ~ arc-length parameter
