@@ -29,7 +29,7 @@ Columns of the first table, per program:
   and blended curve is the geometry actually run. A failed toppra solve is reported as
   ``failed`` in the row;
 - ``straight``: the planner's blocks that are one line (rapids, lone feed lines: not
-  blended with a neighbour), their count, the
+  blended with a neighbour; straight runs of micro-segments at one feed), their count, the
   planned time of those blocks (each planned alone, as the planner plans them from rest
   to rest) and ruckig's time-optimal jerk-limited rest-to-rest time for them
   (:func:`rest_to_rest_s`, the axis limits projected on the line, speed at most the feed);
@@ -112,11 +112,16 @@ def _projected(d: np.ndarray, lim: np.ndarray) -> float:
 
 def straight_blocks(path: Path, limits: AxisLimits, blocks, tol_m: float = TOL_M):
     """The ``blocks`` (those ``plan`` moved along) of one line: (count, planned s, ruckig s),
-    each planned alone from rest to rest."""
+    each planned alone from rest to rest. A straight run of micro-segments at one feed (a
+    block whose curve is one line) counts as the line from its start to its end."""
     n, planned, best = 0, 0.0, 0.0
     for blk in blocks:
         seg = path.segments[blk.segments[0]]
-        if len(blk.segments) != 1 or not isinstance(seg, Line):
+        feeds = {path.segments[i].feed_m_s for i in blk.segments}
+        if blk.curve.is_line and not blk.rapid and len(feeds) == 1:
+            c = blk.curve
+            seg = Line(c.org[0], c.org[0] + c.length * c.e1[0], seg.feed_m_s, line=seg.line)
+        elif len(blk.segments) != 1 or not isinstance(seg, Line):
             continue
         n += 1
         planned += plan(Path(seg.start, (seg,)), limits, tol_m=tol_m).duration

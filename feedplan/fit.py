@@ -36,6 +36,10 @@ rest to rest:
   blend, whose curvature rate lets the jerk limit pass it at a fraction of the speed the
   curve the chords follow allows.
 
+A run to be fitted whose vertices all lie within ``fit_tol_m`` of the chord from its
+first vertex to its last, each further along it (:func:`collinear_run`: a straight move
+the CAM cut into pieces), is that chord, a line: a block of it alone is planned as a
+straight block (ruckig), not as a curve.
 Lines and arcs are kept exact (but for the ends a blend replaces). A block's
 :class:`Curve` is parametrised by ``u`` in metres: arc length for lines and arcs, chord
 length of the programmed vertices for fitted splines (``|dr/du|`` within a few per mille
@@ -78,6 +82,7 @@ __all__ = [
     "Block",
     "Blending",
     "fit_polyline",
+    "collinear_run",
     "polyline_fit_deviation",
     "blocks_of",
 ]
@@ -219,6 +224,11 @@ class Curve:
     def length(self) -> float:
         """Parameter length in metres."""
         return float(self.u0[-1])
+
+    @property
+    def is_line(self) -> bool:
+        """One line piece (``org[0]`` its start, ``e1[0]`` its direction)."""
+        return self.kind.size == 1 and self.kind[0] == _LINE
 
     def evaluate(self, u: np.ndarray, left: bool = False, order: int = 3):
         """Position and derivatives with respect to ``u``.
@@ -566,6 +576,45 @@ def fit_polyline(verts: np.ndarray, fit_tol_m: float) -> list[tuple[int, int, BS
     return left + [(a + j, b + j, s, e) for a, b, s, e in right]
 
 
+def _line_distances(verts: np.ndarray) -> np.ndarray:
+    """Distance of each vertex from the line through the first and last, m."""
+    d = verts[-1] - verts[0]
+    d = d / np.linalg.norm(d)
+    rel = verts - verts[0]
+    return np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
+
+
+def collinear_run(verts: np.ndarray, fit_tol_m: float) -> np.ndarray | None:
+    """Where a run of micro-segments is one straight move: the parameter (m along the chord
+    from ``verts[0]``) of each vertex, or None.
+
+    Straight: every vertex within ``fit_tol_m`` of the chord from the first vertex to the
+    last, and each one further along it than the one before (no move backwards). The chord
+    then stays within ``fit_tol_m`` of the polyline both ways (a point of either lies
+    between two consecutive vertices, each within ``fit_tol_m`` of the other curve), as a
+    fitted spline must; a spline along it would be the same line, planned as a curve.
+
+    Parameters
+    ----------
+    verts : ndarray, shape (n + 1, 3)
+        Vertices of the run, m.
+    fit_tol_m : float
+        Largest deviation allowed, m.
+
+    Returns
+    -------
+    ndarray, shape (n + 1,), or None
+        Increasing from 0 to the chord's length.
+    """
+    d = verts[-1] - verts[0]
+    length = float(np.linalg.norm(d))
+    if length <= 0.0 or _line_distances(verts).max() > fit_tol_m:
+        return None
+    along = (verts - verts[0]) @ (d / length)
+    along[0], along[-1] = 0.0, length
+    return along if bool(np.all(np.diff(along) > 0.0)) else None
+
+
 # --------------------------------------------------------------------------- blocks
 
 
@@ -760,6 +809,15 @@ def _pieces(path: Path, ids: list[int], fit_tol_m: float,
         if run - k >= MICRO_RUN_MIN:
             run_ids = ids[k:run]
             verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
+            along = collinear_run(verts, fit_tol_m)
+            if along is not None:  # a straight run: the line itself (ruckig plans it alone)
+                base = b.seg_u[-1]
+                b.line(verts[0], verts[-1])
+                b.seg_ids.extend(run_ids)
+                b.seg_u.extend(base + along[1:])
+                b.fit_dev = max(b.fit_dev, float(_line_distances(verts).max()))
+                k = run
+                continue
             for first, last, spl, dev in fit_polyline(verts, fit_tol_m):
                 if first > 0:
                     out.append(_CurveBuilder())

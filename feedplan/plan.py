@@ -187,6 +187,26 @@ def _straight(seg: Line, limits: AxisLimits, dt: float, budget: int, feed_m_s: f
     return pos, np.full(len(t), seg.line)
 
 
+def _one_line(blk, seg_feed: np.ndarray) -> bool:
+    """A feed block that is one line (a straight run of micro-segments, :func:`blocks_of`)
+    programmed at one feed."""
+    return (not blk.rapid and blk.curve.is_line
+            and float(np.ptp(seg_feed[blk.segments])) == 0.0)
+
+
+def _straight_run(blk, path: Path, limits: AxisLimits, dt: float, budget: int,
+                  seg_feed: np.ndarray):
+    """:func:`_straight` of a block that is one line (:func:`_one_line`), each sample's
+    source line that of the programmed move it lies on."""
+    curve, ids = blk.curve, blk.segments
+    first, last = path.segments[ids[0]], path.segments[ids[-1]]
+    pos, _ = _straight(Line(first.start, last.end, first.feed_m_s, line=first.line), limits,
+                       dt, budget, float(seg_feed[ids[0]]))
+    u = (pos - first.start) @ curve.e1[0]
+    at = np.clip(np.searchsorted(blk.seg_u0, u, side="right") - 1, 0, len(ids) - 1)
+    return pos, np.array([path.segments[i].line for i in ids])[at]
+
+
 # --------------------------------------------------------------------------- feed blocks
 
 
@@ -1004,6 +1024,8 @@ def plan(
         first = path.segments[blk.segments[0]]
         if len(blk.segments) == 1 and isinstance(first, Line):  # rapid or lone feed line
             p, ln = _straight(first, limits, dt, budget - used, seg_feed[blk.segments[0]])
+        elif _one_line(blk, seg_feed):  # a straight run of micro-segments at one feed
+            p, ln = _straight_run(blk, path, limits, dt, budget - used, seg_feed)
         else:
             p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt, budget - used,
                                lambda f: report(min((done + f * share) / whole, 1.0)))

@@ -542,3 +542,49 @@ def test_progress_reaches_one_and_never_goes_back():
     plan(path, UCP, progress=seen.append)
     assert len(seen) > 10 and seen[-1] == 1.0
     assert all(0.0 <= a <= b <= 1.0 for a, b in zip(seen, seen[1:]))
+
+
+def _micro_run(end_mm, n, feed, jitter_mm=0.0, backwards_at=None):
+    """Lines 2.. of ``n`` micro-segments from the origin to ``end_mm`` (each vertex moved by
+    ``jitter_mm`` across the run, alternating sides; one vertex moved back along it)."""
+    end = np.asarray(end_mm, float) * MM
+    side = np.cross(end, [0.0, 0.0, 1.0])
+    side = side / np.linalg.norm(side) if np.linalg.norm(side) else np.array([1.0, 0, 0])
+    pts = np.linspace(0.0, 1.0, n + 1)[:, None] * end
+    pts[1:-1] += ((-1.0) ** np.arange(1, n))[:, None] * jitter_mm * MM * side
+    if backwards_at is not None:
+        pts[backwards_at] = pts[backwards_at - 2]
+    segs = tuple(Line(a, b, feed, line=k + 2) for k, (a, b) in enumerate(zip(pts, pts[1:])))
+    return Path(pts[0], segs, "xy")
+
+
+def test_straight_run_of_micro_segments_is_planned_as_its_line():
+    """Issue 21: a straight move the CAM cut into 0.5 mm pieces (lcnc_short_segments) is the
+    line's ruckig profile, bit for bit; each sample's source line is the move it lies on."""
+    path = _micro_run([12.0, 5.0, 0.0], 26, F3000)  # 13 mm in 26 moves of 0.5 mm
+    sp = plan(path, UCP)
+    whole = plan(Path(path.start, (Line(path.start, path.segments[-1].end, F3000, line=2),),
+                      "xy"), UCP)
+    assert np.array_equal(sp.pos, whole.pos)
+    assert_plan_ok(sp, path, UCP)
+    u = sp.pos @ (path.segments[0].end / path.segments[0].length)
+    starts = np.array([s.start @ (path.segments[0].end / path.segments[0].length)
+                       for s in path.segments] + [np.inf])
+    expect = np.clip(np.searchsorted(starts, u, side="right") - 1, 0, 25) + 2
+    assert np.array_equal(sp.block, expect)
+
+
+def test_straight_run_within_the_fit_tolerance_is_a_line_and_a_zigzag_is_not():
+    # vertices 5 um either side of the chord: within the 10 um fit tolerance (half of 20 um)
+    near = _micro_run([10.0, 0.0, 0.0], 40, F3000, jitter_mm=0.005)
+    sp = plan(near, UCP, tol_m=TOL)
+    assert np.abs(sp.pos[:, 1]).max() == 0.0  # on the chord itself
+    assert_plan_ok(sp, near, UCP)
+    far = _micro_run([10.0, 0.0, 0.0], 40, F3000, jitter_mm=0.015)  # beyond it: fitted
+    sp_far = plan(far, UCP, tol_m=TOL)
+    assert np.abs(sp_far.pos[:, 1]).max() > 0.0
+    assert_plan_ok(sp_far, far, UCP)
+    back = _micro_run([10.0, 0.0, 0.0], 40, F3000, backwards_at=20)  # a move backwards
+    sp_back = plan(back, UCP, tol_m=TOL)
+    assert not np.array_equal(sp_back.pos, plan(near, UCP, tol_m=TOL).pos)
+    assert_plan_ok(sp_back, back, UCP)
