@@ -36,8 +36,8 @@ rest to rest:
   blend, whose curvature rate lets the jerk limit pass it at a fraction of the speed the
   curve the chords follow allows.
 
-A run to be fitted whose vertices all lie within ``fit_tol_m`` of the chord from its
-first vertex to its last, each further along it (:func:`collinear_run`: a straight move
+A run to be fitted whose vertices all lie within :data:`COLLINEAR_TOL_SHARE` of
+``fit_tol_m`` of the chord from its first vertex to its last, each further along it (:func:`collinear_run`: a straight move
 the CAM cut into pieces), is that chord, a line: a block of it alone is planned as a
 straight block (ruckig), not as a curve.
 Lines and arcs are kept exact (but for the ends a blend replaces). A block's
@@ -77,6 +77,7 @@ __all__ = [
     "MICRO_SEGMENT_M",
     "MICRO_RUN_MIN",
     "CHORD_SEGMENT_M",
+    "COLLINEAR_TOL_SHARE",
     "FIT_KNOT_SPACING_M",
     "Curve",
     "Block",
@@ -96,6 +97,12 @@ MICRO_RUN_MIN = 4
 #: G1 lines shorter than this, turning at most CORNER_ANGLE_RAD from one to the next, are
 #: chords of a curve (fitted, not blended vertex by vertex), metres.
 CHORD_SEGMENT_M = 2.5e-3
+#: A run of micro-segments within this share of the fit tolerance of its chord is that
+#: line (:func:`collinear_run`): a straight move cut into pieces, its vertices rounded by the
+#: CAM (1 um at most of the default 10 um), not a curve bending by a few micrometres (kept
+#: a spline: as a line it turns more at its ends, measured 8 samples slower on
+#: line-contouring-xz at the whole fit tolerance).
+COLLINEAR_TOL_SHARE = 0.1
 #: Largest knot spacing of a micro-segment fit before refinement, metres.
 FIT_KNOT_SPACING_M = 0.5e-3
 #: Corners turning more than this are blended (G64); smaller kinks are passed as kinks.
@@ -809,7 +816,7 @@ def _pieces(path: Path, ids: list[int], fit_tol_m: float,
         if run - k >= MICRO_RUN_MIN:
             run_ids = ids[k:run]
             verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
-            along = collinear_run(verts, fit_tol_m)
+            along = collinear_run(verts, COLLINEAR_TOL_SHARE * fit_tol_m)
             if along is not None:  # a straight run: the line itself (ruckig plans it alone)
                 base = b.seg_u[-1]
                 b.line(verts[0], verts[-1])

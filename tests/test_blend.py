@@ -304,23 +304,16 @@ def jittered(jitter_mm: float, n: int = 400) -> Path:
 
 def test_jitter_of_micro_segments_is_fitted_not_blended():
     # a 4 um jitter turns the 15 um moves by 30 deg at every vertex: within the fit's
-    # tolerance of the chord of its neighbours, it is no corner (it was 399 blends, 14x
-    # slower); within the fit's tolerance of the whole run's chord too, it is that line,
-    # planned as the same moves without the jitter are
+    # tolerance of the chord of its neighbours, it is no corner; one spline, planned nearly
+    # as fast as the same moves without the jitter (it was 399 blends, 14x slower; those
+    # are one line, ruckig's profile: 0.302 s against 0.280 s measured)
     path, straight = jittered(0.004), jittered(0.0)
     assert _turns(path).min() > 0.5
     (blk,) = blocks_of(path, 0.5 * TOL_M, Blending(0.5 * TOL_M, UCP))
-    assert list(blk.curve.kind) == [0]
+    assert list(blk.curve.kind) == [2]
     sp = plan(path, UCP)
     assert_within(sp, path, UCP, TOL_M)
-    assert np.array_equal(sp.pos, plan(straight, UCP).pos)
-    # bent (a 12 um bow at its middle, 4 um jitter on it): no line, one spline
-    bow = parse_gcode("\n".join(["G21 G90 G17 G64", "G0 X0 Y0", "G1 F3000"] + [
-        f"X{0.015 * k:.4f} Y{0.012 * math.sin(math.pi * k / 400) + (0.004 if k % 2 else 0):.4f}"
-        for k in range(1, 401)] + ["M2"]) + "\n")
-    (blk,) = blocks_of(bow, 0.5 * TOL_M, Blending(0.5 * TOL_M, UCP))
-    assert list(blk.curve.kind) == [2]
-    assert_within(plan(bow, UCP), bow, UCP, TOL_M)
+    assert sp.duration <= 1.1 * plan(straight, UCP).duration
 
 
 def test_jitter_beyond_the_fit_tolerance_is_a_corner():
