@@ -224,6 +224,12 @@ class _Loop:
         for arr in (self.a, self.b, self.c, self.h, self.log_mag, self.phase):
             arr.flags.writeable = False
 
+        if self.modal is not None:
+            lam, res, dead = self.modal
+            gm, wc = _gain_margin_modal(lam, res, dead, self.te, self.w, self.h, self.phase)
+            self.gm_db, self.w_phase_crossover_rad_s = float(gm), float(wc)
+            return
+
         def imag(w):
             return self.response(w).imag
 
@@ -248,7 +254,10 @@ class _Loop:
         if self.modal is None:
             return _response(self.a, self.b, self.c, w, self.te)
         lam, res, dead = self.modal
-        return _h_modal_grid(lam, res, dead, self.te, np.asarray(w, dtype=np.float64))
+        w = np.asarray(w, dtype=np.float64)
+        if w is self.w:
+            return _h_modal_table(lam, res, *_unit_circle(self.te, dead))
+        return _h_modal_grid(lam, res, dead, self.te, w)
 
     def response(self, w: float) -> complex:
         """``H(exp(j w Te))`` at one frequency ``w`` (rad/s), s."""
@@ -256,6 +265,16 @@ class _Loop:
             return _response(self.a, self.b, self.c, np.atleast_1d(w), self.te)[0]
         lam, res, dead = self.modal
         return _h_modal(lam, res, dead, self.te, float(w))
+
+
+@functools.lru_cache(maxsize=8)
+def _unit_circle(te: float, dead: int) -> tuple[np.ndarray, np.ndarray]:
+    """``z = exp(j w Te)`` and ``z^-d`` (as :func:`_h_modal` computes them) on the grid of
+    :func:`_frequency_grid`, read-only: what every loop of that period and dead time shares."""
+    z, inv = _unit_circle_of(_frequency_grid(te), te, dead)
+    for arr in (z, inv):
+        arr.flags.writeable = False
+    return z, inv
 
 
 @functools.lru_cache(maxsize=8)
@@ -278,12 +297,12 @@ def _unwrap(p):
     total = 0.0
     for k in range(1, p.size):
         dd = p[k] - p[k - 1]
-        ddmod = (dd - -math.pi) % period + -math.pi
-        if ddmod == -math.pi and dd > 0:
-            ddmod = math.pi
-        correct = ddmod - dd
-        if abs(dd) < math.pi:
-            correct = 0.0
+        correct = 0.0
+        if not abs(dd) < math.pi:  # numpy computes the rest everywhere, uses it only here
+            ddmod = (dd - -math.pi) % period + -math.pi
+            if ddmod == -math.pi and dd > 0:
+                ddmod = math.pi
+            correct = ddmod - dd
         total = total + correct if k > 1 else correct
         up[k] = p[k] + total
     return up
@@ -617,6 +636,34 @@ def _h_modal_grid(lam, res, dead, te, w):
 
 
 @njit(cache=True)
+def _unit_circle_of(w, te, dead):
+    """``z`` and ``1 / z^d`` at each frequency of ``w`` (shape (G,)): :func:`_h_modal`'s."""
+    z = np.empty(w.size, dtype=np.complex128)
+    inv = np.empty(w.size, dtype=np.complex128)
+    for k in range(w.size):
+        zk = complex(math.cos(w[k] * te), math.sin(w[k] * te))
+        p = 1.0 + 0j
+        for _ in range(dead):
+            p *= zk
+        z[k] = zk
+        inv[k] = 1.0 / p
+    return z, inv
+
+
+@njit(cache=True)
+def _h_modal_table(lam, res, z, inv):
+    """:func:`_h_modal_grid` from the table of :func:`_unit_circle` (the same operations, the
+    same bits; the sines and cosines once per period), s."""
+    out = np.empty(z.size, dtype=np.complex128)
+    for k in range(z.size):
+        s = 0j
+        for i in range(lam.size):
+            s += res[i] / (z[k] - lam[i])
+        out[k] = s * inv[k]
+    return out
+
+
+@njit(cache=True)
 def _f_modal(kind, offset, lam, res, dead, te, w):
     """What a crossover zeroes: ``ln |H| + offset`` (kind 0, gain) or ``Im H`` (kind 1, phase)."""
     h = _h_modal(lam, res, dead, te, w)
@@ -673,8 +720,39 @@ def _root_modal(kind, offset, lam, res, dead, te, lo, hi, f_lo, f_hi):
 
 
 @njit(cache=True)
+def _gain_margin_modal(lam, res, dead, te, w, h, phase):
+    """``(gm_db, w_phase_crossover_rad_s)`` of :class:`_Loop` (modal form), compiled: the
+    phase crossovers where the unwrapped ``phase`` passes -180 deg refined by Brent's method
+    on ``Im H`` (:func:`_root_modal`), the Nyquist frequency if ``H`` is negative there, the
+    least ``-20 log10 |H|`` over them (``inf``, ``nan`` if none): the same operations as the
+    Python path, the same bits."""
+    gm, w_pc = np.inf, np.nan
+    n = w.size
+    turn_was = math.floor((phase[0] + math.pi) / (2.0 * math.pi))
+    for i in range(n):
+        wc = np.nan
+        if i < n - 1:
+            turn = math.floor((phase[i + 1] + math.pi) / (2.0 * math.pi))
+            if turn_was != turn:
+                wc = _root_modal(1, 0.0, lam, res, dead, te, w[i], w[i + 1], h[i].imag,
+                                 h[i + 1].imag)
+            turn_was = turn
+        elif h[n - 1].real < 0.0:  # at Nyquist H is real: a phase crossover if negative
+            wc = w[n - 1]
+        if not np.isnan(wc):
+            gm_i = -20.0 * math.log10(abs(_h_modal(lam, res, dead, te, wc)))
+            if gm_i < gm:
+                gm, w_pc = gm_i, wc
+    return gm, w_pc
+
+
+@njit(cache=True)
 def _sign(x):
     return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else (0.0 if x == 0.0 else x))
+
+
+#: Pairs of grid points per block of :func:`_walk_modal`'s scan for gain crossovers.
+_BLOCK = 64
 
 
 @njit(cache=True)
@@ -686,6 +764,21 @@ def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, 
     """
     first, last = np.nan, np.nan
     acl = np.empty(a.shape, dtype=np.complex128)
+    # the grid's pairs (i, i + 1) in blocks, with the least and largest ln |H| each touches:
+    # ln |H| + ln Kp has the sign of the exact sum (rounding keeps it), so where the block's
+    # least value exceeds -ln Kp, or its largest falls short of it, no pair changes sign
+    n_pairs = w.size - 1
+    n_blocks = (n_pairs + _BLOCK - 1) // _BLOCK
+    b_min, b_max = np.empty(n_blocks), np.empty(n_blocks)
+    for j in range(n_blocks):
+        lo_v, hi_v = np.inf, -np.inf
+        for i in range(j * _BLOCK, min((j + 1) * _BLOCK, n_pairs) + 1):
+            x = log_mag[i]
+            if x != x:  # NaN: the block is scanned
+                lo_v, hi_v = -np.inf, np.inf
+                break
+            lo_v, hi_v = min(lo_v, x), max(hi_v, x)
+        b_min[j], b_max[j] = lo_v, hi_v
     for k in grid:
         kp_si = k * kp_si_per
         gm = gm_db - 20.0 * math.log10(kp_si)
@@ -693,15 +786,18 @@ def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, 
         if ok:
             log_kp = math.log(kp_si)
             pm = np.inf
-            for i in range(w.size - 1):
-                m0, m1 = log_mag[i] + log_kp, log_mag[i + 1] + log_kp
-                if _sign(m0) != _sign(m1):
-                    wc = _root_modal(0, log_kp, lam, res, dead, te, w[i], w[i + 1], m0, m1)
-                    r = _h_modal(lam, res, dead, te, wc) / h[i]
-                    ph = phase[i] + math.atan2(r.imag, r.real)
-                    pm_i = (math.degrees(ph) + 360.0) % 360.0 - 180.0
-                    if pm_i < pm:
-                        pm = pm_i
+            for j in range(n_blocks):
+                if b_min[j] > -log_kp or b_max[j] < -log_kp:
+                    continue  # no sign change in this block (the comment above)
+                for i in range(j * _BLOCK, min((j + 1) * _BLOCK, n_pairs)):
+                    m0, m1 = log_mag[i] + log_kp, log_mag[i + 1] + log_kp
+                    if _sign(m0) != _sign(m1):
+                        wc = _root_modal(0, log_kp, lam, res, dead, te, w[i], w[i + 1], m0, m1)
+                        r = _h_modal(lam, res, dead, te, wc) / h[i]
+                        ph = phase[i] + math.atan2(r.imag, r.real)
+                        pm_i = (math.degrees(ph) + 360.0) % 360.0 - 180.0
+                        if pm_i < pm:
+                            pm = pm_i
             ok = pm >= pm_min and gm >= gm_min
             if ok:
                 for i in range(a.shape[0]):
