@@ -22,8 +22,11 @@ near-defective): the same values to 1e-13 relative (7e-14 at most over the 96 pl
 ucp710's default set), several times cheaper. Where only the ends of the stable
 range are wanted (the robust search's ~100 plants), :func:`stable_ends` walks the grid
 upwards and stops where the lowest run ends, compiled (:func:`_walk_modal`: the same
-figures as :func:`_margins`, tests/test_stability_walk.py; 0.3 ms per plant-axis instead of
-1.5 ms).
+figures as :func:`_margins`, tests/test_stability_walk.py). A loop costs about 0.6 ms
+(ucp710's plants: the response on the grid from a table of ``z`` shared by the loops of one
+period, the phase crossovers compiled, then the walk: blocks of the grid where ``|L|`` cannot
+cross 1 skipped, the closed-loop eigenvalues by LAPACK's real ``geev`` away from the unit
+circle; tests/test_fixed_costs.py).
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.np.linalg import _LAPACK, ensure_lapack
 from scipy.linalg import matrix_balance
 from scipy.optimize import brentq
 
 from oga.errors import OptionError
 from oga.linear import position_open_loop
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
+
+ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
 
 __all__ = ["Margins", "StabilityRange", "decimal_grid", "margins", "stable_ends", "stable_range"]
 
@@ -610,7 +616,8 @@ def _summarise(axis: str, g: GainSettings, kp, pm, gm, stable) -> StabilityRange
 # response, the gain crossovers refined by Brent's method (the algorithm of scipy's
 # ``brentq``, C source scipy/optimize/Zeros/brentq.c, BSD; same iterates, same tolerances),
 # the phase margin read as :func:`_margins` reads it, and the closed-loop eigenvalues
-# (LAPACK's complex ``geev`` on the real matrix: the same moduli to rounding).
+# (:func:`_closed_loop_stable`: LAPACK's complex ``geev`` on the real matrix, the same moduli
+# to rounding, decides within 1e-6 of the unit circle; the real ``geev`` elsewhere).
 
 
 @njit(cache=True)
@@ -754,6 +761,45 @@ def _sign(x):
 #: Pairs of grid points per block of :func:`_walk_modal`'s scan for gain crossovers.
 _BLOCK = 64
 
+#: LAPACK's real ``geev`` (eigenvalues only) as numba's ``np.linalg.eigvals`` calls it.
+_DGEEV = _LAPACK().numba_ez_rgeev(types.float64)
+#: :func:`_closed_loop_stable` trusts the real ``geev``'s spectral radius where it is farther
+#: than this from 1: both ``geev`` are backward stable on the same matrix, their moduli differ
+#: by rounding (1e-15 over ucp710's set, tests/test_fixed_costs.py), far below it.
+_RADIUS_GUARD = 1e-6
+
+
+@njit(cache=True)
+def _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi):
+    """Whether every eigenvalue of ``A - B (Kp C)`` lies inside the unit circle, decided as
+    the complex ``geev`` of numba's ``np.linalg.eigvals`` on it (the walk's reference) decides.
+
+    The real ``geev`` (three times cheaper) decides where its spectral radius is farther than
+    :data:`_RADIUS_GUARD` from 1; nearer, or if it fails or the matrix is not finite, the
+    complex one does. ``acl`` (complex), ``acl_f`` (real, filled column-major), ``wr``, ``wi``:
+    work arrays of the matrix's shape and size.
+    """
+    n = a.shape[0]
+    finite = True
+    for j in range(n):
+        for i in range(n):
+            x = a[i, j] - b[i, 0] * (kp_si * c[0, j])
+            acl[i, j] = x
+            acl_f[j, i] = x  # acl_f's memory read column-major: acl
+            finite = finite and math.isfinite(x)
+    if finite:
+        info = _DGEEV(ord("d"), ord("N"), ord("N"), n, acl_f.ctypes, n, wr.ctypes, wi.ctypes,
+                      wr.ctypes, 1, wr.ctypes, 1)  # no eigenvectors: vl, vr not referenced
+        if info == 0:
+            rho = 0.0
+            for i in range(n):
+                rho = max(rho, abs(complex(wr[i], wi[i])))
+            if rho < 1.0 - _RADIUS_GUARD:
+                return True
+            if rho > 1.0 + _RADIUS_GUARD:
+                return False
+    return np.max(np.abs(np.linalg.eigvals(acl))) < 1.0
+
 
 @njit(cache=True)
 def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, lo_b, hi_b,
@@ -764,6 +810,8 @@ def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, 
     """
     first, last = np.nan, np.nan
     acl = np.empty(a.shape, dtype=np.complex128)
+    acl_f = np.empty(a.shape)  # the real matrix, column-major (:func:`_closed_loop_stable`)
+    wr, wi = np.empty(a.shape[0]), np.empty(a.shape[0])
     # the grid's pairs (i, i + 1) in blocks, with the least and largest ln |H| each touches:
     # ln |H| + ln Kp has the sign of the exact sum (rounding keeps it), so where the block's
     # least value exceeds -ln Kp, or its largest falls short of it, no pair changes sign
@@ -800,10 +848,7 @@ def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, 
                             pm = pm_i
             ok = pm >= pm_min and gm >= gm_min
             if ok:
-                for i in range(a.shape[0]):
-                    for j in range(a.shape[1]):
-                        acl[i, j] = a[i, j] - b[i, 0] * (kp_si * c[0, j])
-                ok = np.max(np.abs(np.linalg.eigvals(acl))) < 1.0
+                ok = _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi)
         if ok:
             if np.isnan(first):
                 first = k

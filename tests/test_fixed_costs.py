@@ -3,8 +3,10 @@
 - the stable Kp range: the loop's response from the shared table of ``z`` and ``z^-d``
   against :func:`oga.stability._h_modal_grid`, its gain margin (compiled phase crossovers)
   against the Python path (scipy's ``brentq`` on ``Im H``), and the ends of the compiled walk
-  (blocks without a sign change skipped) against the Python walk over
-  :func:`oga.stability._margins`, on the 96 plants of ucp710's default set;
+  (blocks without a sign change skipped, the closed loop's eigenvalues by the real ``geev``
+  away from the unit circle) against the Python walk over :func:`oga.stability._margins`, on
+  the 96 plants of ucp710's default set, and that stability decision against the complex
+  ``geev``'s;
 - the sub-step matrices, memoised and shared by the packed parameters and the stability
   loops, against a fresh ``scipy.linalg.expm`` and the sequence composed here, on the same
   plants and the presets; the packed parameters whichever asks first;
@@ -20,13 +22,14 @@ from collections import OrderedDict
 
 import numpy as np
 import pytest
+from numba import njit
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
 import oga.linear as linear
 import oga.machine as machine_mod
 import oga.stability as stability
-from oga.machine import PRESETS, load_machine
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, PRESETS, load_machine
 from oga.metrics import _QUANTILES, _percentiles
 from oga.robust.plants import scenario_set
 
@@ -89,6 +92,37 @@ def test_stable_ends_are_the_python_walk_on_the_set():
             assert _bits(got) == _bits(want), (plant.name, axis, got, want)
             ends.add(got)
     assert len(ends) > 10
+
+
+def test_closed_loop_stability_is_the_complex_eigenvalues_decision():
+    """The real ``geev`` with its guard decides as the complex ``geev`` (the walk's reference)
+    on the loops of the set over Kp from 0.05 to 20 (m/min)/mm, across the stability edge;
+    nearer 1 than the guard, and on a matrix that is not finite, the complex one decides."""
+    decided = set()
+    for plant in PLANTS[::3]:
+        for axis in ("x", "z"):
+            loop = stability._Loop(plant, axis)
+            n = loop.a.shape[0]
+            work = (np.empty((n, n), dtype=complex), np.empty((n, n)), np.empty(n), np.empty(n))
+            for kp in np.linspace(0.05, 20.0, 120) * KP_SI_PER_M_MIN_PER_MM:
+                acl = loop.a - loop.b @ (kp * loop.c)
+                want = bool(np.max(np.abs(_complex_eigvals(acl.astype(complex)))) < 1.0)
+                assert stability._closed_loop_stable(loop.a, loop.b, loop.c, kp, *work) == want
+                decided.add(want)
+    assert decided == {True, False}
+    work = (np.empty((2, 2), dtype=complex), np.empty((2, 2)), np.empty(2), np.empty(2))
+    for rho in (1.0 - 1e-9, 1.0 + 1e-9, 1.0):
+        a = np.diag([rho, 0.5])
+        got = stability._closed_loop_stable(a, np.zeros((2, 1)), np.zeros((1, 2)), 1.0, *work)
+        assert got == (rho < 1.0)
+    with pytest.raises(np.linalg.LinAlgError):
+        stability._closed_loop_stable(np.diag([np.nan, 0.5]), np.zeros((2, 1)),
+                                      np.zeros((1, 2)), 1.0, *work)
+
+
+@njit
+def _complex_eigvals(a):
+    return np.linalg.eigvals(a)
 
 
 def _fresh_matrices(cas, h):
