@@ -78,7 +78,7 @@ from numba import njit
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
 from oga.linear import substep_matrices, substep_sequence_of
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, _memo_of
 
 __all__ = [
     "axis_params",
@@ -990,9 +990,19 @@ def _gain_table(value, name: str, n: int) -> np.ndarray:
             table = arr.copy()
         else:
             raise OptionError(f"{name}: expected shape ({n}, 3), got {arr.shape}")
-    if not np.all(np.isfinite(table)):
+    if not _all_finite(table):
         raise OptionError(f"{name}: values must be finite")
     return table
+
+
+@njit(cache=True)
+def _all_finite(x):
+    """``np.all(np.isfinite(x))`` of ``x`` (N, 3), compiled."""
+    for k in range(x.shape[0]):
+        for c in range(x.shape[1]):
+            if not math.isfinite(x[k, c]):
+                return False
+    return True
 
 
 def _at_rest(model, pd: np.ndarray, vd: np.ndarray) -> bool:
@@ -1058,7 +1068,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
     digest = machine.digest() if n else ""
-    n_params, n_state = _sizes(machine)
+    n_params, n_state = _memo_of(machine, "simulate._sizes", lambda: _sizes(machine))
     params, states = np.zeros((3, n_params)), np.zeros((3, n_state))
     fused = []  # the moving cascade axes: one :func:`run_axes`
     for c, a in enumerate(AXES):
