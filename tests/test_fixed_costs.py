@@ -229,3 +229,13 @@ def test_machine_memos_are_fresh_values_and_go_with_the_machine():
     del m, other
     gc.collect()
     assert not keys & set(machine_mod._MACHINE_MEMOS)
+
+
+def test_verify_limit_matrix_is_the_stacked_axis_limits():
+    from oga.verify import _limits
+
+    for machine in MACHINES[:: 5]:
+        lim = machine.axis_limits()
+        want = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
+        got = _limits(machine)
+        assert _bits(got) == _bits(want) and not got.flags.writeable
