@@ -990,19 +990,9 @@ def _gain_table(value, name: str, n: int) -> np.ndarray:
             table = arr.copy()
         else:
             raise OptionError(f"{name}: expected shape ({n}, 3), got {arr.shape}")
-    if not _all_finite(table):
+    if not np.all(np.isfinite(table)):
         raise OptionError(f"{name}: values must be finite")
     return table
-
-
-@njit(cache=True)
-def _all_finite(x):
-    """``np.all(np.isfinite(x))`` of ``x`` (N, 3), compiled."""
-    for k in range(x.shape[0]):
-        for c in range(x.shape[1]):
-            if not math.isfinite(x[k, c]):
-                return False
-    return True
 
 
 def _at_rest(model, pd: np.ndarray, vd: np.ndarray) -> bool:
