@@ -37,6 +37,8 @@ and ``p_{k+1} = p_k + Te v_k`` (:func:`arx_state_space`).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.linalg import expm
 
@@ -46,6 +48,7 @@ from oga.machine import Arx, Cascade, Machine
 __all__ = [
     "substep_matrices",
     "substep_sequence",
+    "substep_sequence_of",
     "arx_state_space",
     "lifted_axis",
     "position_open_loop",
@@ -69,11 +72,22 @@ def substep_matrices(cascade: Cascade, h: float) -> tuple[np.ndarray, np.ndarray
     bd : ndarray, shape (3, 2)
         Input matrix of the held inputs ``[F_cmd, F_n]`` (N, N).
     """
-    m = cascade.mass_kg
-    tau = cascade.force_lag_s
-    a = np.array(
-        [[0.0, 1.0, 0.0], [0.0, -cascade.viscous_n_s_m / m, 1.0 / m], [0.0, 0.0, -1.0 / tau]]
-    )
+    ad, bd = _matrices(_key(cascade.mass_kg, cascade.viscous_n_s_m, cascade.force_lag_s, h))
+    return ad.copy(), bd.copy()
+
+
+def _key(*values: float) -> bytes:
+    """A memo key of floats: their bits (``0.0`` and ``-0.0`` differ, as their results may)."""
+    return np.array(values, dtype=np.float64).tobytes()
+
+
+@functools.lru_cache(maxsize=512)
+def _matrices(key: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`substep_matrices` of ``key = _key(mass_kg, viscous_n_s_m, force_lag_s, h)``,
+    memoised, read-only: a plant's axis asks for them from its packed parameters and from its
+    stability loop alike (one matrix exponential, not one per caller)."""
+    m, viscous, tau, h = np.frombuffer(key).tolist()
+    a = np.array([[0.0, 1.0, 0.0], [0.0, -viscous / m, 1.0 / m], [0.0, 0.0, -1.0 / tau]])
     b = np.array([[0.0, 0.0], [0.0, -1.0 / m], [1.0 / tau, 0.0]])
     # exp([[A, B], [0, 0]] h) = [[Ad, Bd], [0, I]]
     aug = np.zeros((5, 5))
@@ -86,6 +100,8 @@ def substep_matrices(cascade: Cascade, h: float) -> tuple[np.ndarray, np.ndarray
     ad[:, 0] = (1.0, 0.0, 0.0)
     ad[2, 1] = 0.0
     bd[2, 1] = 0.0
+    for arr in (ad, bd):
+        arr.flags.writeable = False
     return ad, bd
 
 
@@ -109,17 +125,33 @@ def substep_sequence(machine: Machine, axis: str) -> tuple[np.ndarray, np.ndarra
     b : ndarray, shape (S + 1, 4, 2)
         ``B_j``: columns for the velocity command u (m/s) and the friction force F_n (N).
     """
+    a, b = substep_sequence_of(machine, axis)
+    return a.copy(), b.copy()
+
+
+def substep_sequence_of(machine: Machine, axis: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`substep_sequence`, memoised by what it depends on and read-only (not copied:
+    callers must not write it), for the packed parameters and the stability loops of the
+    same plants."""
     cas = machine.axis(axis).cascade
     if cas is None:
         raise MachineError(f"machine {machine.name!r}: axis {axis!r} is not a cascade")
-    n_sub = machine.timing.substeps
-    h = machine.timing.te_s / n_sub
-    ad, bd = substep_matrices(cas, h)
-    bf = bd[:, 0] * cas.kv_n_s_m  # force command gain on (u - v + I/Tn)
+    return _sequence(_key(cas.mass_kg, cas.viscous_n_s_m, cas.force_lag_s, cas.kv_n_s_m,
+                          cas.tn_s, machine.timing.te_s), machine.timing.substeps)
+
+
+@functools.lru_cache(maxsize=512)
+def _sequence(key: bytes, n_sub: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`substep_sequence` of ``key = _key(mass_kg, viscous_n_s_m, force_lag_s, kv_n_s_m,
+    tn_s, te_s)`` and ``n_sub`` sub-steps, computed (read-only)."""
+    m, viscous, tau, kv, tn, te = np.frombuffer(key).tolist()
+    h = te / n_sub
+    ad, bd = _matrices(_key(m, viscous, tau, h))
+    bf = bd[:, 0] * kv  # force command gain on (u - v + I/Tn)
     m_sub = np.zeros((4, 4))  # z_{j+1} = M z_j + N [u, F_n]
     m_sub[:3, :3] = ad
     m_sub[:3, 1] -= bf
-    m_sub[:3, 3] = bf / cas.tn_s
+    m_sub[:3, 3] = bf / tn
     m_sub[3, 1] = -h
     m_sub[3, 3] = 1.0
     n_sub_in = np.zeros((4, 2))
@@ -133,6 +165,8 @@ def substep_sequence(machine: Machine, axis: str) -> tuple[np.ndarray, np.ndarra
     for j in range(n_sub):
         a[j + 1] = m_sub @ a[j]
         b[j + 1] = m_sub @ b[j] + n_sub_in
+    for arr in (a, b):
+        arr.flags.writeable = False
     return a, b
 
 
@@ -215,8 +249,8 @@ def lifted_axis(
     if model.arx is not None:
         a, b = arx_state_space(model.arx, machine.te)
     else:
-        a_j, b_j = substep_sequence(machine, axis)
-        a, b = a_j[-1], b_j[-1][:, :1].copy()
+        a_j, b_j = substep_sequence_of(machine, axis)
+        a, b = a_j[-1].copy(), b_j[-1][:, :1].copy()
     c = np.zeros((1, a.shape[0]))
     c[0, 0] = 1.0
     return a, b, c, np.zeros((1, 1))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import tomllib
+import weakref
 from pathlib import Path as FilePath
 from typing import TYPE_CHECKING, Annotated
 
@@ -303,8 +304,13 @@ class Machine(_Frozen):
     def axis_limits(self) -> "AxisLimits":
         """Per-axis (x, y, z) kinematic limits for the planner and the checks.
 
-        Axes the machine lacks get limit 0 (they must not move).
+        Axes the machine lacks get limit 0 (they must not move). Memoised on the machine
+        (:func:`_memo_of`): every replay's checks ask for them.
         """
+        return _memo_of(self, "axis_limits", self._axis_limits)
+
+    def _axis_limits(self) -> "AxisLimits":
+        """:meth:`axis_limits`, computed (read-only arrays in a frozen dataclass)."""
         from feedplan.limits import AxisLimits
 
         rows = [
@@ -339,9 +345,37 @@ class Machine(_Frozen):
         )
 
     def digest(self) -> str:
-        """SHA-256 of the canonical JSON of this machine (identifies it in a table)."""
+        """SHA-256 of the canonical JSON of this machine (identifies it in a table).
+
+        Memoised on the machine (:func:`_memo_of`): every replay keys its packed parameters
+        by it."""
         # without the unset model kind (an axis has exactly one)
-        return json_digest(self.model_dump(mode="json", exclude_none=True))
+        return _memo_of(self, "digest",
+                        lambda: json_digest(self.model_dump(mode="json", exclude_none=True)))
+
+
+#: What :func:`_memo_of` keeps, by ``id`` of the machine, while the machine lives.
+_MACHINE_MEMOS: dict[int, dict] = {}
+
+
+def _memo_of(machine: Machine, name: str, compute):
+    """``compute()``, kept for ``machine`` under ``name`` until the machine is collected.
+
+    A Machine is frozen, so what depends on it alone can be kept. Not on the instance: a
+    ``model_copy(update=...)`` copies the instance's ``__dict__`` (and would carry a stale
+    value); an ``id`` is not reused while the machine lives, and the entry goes with it
+    (``weakref.finalize``).
+    """
+    key = id(machine)
+    memo = _MACHINE_MEMOS.get(key)
+    if memo is None:
+        memo = _MACHINE_MEMOS[key] = {}
+        weakref.finalize(machine, _MACHINE_MEMOS.pop, key, None)
+    try:
+        return memo[name]
+    except KeyError:
+        value = memo[name] = compute()
+        return value
 
 
 def json_digest(data) -> str:

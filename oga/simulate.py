@@ -77,8 +77,8 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
-from oga.linear import substep_matrices, substep_sequence
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.linear import substep_matrices, substep_sequence_of
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, _memo_of
 
 __all__ = [
     "axis_params",
@@ -238,7 +238,7 @@ def _cascade_params(machine: Machine, axis: str, lifted: bool, out: np.ndarray) 
     out[_NSUB] = machine.timing.substeps
     out[_DEAD] = machine.timing.dead_time_samples
     out[_LIFTED] = 1.0 if lifted else 0.0
-    a_j, b_j = substep_sequence(machine, axis)
+    a_j, b_j = substep_sequence_of(machine, axis)
     out[_LA : _LA + 16] = a_j[-1].ravel()
     out[_LB : _LB + 8] = b_j[-1].ravel()
     out[_WV : _WV + 5], out[_WR : _WR + 5] = _guard_bounds(a_j[:-1], b_j[:-1], cas)
@@ -995,7 +995,7 @@ def _gain_table(value, name: str, n: int) -> np.ndarray:
     return table
 
 
-def _at_rest(params: np.ndarray, pd: np.ndarray, vd: np.ndarray) -> bool:
+def _at_rest(model, pd: np.ndarray, vd: np.ndarray) -> bool:
     """Whether a cascade axis started at rest at ``pd[0]`` stays there exactly, whatever the
     gains: its setpoint never moves (``pd == pd[0]``, ``vd == 0`` at every sample).
 
@@ -1003,10 +1003,20 @@ def _at_rest(params: np.ndarray, pd: np.ndarray, vd: np.ndarray) -> bool:
     integral and the force stay 0, the friction of a zero velocity is 0 (``tanh(0)``), so the
     kernel would return ``p = pd[0]`` and ``u = 0`` at every sample: the replay is skipped
     (tests/test_robust_speed.py compares it with the kernel's, bit for bit). An ARX axis is
-    always replayed.
+    always replayed. ``model``: the axis (:class:`oga.machine.Axis`).
     """
-    return (params[_KIND] == _CASCADE and bool(np.all(pd == pd[0]))
-            and not bool(np.any(vd)))
+    return model.arx is None and _still(pd, vd)
+
+
+@njit(cache=True)
+def _still(pd, vd):
+    """``np.all(pd == pd[0]) and not np.any(vd)`` of ``pd``, ``vd`` (N,), N >= 1, in one
+    compiled pass (a NaN setpoint is not still, a NaN velocity is not zero)."""
+    p0 = pd[0]
+    for k in range(pd.size):
+        if not pd[k] == p0 or vd[k] != 0.0:
+            return False
+    return True
 
 
 def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Simulation:
@@ -1048,7 +1058,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
     digest = machine.digest() if n else ""
-    n_params, n_state = _sizes(machine)
+    n_params, n_state = _memo_of(machine, "simulate._sizes", lambda: _sizes(machine))
     params, states = np.zeros((3, n_params)), np.zeros((3, n_state))
     fused = []  # the moving cascade axes: one :func:`run_axes`
     for c, a in enumerate(AXES):
@@ -1063,10 +1073,11 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         if not n:
             pos[:, c] = pd
             continue
+        if _at_rest(machine.axes[a], pd, setpoints.vel[:, c]):
+            pos[:, c] = pd  # exact rest: u stays 0 (:func:`_at_rest`), nothing to pack
+            continue
         params[c] = _params_of(digest, machine, a)
-        if _at_rest(params[c], pd, setpoints.vel[:, c]):
-            pos[:, c] = pd  # exact rest: u stays 0 (:func:`_at_rest`)
-        elif params[c, _KIND] == _CASCADE:
+        if params[c, _KIND] == _CASCADE:
             states[c, _P] = pd[0]  # :func:`rest_state`
             fused.append(c)
         else:

@@ -22,8 +22,11 @@ near-defective): the same values to 1e-13 relative (7e-14 at most over the 96 pl
 ucp710's default set), several times cheaper. Where only the ends of the stable
 range are wanted (the robust search's ~100 plants), :func:`stable_ends` walks the grid
 upwards and stops where the lowest run ends, compiled (:func:`_walk_modal`: the same
-figures as :func:`_margins`, tests/test_stability_walk.py; 0.3 ms per plant-axis instead of
-1.5 ms).
+figures as :func:`_margins`, tests/test_stability_walk.py). A loop costs about 0.6 ms
+(ucp710's plants: the response on the grid from a table of ``z`` shared by the loops of one
+period, the phase crossovers compiled, then the walk: blocks of the grid where ``|L|`` cannot
+cross 1 skipped, the closed-loop eigenvalues by LAPACK's real ``geev`` away from the unit
+circle; tests/test_fixed_costs.py).
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.np.linalg import _LAPACK, ensure_lapack
 from scipy.linalg import matrix_balance
 from scipy.optimize import brentq
 
 from oga.errors import OptionError
 from oga.linear import position_open_loop
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
+
+ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
 
 __all__ = ["Margins", "StabilityRange", "decimal_grid", "margins", "stable_ends", "stable_range"]
 
@@ -224,6 +230,12 @@ class _Loop:
         for arr in (self.a, self.b, self.c, self.h, self.log_mag, self.phase):
             arr.flags.writeable = False
 
+        if self.modal is not None:
+            lam, res, dead = self.modal
+            gm, wc = _gain_margin_modal(lam, res, dead, self.te, self.w, self.h, self.phase)
+            self.gm_db, self.w_phase_crossover_rad_s = float(gm), float(wc)
+            return
+
         def imag(w):
             return self.response(w).imag
 
@@ -248,7 +260,10 @@ class _Loop:
         if self.modal is None:
             return _response(self.a, self.b, self.c, w, self.te)
         lam, res, dead = self.modal
-        return _h_modal_grid(lam, res, dead, self.te, np.asarray(w, dtype=np.float64))
+        w = np.asarray(w, dtype=np.float64)
+        if w is self.w:
+            return _h_modal_table(lam, res, *_unit_circle(self.te, dead))
+        return _h_modal_grid(lam, res, dead, self.te, w)
 
     def response(self, w: float) -> complex:
         """``H(exp(j w Te))`` at one frequency ``w`` (rad/s), s."""
@@ -256,6 +271,16 @@ class _Loop:
             return _response(self.a, self.b, self.c, np.atleast_1d(w), self.te)[0]
         lam, res, dead = self.modal
         return _h_modal(lam, res, dead, self.te, float(w))
+
+
+@functools.lru_cache(maxsize=8)
+def _unit_circle(te: float, dead: int) -> tuple[np.ndarray, np.ndarray]:
+    """``z = exp(j w Te)`` and ``z^-d`` (as :func:`_h_modal` computes them) on the grid of
+    :func:`_frequency_grid`, read-only: what every loop of that period and dead time shares."""
+    z, inv = _unit_circle_of(_frequency_grid(te), te, dead)
+    for arr in (z, inv):
+        arr.flags.writeable = False
+    return z, inv
 
 
 @functools.lru_cache(maxsize=8)
@@ -278,12 +303,12 @@ def _unwrap(p):
     total = 0.0
     for k in range(1, p.size):
         dd = p[k] - p[k - 1]
-        ddmod = (dd - -math.pi) % period + -math.pi
-        if ddmod == -math.pi and dd > 0:
-            ddmod = math.pi
-        correct = ddmod - dd
-        if abs(dd) < math.pi:
-            correct = 0.0
+        correct = 0.0
+        if not abs(dd) < math.pi:  # numpy computes the rest everywhere, uses it only here
+            ddmod = (dd - -math.pi) % period + -math.pi
+            if ddmod == -math.pi and dd > 0:
+                ddmod = math.pi
+            correct = ddmod - dd
         total = total + correct if k > 1 else correct
         up[k] = p[k] + total
     return up
@@ -591,7 +616,8 @@ def _summarise(axis: str, g: GainSettings, kp, pm, gm, stable) -> StabilityRange
 # response, the gain crossovers refined by Brent's method (the algorithm of scipy's
 # ``brentq``, C source scipy/optimize/Zeros/brentq.c, BSD; same iterates, same tolerances),
 # the phase margin read as :func:`_margins` reads it, and the closed-loop eigenvalues
-# (LAPACK's complex ``geev`` on the real matrix: the same moduli to rounding).
+# (:func:`_closed_loop_stable`: LAPACK's complex ``geev`` on the real matrix, the same moduli
+# to rounding, decides within 1e-6 of the unit circle; the real ``geev`` elsewhere).
 
 
 @njit(cache=True)
@@ -613,6 +639,34 @@ def _h_modal_grid(lam, res, dead, te, w):
     out = np.empty(w.size, dtype=np.complex128)
     for k in range(w.size):
         out[k] = _h_modal(lam, res, dead, te, w[k])
+    return out
+
+
+@njit(cache=True)
+def _unit_circle_of(w, te, dead):
+    """``z`` and ``1 / z^d`` at each frequency of ``w`` (shape (G,)): :func:`_h_modal`'s."""
+    z = np.empty(w.size, dtype=np.complex128)
+    inv = np.empty(w.size, dtype=np.complex128)
+    for k in range(w.size):
+        zk = complex(math.cos(w[k] * te), math.sin(w[k] * te))
+        p = 1.0 + 0j
+        for _ in range(dead):
+            p *= zk
+        z[k] = zk
+        inv[k] = 1.0 / p
+    return z, inv
+
+
+@njit(cache=True)
+def _h_modal_table(lam, res, z, inv):
+    """:func:`_h_modal_grid` from the table of :func:`_unit_circle` (the same operations, the
+    same bits; the sines and cosines once per period), s."""
+    out = np.empty(z.size, dtype=np.complex128)
+    for k in range(z.size):
+        s = 0j
+        for i in range(lam.size):
+            s += res[i] / (z[k] - lam[i])
+        out[k] = s * inv[k]
     return out
 
 
@@ -673,8 +727,78 @@ def _root_modal(kind, offset, lam, res, dead, te, lo, hi, f_lo, f_hi):
 
 
 @njit(cache=True)
+def _gain_margin_modal(lam, res, dead, te, w, h, phase):
+    """``(gm_db, w_phase_crossover_rad_s)`` of :class:`_Loop` (modal form), compiled: the
+    phase crossovers where the unwrapped ``phase`` passes -180 deg refined by Brent's method
+    on ``Im H`` (:func:`_root_modal`), the Nyquist frequency if ``H`` is negative there, the
+    least ``-20 log10 |H|`` over them (``inf``, ``nan`` if none): the same operations as the
+    Python path, the same bits."""
+    gm, w_pc = np.inf, np.nan
+    n = w.size
+    turn_was = math.floor((phase[0] + math.pi) / (2.0 * math.pi))
+    for i in range(n):
+        wc = np.nan
+        if i < n - 1:
+            turn = math.floor((phase[i + 1] + math.pi) / (2.0 * math.pi))
+            if turn_was != turn:
+                wc = _root_modal(1, 0.0, lam, res, dead, te, w[i], w[i + 1], h[i].imag,
+                                 h[i + 1].imag)
+            turn_was = turn
+        elif h[n - 1].real < 0.0:  # at Nyquist H is real: a phase crossover if negative
+            wc = w[n - 1]
+        if not np.isnan(wc):
+            gm_i = -20.0 * math.log10(abs(_h_modal(lam, res, dead, te, wc)))
+            if gm_i < gm:
+                gm, w_pc = gm_i, wc
+    return gm, w_pc
+
+
+@njit(cache=True)
 def _sign(x):
     return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else (0.0 if x == 0.0 else x))
+
+
+#: Pairs of grid points per block of :func:`_walk_modal`'s scan for gain crossovers.
+_BLOCK = 64
+
+#: LAPACK's real ``geev`` (eigenvalues only) as numba's ``np.linalg.eigvals`` calls it.
+_DGEEV = _LAPACK().numba_ez_rgeev(types.float64)
+#: :func:`_closed_loop_stable` trusts the real ``geev``'s spectral radius where it is farther
+#: than this from 1: both ``geev`` are backward stable on the same matrix, their moduli differ
+#: by rounding (1e-15 over ucp710's set, tests/test_fixed_costs.py), far below it.
+_RADIUS_GUARD = 1e-6
+
+
+@njit(cache=True)
+def _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi):
+    """Whether every eigenvalue of ``A - B (Kp C)`` lies inside the unit circle, decided as
+    the complex ``geev`` of numba's ``np.linalg.eigvals`` on it (the walk's reference) decides.
+
+    The real ``geev`` (three times cheaper) decides where its spectral radius is farther than
+    :data:`_RADIUS_GUARD` from 1; nearer, or if it fails or the matrix is not finite, the
+    complex one does. ``acl`` (complex), ``acl_f`` (real, filled column-major), ``wr``, ``wi``:
+    work arrays of the matrix's shape and size.
+    """
+    n = a.shape[0]
+    finite = True
+    for j in range(n):
+        for i in range(n):
+            x = a[i, j] - b[i, 0] * (kp_si * c[0, j])
+            acl[i, j] = x
+            acl_f[j, i] = x  # acl_f's memory read column-major: acl
+            finite = finite and math.isfinite(x)
+    if finite:
+        info = _DGEEV(ord("d"), ord("N"), ord("N"), n, acl_f.ctypes, n, wr.ctypes, wi.ctypes,
+                      wr.ctypes, 1, wr.ctypes, 1)  # no eigenvectors: vl, vr not referenced
+        if info == 0:
+            rho = 0.0
+            for i in range(n):
+                rho = max(rho, abs(complex(wr[i], wi[i])))
+            if rho < 1.0 - _RADIUS_GUARD:
+                return True
+            if rho > 1.0 + _RADIUS_GUARD:
+                return False
+    return np.max(np.abs(np.linalg.eigvals(acl))) < 1.0
 
 
 @njit(cache=True)
@@ -686,6 +810,23 @@ def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, 
     """
     first, last = np.nan, np.nan
     acl = np.empty(a.shape, dtype=np.complex128)
+    acl_f = np.empty(a.shape)  # the real matrix, column-major (:func:`_closed_loop_stable`)
+    wr, wi = np.empty(a.shape[0]), np.empty(a.shape[0])
+    # the grid's pairs (i, i + 1) in blocks, with the least and largest ln |H| each touches:
+    # ln |H| + ln Kp has the sign of the exact sum (rounding keeps it), so where the block's
+    # least value exceeds -ln Kp, or its largest falls short of it, no pair changes sign
+    n_pairs = w.size - 1
+    n_blocks = (n_pairs + _BLOCK - 1) // _BLOCK
+    b_min, b_max = np.empty(n_blocks), np.empty(n_blocks)
+    for j in range(n_blocks):
+        lo_v, hi_v = np.inf, -np.inf
+        for i in range(j * _BLOCK, min((j + 1) * _BLOCK, n_pairs) + 1):
+            x = log_mag[i]
+            if x != x:  # NaN: the block is scanned
+                lo_v, hi_v = -np.inf, np.inf
+                break
+            lo_v, hi_v = min(lo_v, x), max(hi_v, x)
+        b_min[j], b_max[j] = lo_v, hi_v
     for k in grid:
         kp_si = k * kp_si_per
         gm = gm_db - 20.0 * math.log10(kp_si)
@@ -693,21 +834,21 @@ def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, 
         if ok:
             log_kp = math.log(kp_si)
             pm = np.inf
-            for i in range(w.size - 1):
-                m0, m1 = log_mag[i] + log_kp, log_mag[i + 1] + log_kp
-                if _sign(m0) != _sign(m1):
-                    wc = _root_modal(0, log_kp, lam, res, dead, te, w[i], w[i + 1], m0, m1)
-                    r = _h_modal(lam, res, dead, te, wc) / h[i]
-                    ph = phase[i] + math.atan2(r.imag, r.real)
-                    pm_i = (math.degrees(ph) + 360.0) % 360.0 - 180.0
-                    if pm_i < pm:
-                        pm = pm_i
+            for j in range(n_blocks):
+                if b_min[j] > -log_kp or b_max[j] < -log_kp:
+                    continue  # no sign change in this block (the comment above)
+                for i in range(j * _BLOCK, min((j + 1) * _BLOCK, n_pairs)):
+                    m0, m1 = log_mag[i] + log_kp, log_mag[i + 1] + log_kp
+                    if _sign(m0) != _sign(m1):
+                        wc = _root_modal(0, log_kp, lam, res, dead, te, w[i], w[i + 1], m0, m1)
+                        r = _h_modal(lam, res, dead, te, wc) / h[i]
+                        ph = phase[i] + math.atan2(r.imag, r.real)
+                        pm_i = (math.degrees(ph) + 360.0) % 360.0 - 180.0
+                        if pm_i < pm:
+                            pm = pm_i
             ok = pm >= pm_min and gm >= gm_min
             if ok:
-                for i in range(a.shape[0]):
-                    for j in range(a.shape[1]):
-                        acl[i, j] = a[i, j] - b[i, 0] * (kp_si * c[0, j])
-                ok = np.max(np.abs(np.linalg.eigvals(acl))) < 1.0
+                ok = _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi)
         if ok:
             if np.isnan(first):
                 first = k

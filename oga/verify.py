@@ -23,7 +23,7 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of
-from oga.machine import Machine
+from oga.machine import Machine, _memo_of
 from oga.metrics import ContourMetrics, nan_max, contour_metrics
 from oga.kinematics import command_peaks
 from oga.simulate import simulate
@@ -53,8 +53,7 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
     ndarray, shape (3, 3)
         ``[axis, (v, a, j)]`` ratios; <= 1 means within the limit.
     """
-    lim = machine.axis_limits()
-    limits = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
+    limits = _memo_of(machine, "verify.limits", lambda: _limits(machine))
     u = np.asarray(u, dtype=np.float64)
     check = np.ones(len(u), dtype=bool)
     out = np.zeros((3, 3))
@@ -66,6 +65,15 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
             elif peaks[j] > 0:
                 out[k, j] = np.inf
     return out
+
+
+def _limits(machine: Machine) -> np.ndarray:
+    """``[axis, (vmax, amax, jmax)]`` of :meth:`oga.machine.Machine.axis_limits`, shape (3, 3),
+    read-only."""
+    lim = machine.axis_limits()
+    limits = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
+    limits.flags.writeable = False
+    return limits
 
 
 @njit(cache=True)
