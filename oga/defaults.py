@@ -274,6 +274,8 @@ MACHINE_FIELD_RANGES = {
     "force_lag_s": (1e-7, 1.0),
     "force_limit_n": (1e-3, 1e15),
     "friction_smoothing_m_s": (1e-9, 1.0),
+    # timing (a simulation setting: oga.machine.Timing)
+    "friction_linear_below_m_s": (1e-9, 1e-3),
     # arx
     "arx_coefficient": (-1e6, 1e6),
     "arx_order": (1, 64),
@@ -331,6 +333,10 @@ ROBUST_SEED = 17
 #: schedule's result (friction level, mass, Kv, Tn, dead time); the rest stay nominal.
 ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), ("tn_s",),
                         ("dead_time_extra_samples",))
+#: The scenario plants' simulation setting ``timing.friction_linear_below_m_s`` (m/s): below
+#: it the kernel may take the friction as its tangent at rest over a period
+#: (:class:`oga.machine.Timing`), which covers most periods of an axis standing still.
+ROBUST_FRICTION_LINEAR_BELOW_M_S = 1e-6
 #: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
 #: to the first cut of the limit reserve (doubled at each further cut).
 ROBUST_ROUNDS = 5

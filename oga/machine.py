@@ -230,11 +230,22 @@ class Axis(_Frozen):
 
 
 class Timing(_Frozen):
-    """Loop timing: position-loop period, inner sub-steps, dead time."""
+    """Loop timing: position-loop period, inner sub-steps, dead time; and one simulation setting.
+
+    ``friction_linear_below_m_s`` (optional, unset by default: the exact kernel) lets the
+    simulation take a cascade axis's friction force ``F_n(v)`` as its tangent at rest,
+    ``Fs / friction_smoothing_m_s * v``, over the periods whose velocity provably stays below
+    it at every sub-step (:mod:`oga.simulate`: the periods of an axis standing still then cost
+    one linear map instead of the sub-steps). There ``|F_n - tangent| <= Fs x^3 / 3 +
+    (Fs - Fc) (V / vs)^2 x`` with ``x = V / friction_smoothing_m_s``. The scenario plants of
+    the robust search set it (:data:`oga.defaults.ROBUST_FRICTION_LINEAR_BELOW_M_S`); unset,
+    it leaves the machine's digest as it was.
+    """
 
     te_s: Annotated[float, Field(ge=DT_RANGE_S[0], le=DT_RANGE_S[1], allow_inf_nan=False)] = 0.001
     substeps: Annotated[int, Field(ge=1, le=1000)] = 8
     dead_time_samples: Annotated[int, Field(ge=0, le=100)] = 2
+    friction_linear_below_m_s: _in("friction_linear_below_m_s") | None = None
 
 
 class GainSettings(_Frozen):
@@ -271,7 +282,12 @@ class PlannerSettings(_Frozen):
 
 
 class Machine(_Frozen):
-    """A machine tool: named linear axes (subset of x, y, z), timing and gain settings."""
+    """A machine tool: named linear axes (subset of x, y, z), timing and gain settings.
+
+    ``timing`` also holds the one simulation setting (not a property of the machine):
+    ``timing.friction_linear_below_m_s``, the velocity below which the simulation may take
+    the friction as linear (:class:`Timing`); unset (the default) the kernel is exact.
+    """
 
     name: Annotated[str, Field(min_length=1, max_length=100)]
     source: str = Field("", description="Where the numbers come from.")

@@ -36,6 +36,19 @@ Where an axis stands still its state soon stops changing to the last bit (a
 floating-point fixed point of the period); :func:`run` and :func:`window` then skip
 the periods whose command is also unchanged, which gives the same bits.
 
+One opt-in approximation, a setting of the machine (``timing.friction_linear_below_m_s``
+= ``V``, unset by default; the robust search's scenario plants set it): where an axis
+(nearly) stands still its state converges without reaching a fixed point, and every period
+takes the sub-steps. There the friction force is taken as its tangent at rest,
+``F_n,j = c v_j`` with ``c = Fs / eps`` (held over each sub-step as ``F_n`` is), which makes
+the sub-steps one linear map over Te (:func:`_linear_friction_map`), taken where a bound
+linear in the state proves ``|v_j| < V`` at every sub-step start and the force command
+inside the limit (:func:`_linear_guard`). For ``|v| <= V``,
+``|F_n(v) - c v| <= Fs x^3 / 3 + (Fs - Fc) (V / vs)^2 x`` with ``x = V / eps``
+(``|tanh x - x| <= |x|^3 / 3``, ``0 <= 1 - exp(-r2) <= r2``): with the robust default
+``V = 1e-6`` m/s and ucp710's plants, below 1e-4 N against the friction ``c V`` of about
+1 N there.
+
 **ARX** (:class:`oga.machine.Arx`): an identified velocity loop, already discrete
 over Te. At sample k, with the command ``u_k`` issued:
 
@@ -122,7 +135,12 @@ _WV = 53  # 5: bound of |v_j - v_0| over the sub-steps, on |[v, e, F, I, F_n]|
 _WR = 58  # 5: bound of |F_cmd,j - F_cmd,0| over the sub-steps, same coordinates
 _VFAST = 63  # |v| above which F_n is exactly +-Fc (-inf if F_n is identically 0)
 _B = 64  # viscous friction, N s/m
-_N_PARAMS = 65
+_VLIN = 65  # timing.friction_linear_below_m_s: |v| below which F_n may be linear (0: never)
+_NA = 66  # 4x4 row-major: z = [p, v, F, I] over Te, unsaturated, F_n = c v_j (c = Fs / eps)
+_NB = 82  # 4x2 row-major: inputs [u, load] over Te, same
+_WL = 90  # 5: bound of |v_j| over the sub-steps of that map, on |[v, e, F, I, load]|
+_WF = 95  # 5: bound of |F_cmd,j| over them, same coordinates
+_N_PARAMS = 100
 # ARX (then den[1:] padded to nv, then the numerator past its first entry, nw):
 _A_TE = 3  # period, s
 _A_NV = 4  # number of past velocities in the state (nv)
@@ -165,8 +183,9 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
     ndarray, shape (P,)
         Kind code, dead time and state size (:func:`state_size`), then for a
         cascade the sub-step matrices, PI, force limit, friction constants,
-        sub-steps, lifted map, the bounds of its guard and the viscous friction (65
-        entries); for an ARX axis Te, history lengths, friction, load gain and the
+        sub-steps, lifted map, the bounds of its guard, the viscous friction, and the
+        linear friction map with its guard (all zero where the machine leaves
+        ``timing.friction_linear_below_m_s`` unset): 100 entries; for an ARX axis Te, history lengths, friction, load gain and the
         coefficients (``11 + nv + nw``). Zero-padded to the longest over the
         machine's axes, so every axis of a machine has the same P.
     """
@@ -244,6 +263,13 @@ def _cascade_params(machine: Machine, axis: str, lifted: bool, out: np.ndarray) 
     out[_WV : _WV + 5], out[_WR : _WR + 5] = _guard_bounds(a_j[:-1], b_j[:-1], cas)
     out[_VFAST] = v_fast
     out[_B] = cas.viscous_n_s_m
+    v_lin = machine.timing.friction_linear_below_m_s
+    if v_lin is not None:  # else 0: the linear friction map is never taken
+        out[_VLIN] = v_lin
+        a_n, b_n, wl, wf = _linear_friction_map(a_j[1], b_j[1], cas, machine.timing.substeps)
+        out[_NA : _NA + 16] = a_n.ravel()
+        out[_NB : _NB + 8] = b_n.ravel()
+        out[_WL : _WL + 5], out[_WF : _WF + 5] = wl, wf
 
 
 def _arx_params(arx, machine: Machine, out: np.ndarray) -> None:
@@ -276,17 +302,58 @@ def _guard_bounds(a_j, b_j, cas) -> tuple[np.ndarray, np.ndarray]:
     shape (5,), with ``|v_j - v_0| <= wv . |w|`` and ``|F_cmd,j - F_cmd,0| <= wr . |w|``
     for every j (while unsaturated and with F_n held).
     """
-    # rows over [p, v, F, I, u, F_n] -> columns over [v, e, F, I, F_n] (u = e + v)
+    w_rows = _w_rows(a_j, b_j)
+    dv = w_rows[:, 1, :] - w_rows[0, 1, :]
+    di = w_rows[:, 3, :] - w_rows[0, 3, :]
+    dr = cas.kv_n_s_m * (-dv + di / cas.tn_s)  # F_cmd = kv (u - v + I / Tn), u held
+    return np.max(np.abs(dv), axis=0), np.max(np.abs(dr), axis=0)
+
+
+def _w_rows(a_j, b_j) -> np.ndarray:
+    """``z_j = A_j z_0 + B_j [u, x]`` (``x``: the second held input) as rows over
+    ``w = [v_0, e_0, F_0, I_0, x]`` (``e_0 = u - v_0``; the position does not enter):
+    shape (S, 4, 5)."""
+    # rows over [p, v, F, I, u, x] -> columns over [v, e, F, I, x] (u = e + v)
     phi = np.concatenate([a_j, b_j], axis=2)  # (S, 4, 6)
     to_w = np.zeros((6, 5))
     to_w[1, 0] = to_w[4, 0] = 1.0  # v_0 enters directly and through u
     to_w[4, 1] = 1.0
     to_w[2, 2] = to_w[3, 3] = to_w[5, 4] = 1.0
-    w_rows = phi @ to_w  # (S, 4, 5)
-    dv = w_rows[:, 1, :] - w_rows[0, 1, :]
-    di = w_rows[:, 3, :] - w_rows[0, 3, :]
-    dr = cas.kv_n_s_m * (-dv + di / cas.tn_s)  # F_cmd = kv (u - v + I / Tn), u held
-    return np.max(np.abs(dv), axis=0), np.max(np.abs(dr), axis=0)
+    return phi @ to_w
+
+
+def _linear_friction_map(m_sub, n_sub, cas, n_steps: int):
+    """The sub-steps of one Te with the friction force taken as its tangent at rest.
+
+    One sub-step is ``z_{j+1} = M z_j + N [u, F_n,j + load]`` (:func:`oga.linear.substep_sequence`,
+    ``M = A_1``, ``N = B_1``; PI unsaturated); with ``F_n,j = c v_j``, ``c = Fs / eps`` (the
+    slope of ``F_n`` at ``v = 0``), held over the sub-step as the kernel holds ``F_n``, it is
+    ``z_{j+1} = (M + c N[:, 1] e_v^T) z_j + N [u, load]``, and ``n_steps`` of them one map.
+
+    Returns
+    -------
+    a : ndarray, shape (4, 4)
+        Over Te, on ``z = [p, v, F, I]``.
+    b : ndarray, shape (4, 2)
+        Inputs ``[u, load]`` (m/s, N) over Te.
+    wl, wf : ndarray, shape (5,)
+        ``|v_j| <= wl . |w|`` and ``|F_cmd,j| <= wf . |w|`` at every sub-step start
+        ``j = 0 .. n_steps - 1``, ``w = [v, u - v, F, I, load]`` at the period's start.
+    """
+    mc = m_sub.copy()
+    mc[:, 1] += cas.static_n / cas.friction_smoothing_m_s * n_sub[:, 1]
+    a = np.empty((n_steps + 1, 4, 4))
+    b = np.empty((n_steps + 1, 4, 2))
+    a[0] = np.eye(4)
+    b[0] = 0.0
+    for j in range(n_steps):  # as :func:`oga.linear.substep_sequence` composes them
+        a[j + 1] = mc @ a[j]
+        b[j + 1] = mc @ b[j] + n_sub
+    w_rows = _w_rows(a[:-1], b[:-1])
+    u_row = np.array([1.0, 1.0, 0.0, 0.0, 0.0])  # u = v_0 + e_0, held
+    f_cmd = cas.kv_n_s_m * (u_row - w_rows[:, 1, :] + w_rows[:, 3, :] / cas.tn_s)
+    return (a[-1], b[-1], np.max(np.abs(w_rows[:, 1, :]), axis=0),
+            np.max(np.abs(f_cmd), axis=0))
 
 
 def _sizes(machine: Machine) -> tuple[int, int]:
@@ -464,7 +531,7 @@ def _substeps(params, p, v, f, i, ud, load, fn):
     for j in range(int(params[_NSUB])):
         if j > 0:
             fn = _friction_flat(params, v) + load
-        fc, i, _linear, _integrating = _pi_substep(ud, v, i, pi)
+        fc, i, _lin, _integrating = _pi_substep(ud, v, i, pi)
         p, v, f = _mechanics(c, p, v, f, fc, fn)
     return p, v, f, i
 
@@ -510,6 +577,38 @@ def _lifted_guard(params, v, f, i, ud, fn):
     return abs(params[_KV] * (e + i * params[_INV_TN])) + dr < params[_FLIM] * (1.0 - 1e-9)
 
 
+@njit(cache=True, inline="always")
+def _linear_guard(params, v, f, i, ud, load):
+    """True when the linear friction map over Te (:func:`_linear`) may replace the sub-steps.
+
+    Only where the axis sets ``timing.friction_linear_below_m_s`` (``V``, packed as
+    ``_VLIN``): with ``w = [v, u - v, F, I, load]`` at the period's start, that map's
+    sub-step starts satisfy ``|v_j| <= wl.|w|`` and ``|F_cmd,j| <= wf.|w|``
+    (:func:`_linear_friction_map`). If the first stays below ``V`` (the friction is its
+    tangent at rest within the bound of :class:`oga.machine.Timing` at every sub-step) and
+    the second below the force limit (the PI is linear throughout), the map is the sub-steps
+    with that friction.
+    """
+    if params[_VLIN] == 0.0:
+        return False
+    e = ud - v
+    av, ae, af, ai, al = abs(v), abs(e), abs(f), abs(i), abs(load)
+    w = params[_WL : _WL + 5]
+    if not w[0] * av + w[1] * ae + w[2] * af + w[3] * ai + w[4] * al < params[_VLIN]:
+        return False  # NaN included
+    w = params[_WF : _WF + 5]
+    dr = w[0] * av + w[1] * ae + w[2] * af + w[3] * ai + w[4] * al
+    return dr < params[_FLIM] * (1.0 - 1e-9)
+
+
+@njit(cache=True, inline="always")
+def _linear(params, p, v, f, i, ud, load):
+    """The linear friction map over one Te (valid where :func:`_linear_guard` holds): the
+    sub-steps with ``F_n`` its tangent at rest. Linear: applied to derivatives (with that of
+    ``load`` zero) it gives theirs."""
+    return _affine(params, _NA, p, v, f, i, ud, load)
+
+
 @njit(cache=True)
 def _advance(params, p, v, f, i, ud, load):
     """One Te from ``(p, v, F, I)`` with velocity command ``ud`` held: ``(p, v, F, I)``.
@@ -519,6 +618,8 @@ def _advance(params, p, v, f, i, ud, load):
     """
     if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0 and load == 0.0:
         return p, v, f, i  # at rest and not driven: the sub-steps change nothing
+    if _linear_guard(params, v, f, i, ud, load):
+        return _linear(params, p, v, f, i, ud, load)
     fn = friction_nonlinear(params, v) + load
     if params[_LIFTED] != 0.0 and _lifted_guard(params, v, f, i, ud, fn):
         return _lifted(params, p, v, f, i, ud, fn)
@@ -529,13 +630,20 @@ def _advance(params, p, v, f, i, ud, load):
 def _lifted(params, p, v, f, i, ud, fn):
     """The lifted linear map over one Te (valid where :func:`_lifted_guard` holds). Linear:
     applied to derivatives (with that of ``fn`` zero) it gives theirs."""
-    a = params[_LA : _LA + 16]
-    b = params[_LB : _LB + 8]
+    return _affine(params, _LA, p, v, f, i, ud, fn)
+
+
+@njit(cache=True, inline="always")
+def _affine(params, at, p, v, f, i, ud, x):
+    """``z' = A z + B [ud, x]`` over Te, ``A`` (4x4, its position column the identity's) at
+    ``params[at:]`` and ``B`` (4x2) right after it (row-major both)."""
+    a = params[at : at + 16]
+    b = params[at + 16 : at + 24]
     return (
-        p + a[1] * v + a[2] * f + a[3] * i + b[0] * ud + b[1] * fn,
-        a[5] * v + a[6] * f + a[7] * i + b[2] * ud + b[3] * fn,
-        a[9] * v + a[10] * f + a[11] * i + b[4] * ud + b[5] * fn,
-        a[13] * v + a[14] * f + a[15] * i + b[6] * ud + b[7] * fn,
+        p + a[1] * v + a[2] * f + a[3] * i + b[0] * ud + b[1] * x,
+        a[5] * v + a[6] * f + a[7] * i + b[2] * ud + b[3] * x,
+        a[9] * v + a[10] * f + a[11] * i + b[4] * ud + b[5] * x,
+        a[13] * v + a[14] * f + a[15] * i + b[6] * ud + b[7] * x,
     )
 
 
@@ -815,6 +923,11 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
             if v == 0.0 and f == 0.0 and i == 0.0 and udq == 0.0:  # at rest, not driven
                 still[q] = _same(p, p)
                 continue
+            if _linear_guard(prm, v, f, i, udq, 0.0):  # as :func:`_advance`, load 0
+                p1, v1, f1, i1 = _linear(prm, p, v, f, i, udq, 0.0)
+                still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
+                continue
             fnq = friction_nonlinear(prm, v) + 0.0
             if prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq):
                 p1, v1, f1, i1 = _lifted(prm, p, v, f, i, udq, fnq)
@@ -833,8 +946,8 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
                 v = v_now[q]
                 if j > 0:
                     fn[q] = _friction_flat(prm, v) + 0.0
-                fc, i_now[q], _linear, _integrating = _pi_substep(ud[q], v, i_now[q],
-                                                                  _pi_coefs(prm))
+                fc, i_now[q], _lin, _integrating = _pi_substep(ud[q], v, i_now[q],
+                                                               _pi_coefs(prm))
                 p_now[q], v_now[q], f_now[q] = _mechanics(_substep_coefs(prm), p_now[q], v,
                                                           f_now[q], fc, fn[q])
         for r in range(ns):

@@ -13,6 +13,8 @@ The derivative follows the branch the nominal simulation takes at each period:
 - the lifted linear map over Te (:func:`oga.simulate._lifted`), taken only where
   the friction force is provably constant over the period: its derivative there
   is zero, and the map is linear;
+- the linear friction map over Te (:func:`oga.simulate._linear`, only on a machine that
+  sets ``timing.friction_linear_below_m_s``): linear, the friction inside it;
 - otherwise the sub-steps: the velocity PI (its derivative is zero while the force
   command is limited, the integral's while it is frozen by the anti-windup), the
   nonlinear friction through its slope ``dF_n/dv`` at each sub-step start, and the
@@ -53,6 +55,8 @@ from oga.simulate import (
     _arx_drive,
     _lifted,
     _lifted_guard,
+    _linear,
+    _linear_guard,
     _mechanics,
     _pi_coefs,
     _pi_substep,
@@ -196,6 +200,12 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
             ud = state[_LINE + dead - 1 - k]
             for d in range(nd):
                 dud[d] = 0.0
+        if _linear_guard(params, v, f, i, ud, 0.0):  # as :func:`oga.simulate._advance`
+            for d in range(nd):
+                dp[d], dv[d], df[d], di[d] = _linear(params, dp[d], dv[d], df[d], di[d], dud[d],
+                                                     0.0)
+            p, v, f, i = _linear(params, p, v, f, i, ud, 0.0)
+            continue
         fn, slope = friction_and_slope(params, v)
         if lifted and _lifted_guard(params, v, f, i, ud, fn):
             _lifted_tangent(params, dp, dv, df, di, dud, nd)

@@ -244,8 +244,9 @@ def test_mixed_machine_packs_every_axis_to_one_length():
     data["axes"]["z"] = MCV.model_dump(exclude_none=True)["axes"]["x"]
     machine = machine_from_dict(data)
     params, states, present = axis_arrays(machine, [0.0, 0.1, 0.2])
-    # ucp710's 2 samples of dead time lengthen the ARX input history: 6 + 2
-    assert params.shape[1] == 65 and states.shape[1] == 1 + 7 + 8
+    # ucp710's 2 samples of dead time lengthen the ARX input history: 6 + 2; the cascade packs
+    # 100 entries (its linear friction map included)
+    assert params.shape[1] == 100 and states.shape[1] == 1 + 7 + 8
     assert states.shape[1] == state_size(machine) and present.all()
     # each row drives its own kind: the z row equals the stand-alone ARX axis
     data = MCV.model_dump(exclude_none=True)

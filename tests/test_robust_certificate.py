@@ -120,20 +120,28 @@ def fresh_certificate(sp, raw: dict, labels, draws, kp, kf, bkp, bkf, folder: Pa
             "ratio_per_plant": dict(zip(labels, ratios))}
 
 
+#: The certificate replays its plants with their linear friction map at standstill, the fresh
+#: simulations here on the exact kernel (plant files without the setting): every figure within
+#: 1e-8 relative (tests/test_friction_linear.py's bound; measured below 2e-9 on cncjs_toolpath,
+#: bench/bench_friction_linear.py), a ratio of two within twice that.
+REL = 2e-8
+
+
 def assert_same_certificate(summary: dict, fresh: dict) -> None:
-    """A summary's certificate (JSON) equals the figures recomputed by :func:`fresh_certificate`."""
+    """A summary's certificate (JSON) equals the figures recomputed by :func:`fresh_certificate`
+    (within :data:`REL`)."""
     for key in ("status", "plants", "worst_plant", "breaks"):
         assert summary[key] == fresh[key], key
     for key in ("ratio_median", "ratio_p90", "ratio_worst"):
-        assert summary[key] == pytest.approx(fresh[key], rel=1e-9), key
+        assert summary[key] == pytest.approx(fresh[key], rel=REL), key
     assert list(summary["ratio_per_plant"]) == list(fresh["ratio_per_plant"])
     np.testing.assert_allclose(list(summary["ratio_per_plant"].values()),
-                               list(fresh["ratio_per_plant"].values()), rtol=1e-9)
+                               list(fresh["ratio_per_plant"].values()), rtol=REL)
     for who in ("schedule", "baseline"):
-        assert summary[who]["max_ce_um"] == pytest.approx(fresh[who]["max_ce_um"], rel=1e-9)
+        assert summary[who]["max_ce_um"] == pytest.approx(fresh[who]["max_ce_um"], rel=REL)
         for a in "xyz":
             assert summary[who]["track_max_um"][a] == pytest.approx(
-                fresh[who]["track_max_um"][a], rel=1e-9, abs=1e-9)
+                fresh[who]["track_max_um"][a], rel=REL, abs=1e-9)
     assert (summary["status"] == "ok") == (not summary["reasons"])
 
 
@@ -150,10 +158,10 @@ def test_certificate_figures_match_fresh_simulations_on_machine_files(case, tmp_
     bkf = np.tile([res.baseline_kf[a] for a in "xyz"], (n, 1))
     fresh = fresh_certificate(sp, raw, scen.labels, scen.draws, kp, kf, bkp, bkf, tmp_path)
     ratios = np.array(list(fresh["ratio_per_plant"].values()))
-    np.testing.assert_allclose(cert.ratio, ratios, rtol=1e-9)
-    assert cert.median == pytest.approx(np.median(ratios), rel=1e-9)
-    assert cert.p90 == pytest.approx(np.percentile(ratios, 90), rel=1e-9)
-    assert cert.worst == pytest.approx(ratios.max(), rel=1e-9)
+    np.testing.assert_allclose(cert.ratio, ratios, rtol=REL)
+    assert cert.median == pytest.approx(np.median(ratios), rel=REL)
+    assert cert.p90 == pytest.approx(np.percentile(ratios, 90), rel=REL)
+    assert cert.worst == pytest.approx(ratios.max(), rel=REL)
     for which in ("schedule", "baseline", "schedule-only"):
         assert cert.breaks(which) == tuple(fresh["breaks"][which])
     # the summary's figures (JSON round trip), every one of them

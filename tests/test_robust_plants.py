@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from oga.defaults import ROBUST_FRICTION_LINEAR_BELOW_M_S
 from oga.errors import MachineError
 from oga.machine import FACTOR_FIELDS, PRESETS, load_machine, machine_from_dict
 from oga.robust.plants import (
@@ -68,6 +69,14 @@ def test_perturbed_values_are_nominal_times_factor_and_keep_static_above_coulomb
     assert x.kv_n_s_m == nx.kv_n_s_m * 1.2 and x.mass_kg == nx.mass_kg
     assert z.tn_s == NOMINAL.axes["z"].cascade.tn_s * 0.7
     assert m.timing.dead_time_samples == 3 and m.name == "p"
+    # the simulation setting: the robust default, the machine's own value, or none
+    assert m.timing.friction_linear_below_m_s == ROBUST_FRICTION_LINEAR_BELOW_M_S
+    assert ROBUST.timing.friction_linear_below_m_s is None
+    assert perturbed_machine(ROBUST, f, friction_linear_below_m_s=None).timing == \
+        ROBUST.timing
+    own = ROBUST.model_copy(update={"timing": ROBUST.timing.model_copy(
+        update={"friction_linear_below_m_s": 3e-6})})
+    assert perturbed_machine(own, f).timing.friction_linear_below_m_s == 3e-6
     assert all(ax.uncertainty is None for ax in m.axes.values())
     for draw_f, _ in monte_carlo_draws(ROBUST, 200, 1):
         p = perturbed_machine(ROBUST, draw_f)
@@ -116,6 +125,9 @@ def test_scenario_set_holds_the_draws_and_corners_and_nominal_without_a_set():
     assert s.plants[7].timing.dead_time_samples == 2 + d
     s0 = scenario_set(NOMINAL)
     assert s0.status == "nominal-only" and len(s0) == 1
-    assert s0.plants[0].model_dump(exclude={"name"}) == NOMINAL.model_dump(exclude={"name"})
+    plant, nominal = (m.model_dump(exclude={"name"}) for m in (s0.plants[0], NOMINAL))
+    assert plant["timing"].pop("friction_linear_below_m_s") == ROBUST_FRICTION_LINEAR_BELOW_M_S
+    assert nominal["timing"].pop("friction_linear_below_m_s") is None
+    assert plant == nominal
     with pytest.raises(MachineError, match="at least 1"):
         scenario_set(ROBUST, n=0)

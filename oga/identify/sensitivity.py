@@ -6,7 +6,8 @@ parameters: the fit's Jacobian in one pass instead of a re-simulation per parame
 bit) and carries, beside the state ``(p, v, F, I)`` and the dead-time line, its derivatives
 along ``D`` directions of the packed parameters (:func:`oga.simulate.axis_params`): the
 sub-step mechanics' coefficients, ``Kv``, ``1/Tn``, the friction's ``Fc``, ``Fs - Fc`` and
-``1/vs``, and the lifted map over Te. The derivative follows the branch the nominal
+``1/vs``, the lifted map over Te (and the linear friction map, on a machine that sets
+``timing.friction_linear_below_m_s``; identification's do not). The derivative follows the branch the nominal
 simulation takes at each period (the lifted map where it is exact, else the sub-steps with
 the velocity PI, its force limit and anti-windup, and the friction through its slope), as
 :mod:`oga.tangent` does for the gains; it is exact for the computation performed, except
@@ -32,6 +33,8 @@ from oga.simulate import (
     _NSUB,
     _lifted,
     _lifted_guard,
+    _linear,
+    _linear_guard,
     _mechanics,
     _pi_coefs,
     _pi_substep,
@@ -63,6 +66,12 @@ def _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud):
     nd = dpar.shape[0]
     if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
         return p, v, f, i  # at rest and not driven: nothing moves (as the simulator)
+    if _linear_guard(params, v, f, i, ud, 0.0):  # linear friction map (a machine setting)
+        for d in range(nd):
+            lp, lv, lf, li = _linear(params, dp[d], dv[d], df[d], di[d], dud[d], 0.0)
+            cp, cv, cf, ci = _linear(dpar[d], 0.0, v, f, i, ud, 0.0)  # its coefficients moved
+            dp[d], dv[d], df[d], di[d] = lp + cp, lv + cv, lf + cf, li + ci
+        return _linear(params, p, v, f, i, ud, 0.0)
     fn, slope = friction_and_slope(params, v)
     fs, fx, fv = _friction_terms(params, v)
     if params[_LIFTED] != 0.0 and _lifted_guard(params, v, f, i, ud, fn):

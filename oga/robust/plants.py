@@ -25,6 +25,12 @@ Coulomb and static friction are drawn independently; where a draw puts the stati
 friction (the Stribeck peak) below the Coulomb level, it is raised to it (a plant with
 no Stribeck peak), as the cascade requires ``static_n >= coulomb_n``.
 
+Every plant carries the simulation setting :data:`oga.defaults.ROBUST_FRICTION_LINEAR_BELOW_M_S`
+(``timing.friction_linear_below_m_s``, unless the machine sets its own): the hundreds of
+replays of a robust search then advance the periods where an axis stands still with one
+linear map (the friction taken as its tangent at rest, within the bound of
+:class:`oga.machine.Timing`) instead of the sub-steps.
+
 Pure functions: the same machine, count and seed give the same plants.
 """
 
@@ -99,7 +105,9 @@ def _dead_range(machine: Machine, axes) -> tuple[int, int]:
 
 
 def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
-                      dead_extra: int = 0, name: str | None = None) -> Machine:
+                      dead_extra: int = 0, name: str | None = None,
+                      friction_linear_below_m_s: float | None
+                      = defaults.ROBUST_FRICTION_LINEAR_BELOW_M_S) -> Machine:
     """``machine`` with its cascade values scaled and its dead time lengthened.
 
     Parameters
@@ -113,6 +121,10 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
         Samples added to ``timing.dead_time_samples``.
     name : str, optional
         Name of the plant (default ``"<machine>-perturbed"``).
+    friction_linear_below_m_s : float or None
+        The plant's simulation setting ``timing.friction_linear_below_m_s``
+        (:class:`oga.machine.Timing`) where ``machine`` sets none (its own value wins);
+        None: unset (the exact kernel).
 
     Returns
     -------
@@ -137,6 +149,8 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
             cas[f] = cas[f] * float(x)
         cas["static_n"] = max(cas["static_n"], cas["coulomb_n"])
     data["timing"]["dead_time_samples"] = machine.timing.dead_time_samples + int(dead_extra)
+    if friction_linear_below_m_s is not None:
+        data["timing"].setdefault("friction_linear_below_m_s", friction_linear_below_m_s)
     data["name"] = name or f"{machine.name}-perturbed"
     return machine_from_dict(data, where=f"perturbed plant of {machine.name}")
 

@@ -310,16 +310,19 @@ def robust_optimize(
         alpha, cert = _shrink(setpoints, machine, searched_schedule, bkp, bkf, scenarios, bounds,
                               cert, base_replays)
     kp, kf = _shrunk(searched_schedule, bkp, bkf, alpha)
-    searched = verify(setpoints, nominal, kp, kf, kp_bounds)
+    # the result's nominal figures on the machine itself: the exact kernel (the plants, the
+    # nominal one included, take the linear friction map at standstill: oga.robust.plants)
+    searched = verify(setpoints, machine, kp, kf, kp_bounds)
+    base_exact = verify(setpoints, machine, bkp, bkf, kp_bounds)
     ok = cert.status == "ok" and searched.ok
     if not ok:
         kp, kf = bkp, bkf
     schedule = GainSchedule(kp_m_min_per_mm=kp, kf=kf)
     result = OptimizeResult(
-        status=searched.status if ok else base_nominal.status,
+        status=searched.status if ok else base_exact.status,
         setpoints=setpoints, machine=machine, options=options, schedule=schedule,
         baseline_kp={a: kp0 for a in AXES}, baseline_kf={a: kf0 for a in AXES},
-        baseline=base_nominal, optimized=searched if ok else base_nominal,
+        baseline=base_exact, optimized=searched if ok else base_exact,
         searched_schedule=GainSchedule(kp_m_min_per_mm=_frozen(kp), kf=_frozen(kf)),
         searched=searched, kept_baseline=not ok,
         adjusted=moving if options.adjust is None else tuple(options.adjust),
