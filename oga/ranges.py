@@ -684,11 +684,31 @@ def _holds(v_pk, a_pk, j_pk, e_pk, lim) -> bool:
 
 
 @njit(cache=True)
+def _keep(resume, i, j, k, s, states, u):
+    """Keep in ``resume`` where configuration ``(i, j)`` goes on: at sample ``k`` (a chunk's
+    start), the running sum ``s`` of the samples before it, the axes' ``states`` there and
+    the two commands before it."""
+    at, total, kept_state, kept_u = resume
+    at[i, j] = k
+    total[i, j] = s
+    kept_state[i, j] = states
+    if k >= 2:
+        kept_u[i, j] = u[k - 2:k]
+
+
+@njit(cache=True)
 def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo,
                        hi, visit, slack, best, status, peaks, lower, resume):
     """Sum of squared contour errors of the equal-gain configurations, pruned exactly.
 
-    The configurations are visited in the order ``visit``. The moving axes are
+    Best first: the configuration of ``visit`` with the least lower bound (``lower``: its
+    running sum so far, 0 when never simulated; the first in the order ``visit`` among
+    equal ones) is simulated until its running sum, at the end of a chunk, passes the
+    next least bound (and its own bound on entry), then paused (kept in ``resume``, as an
+    abandoned one below) for the one of least bound then. A configuration is simulated
+    to the end only while no other can be proved to have a smaller sum, so one of larger
+    sum is simulated only until its running sum passes the least sum (times ``1 +
+    slack``), whichever order the grid would be visited in. The moving axes are
     simulated together, ``_CHUNK`` samples at a time (the cascade ones side by side:
     :func:`oga.simulate.run_axes`, the same bits as :func:`oga.simulate.run` axis by axis),
     and checked axis after axis (:func:`_checked`); a configuration is dropped at its
@@ -704,13 +724,16 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     of a feasible configuration; it cannot be the least, feasible or not, and is
     abandoned there (checked after every term), its simulation too.
 
-    Resuming: an abandoned configuration keeps, in ``resume``, the state of its axes, the
-    two commands and the running sum at the start of the chunk it was abandoned in. A
-    later call whose bound does not prune it (its ``lower`` within the bound, so a
-    simulation from the start would reach that chunk unpruned) checks the peaks kept
-    (those of every sample up to that chunk's end) against ``limits`` (broken: infeasible,
-    as such a simulation would find) and simulates on from that chunk: the same operations
-    on the same numbers from there, the same sum to the last bit.
+    Resuming: an abandoned or paused configuration keeps, in ``resume``, the state of its
+    axes, the two commands and the running sum at the start of the chunk it was abandoned
+    in (or the next one, paused). It is taken up again (in this call or a later one) while
+    its ``lower`` is within the bound (so a simulation from the start would reach that
+    chunk unpruned): the peaks kept (those of every sample simulated) are checked against
+    ``limits`` (broken: infeasible, as such a simulation would find), and it is simulated
+    on from that chunk: the same operations on the same numbers from there, the same sum
+    to the last bit. A paused configuration taken up again pauses only past its own
+    bound, so the configurations are taken in the same order, and the memo holds the
+    same, whether it resumes or starts again from the first sample.
 
     Parameters
     ----------
@@ -739,7 +762,7 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
         The path's index (:func:`oga.contour.path_index` of ``pos``, the contour-error
         window of :func:`oga.contour.ce_series`).
     visit : ndarray of int, shape (M, 2)
-        Grid indices ``(i, j)`` in visiting order (speed only).
+        Grid indices ``(i, j)``, in the order that breaks ties of ``lower`` (speed only).
     slack : float
         Relative margin of the pruning test.
     best : float
@@ -778,12 +801,28 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     states = np.zeros((3, rest_state(params[cols[0]], 0.0).size))
     at, total, kept_state, kept_u = resume
     start = np.empty_like(states)  # the states at the start of the chunk
-    for m in range(visit.shape[0]):
-        i, j = visit[m, 0], visit[m, 1]
+    todo = np.ones(visit.shape[0], dtype=np.bool_)
+    while True:
         bound = best * (1.0 + slack)
-        if lower[i, j] > bound:  # pruned before, and still: its sum is at least that
-            status[i, j] = _PRUNED
-            continue
+        # the configuration of least lower bound next (the first in visiting order among
+        # equal ones); it pauses where its sum passes the next least
+        m, least, other = -1, np.inf, np.inf
+        for q in range(visit.shape[0]):
+            if not todo[q]:
+                continue
+            lq = lower[visit[q, 0], visit[q, 1]]
+            if lq > bound:  # pruned before, and still: its sum is at least that
+                status[visit[q, 0], visit[q, 1]] = _PRUNED
+                todo[q] = False
+            elif lq < least:
+                m, least, other = q, lq, least
+            elif lq < other:
+                other = lq
+        if m < 0:
+            break
+        todo[m] = False
+        i, j = visit[m, 0], visit[m, 1]
+        pause = max(other, least)
         near = -1  # nearest segment of the previous sample: the hint of the next
         alive = True
         pk = peaks[i, j]
@@ -795,7 +834,7 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
             s = 0.0
             first = 0
             pk[:] = 0.0
-        else:  # abandoned before: on from the start of that chunk
+        else:  # abandoned or paused before: on from that chunk
             for a in range(n_ax):
                 if not _holds(pk[a, 0], pk[a, 1], pk[a, 2], pk[a, 3], limits[a]):
                     alive = False
@@ -834,13 +873,16 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
                         alive = False
                         status[i, j] = _PRUNED
                         lower[i, j] = s
-                        at[i, j] = k0
-                        total[i, j] = s0
-                        kept_state[i, j] = start
-                        if k0 >= 2:
-                            kept_u[i, j] = u[k0 - 2:k0]
+                        _keep(resume, i, j, k0, s0, start, u)
                         break
             if not alive:
+                break
+            if s > pause and k1 < n:  # another configuration's sum is now the least
+                status[i, j] = _PRUNED
+                lower[i, j] = s
+                _keep(resume, i, j, k1, s, states, u)
+                todo[m] = True
+                alive = False
                 break
         if alive:
             sse[i, j] = s
