@@ -706,10 +706,10 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     equal ones) is simulated until its running sum, at the end of a chunk, passes the
     next least bound (and its own bound on entry), then paused (kept in ``resume``, as an
     abandoned one below) for the one of least bound then. A configuration is simulated
-    to the end only while no other can be proved to have a smaller sum, so one of larger
-    sum is simulated only until its running sum passes the least sum (times ``1 +
-    slack``), whichever order the grid would be visited in. The moving axes are
-    simulated together, ``_CHUNK`` samples at a time (the cascade ones side by side:
+    to the end only while no other can be proved to have a smaller sum, so a feasible one
+    of larger sum is simulated only until its running sum passes the least sum (times ``1
+    + slack``, to within a chunk), whichever order the grid would be visited in. The
+    moving axes are simulated together, ``_CHUNK`` samples at a time (the cascade ones side by side:
     :func:`oga.simulate.run_axes`, the same bits as :func:`oga.simulate.run` axis by axis),
     and checked axis after axis (:func:`_checked`); a configuration is dropped at its
     first violation of eq. 2 or of the following-error limit (at any sample, rapids
