@@ -497,32 +497,36 @@ def _clearance(nodes, parent, reach):
 
 
 @njit(cache=True, inline="always")
-def _scan_leaves(pd, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best):
+def _scan_leaves(pd, segs, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best):
     """Fold the segments of leaves ``a0 .. a1`` in the window ``lo..hi`` into the nearest so
     far ``(bi, bt, best)``, in index order with :func:`nearest_segment`'s strict comparison.
 
-    A leaf whose sphere lies farther than ``sqrt(bound)`` (an upper bound of the least
-    squared distance, lowered by every distance found) is skipped. Returns
-    ``(bound, bi, bt, best)``.
+    A leaf, and inside a leaf a segment, whose sphere lies farther than ``sqrt(bound)`` (an
+    upper bound of the least squared distance, lowered by every distance found) is skipped
+    (no distance computed: it cannot be the nearest). Returns ``(bound, bi, bt, best)``.
     """
     reach = np.sqrt(bound)
     for a in range(max(a0, lo // _LEAF), min(a1, (hi - 1) // _LEAF) + 1):
         far = leaves[a, 3] + reach
         if _point_d2(leaves, a, x, y, z) > far * far:  # no root per leaf
             continue
-        j, t, d2 = nearest_segment(pd, max(lo, a * _LEAF), min(hi, (a + 1) * _LEAF), x, y, z)
-        if d2 < best:
-            best = d2
-            bi = j
-            bt = t
-            if d2 < bound:
-                bound = d2
-                reach = np.sqrt(d2)
+        for i in range(max(lo, a * _LEAF), min(hi, (a + 1) * _LEAF)):
+            far = segs[i, 3] + reach
+            if _point_d2(segs, i, x, y, z) > far * far:
+                continue
+            j, t, d2 = nearest_segment(pd, i, i + 1, x, y, z)
+            if d2 < best:
+                best = d2
+                bi = j
+                bt = t
+                if d2 < bound:
+                    bound = d2
+                    reach = np.sqrt(d2)
     return bound, bi, bt, best
 
 
 @njit(cache=True)
-def _scan_blocks(pd, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
+def _scan_blocks(pd, segs, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
     """:func:`_scan_leaves` over the blocks ``b0 .. b1`` whose sphere lies within
     ``sqrt(bound)`` of the point; returns ``(bound, bi, bt, best)``."""
     bi = -1
@@ -534,8 +538,8 @@ def _scan_blocks(pd, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
         if _point_d2(blocks, b, x, y, z) > far * far:
             continue
         was = bound
-        bound, bi, bt, best = _scan_leaves(pd, leaves, b * _FAN, (b + 1) * _FAN - 1, lo, hi,
-                                           x, y, z, bound, bi, bt, best)
+        bound, bi, bt, best = _scan_leaves(pd, segs, leaves, b * _FAN, (b + 1) * _FAN - 1, lo,
+                                           hi, x, y, z, bound, bi, bt, best)
         if bound < was:
             reach = np.sqrt(bound)
     return bound, bi, bt, best
@@ -576,11 +580,11 @@ def nearest_at(pd, tree, lo, hi, k, x, y, z, hint):
                 return nearest_segment(pd, max(lo, hint - 1), min(hi, hint + 2), x, y, z)
             leaf = hint // _LEAF
             if leaves[leaf, 4] ** 2 > far2:
-                _b, bi, bt, best = _scan_leaves(pd, leaves, leaf - 1, leaf + 1, lo, hi, x, y, z,
-                                                d2, -1, 0.0, np.inf)
+                _b, bi, bt, best = _scan_leaves(pd, segs, leaves, leaf - 1, leaf + 1, lo, hi, x,
+                                                y, z, d2, -1, 0.0, np.inf)
                 return bi, bt, best
             if blocks[blk, 4] ** 2 > far2:
-                _b, bi, bt, best = _scan_blocks(pd, leaves, blocks, blk - 1, blk + 1, lo, hi,
+                _b, bi, bt, best = _scan_blocks(pd, segs, leaves, blocks, blk - 1, blk + 1, lo, hi,
                                                 x, y, z, d2)
                 return bi, bt, best
     else:
@@ -588,8 +592,8 @@ def nearest_at(pd, tree, lo, hi, k, x, y, z, hint):
         _j, _t, d2 = nearest_segment(pd, max(lo, kb * _BLOCK), min(hi, (kb + 1) * _BLOCK),
                                      x, y, z)
     bound = min(_point_d2(pd, kc, x, y, z), d2)
-    bound, bi, bt, best = _scan_blocks(pd, leaves, blocks, 0, blocks.shape[0], lo, hi, x, y, z,
-                                       bound)
+    bound, bi, bt, best = _scan_blocks(pd, segs, leaves, blocks, 0, blocks.shape[0], lo, hi,
+                                       x, y, z, bound)
     if best > bound:  # the bound was not a distance to the window's path: no pruning
         return nearest_segment(pd, lo, hi, x, y, z)
     return bi, bt, best

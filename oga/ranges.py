@@ -505,6 +505,7 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine, *,
     params = np.stack([axis_params(machine, a) for a in axes])
     memo = EqualGainMemo() if memo is None else memo
     sse = memo.start(setpoints, params, common, kf_grid, limits)
+    tree, lo, hi = memo.index
     status = memo.status[visit[:, 0], visit[:, 1]]
     visit = visit[(status == _UNSEEN) | (status == _PRUNED)]  # the others are known
     # the lowest known bounds first (those never visited keep the heuristic order): the
@@ -515,11 +516,11 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine, *,
     fused = np.array([AXES.index(a) for a in axes if machine.axis(a).kind == "cascade"],
                      dtype=np.int64)
     args = (by_col, fused, cols, pos, np.ascontiguousarray(setpoints.vel, dtype=np.float64),
-            feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits)
+            feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits, tree, lo, hi)
     parts = [visit] if progress is None else np.array_split(visit, _PROGRESS_PARTS)
     for k, part in enumerate(parts):
-        found = _equal_gain_search(*args, part, CE_WINDOW_SAMPLES, _SUM_SLACK, sse.min(),
-                                   memo.status, memo.peaks, memo.lower)
+        found = _equal_gain_search(*args, part, _SUM_SLACK, sse.min(), memo.status,
+                                   memo.peaks, memo.lower, memo.resume)
         memo.sse = np.where(memo.status == _COMPLETE, np.minimum(memo.sse, found), memo.sse)
         sse = np.minimum(sse, found)
         if progress is not None:
@@ -544,7 +545,10 @@ class EqualGainMemo:
     keeps its sum of squared contour errors, and its peaks (eq. 2 and the following error)
     decide whether it holds the new limits, with the comparisons of the compiled search; one
     the pruning abandoned is simulated again only if its running sum there does not prove
-    it worse than the best so far (visited in the order of that sum, least first). The best
+    it worse than the best so far (visited in the order of that sum, least first), and
+    resumes where it was abandoned: from the start of that chunk (:data:`_CHUNK`), with the
+    state, commands, running sum and peaks it had there (the same operations on the same
+    numbers as a simulation from the start: the same bits). The best
     fixed gains found are those of a call without the memo (the result does not depend on
     the visiting order or on which sums are known: :func:`_equal_gain_search`;
     tests/test_ranges_memo.py compares them). Any other call starts the memo afresh.
@@ -560,11 +564,19 @@ class EqualGainMemo:
     lower : ndarray, shape (P, F)
         A lower bound of each configuration's sum: the running sum where the pruning
         abandoned it (0: none known).
+    resume : tuple
+        Where each abandoned configuration resumes (:func:`_equal_gain_search`): ``(at,
+        total, state, u)``, shapes (P, F), (P, F), (P, F, 3, Z), (P, F, 2, 3): the first
+        sample of the chunk it was abandoned in (-1: none), the running sum, the axes'
+        states and the two commands before that sample.
+    index : tuple
+        The path's index (:func:`oga.contour.path_index`, window
+        :data:`oga.defaults.CE_WINDOW_SAMPLES`), built once per setpoints.
     """
 
     def __init__(self):
         self._key, self._limits = None, None
-        self.status = self.peaks = self.sse = self.lower = None
+        self.status = self.peaks = self.sse = self.lower = self.resume = self.index = None
 
     def start(self, setpoints, params, common, kf_grid, limits) -> np.ndarray:
         """Prepare a call with ``limits`` (shape (A, 4)); returns the sums already known of
@@ -574,11 +586,18 @@ class EqualGainMemo:
                 and bool(np.all(limits <= self._limits)))
         self._limits = limits.copy()
         if not same:
+            if self._key is None or self._key[0] is not setpoints:
+                self.index = path_index(np.ascontiguousarray(setpoints.pos, dtype=np.float64),
+                                        CE_WINDOW_SAMPLES)
             self._key = key
-            self.status = np.zeros((len(common), len(kf_grid)), dtype=np.int8)
-            self.peaks = np.zeros((len(common), len(kf_grid), len(params), 4))
-            self.sse = np.full((len(common), len(kf_grid)), np.inf)
-            self.lower = np.zeros((len(common), len(kf_grid)))
+            grid = (len(common), len(kf_grid))
+            self.status = np.zeros(grid, dtype=np.int8)
+            self.peaks = np.zeros(grid + (len(params), 4))
+            self.sse = np.full(grid, np.inf)
+            self.lower = np.zeros(grid)
+            self.resume = (np.full(grid, -1, dtype=np.int64), np.zeros(grid),
+                           np.zeros(grid + (3, rest_state(params[0], 0.0).size)),
+                           np.zeros(grid + (2, 3)))
             return self.sse.copy()
         for i, j in np.argwhere(self.status == _COMPLETE):
             if not all(_holds(*self.peaks[i, j, a], limits[a]) for a in range(len(params))):
@@ -665,12 +684,32 @@ def _holds(v_pk, a_pk, j_pk, e_pk, lim) -> bool:
 
 
 @njit(cache=True)
-def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, visit, window,
-                       slack, best, status, peaks, lower):
+def _keep(resume, i, j, k, s, states, u):
+    """Keep in ``resume`` where configuration ``(i, j)`` goes on: at sample ``k`` (a chunk's
+    start), the running sum ``s`` of the samples before it, the axes' ``states`` there and
+    the two commands before it."""
+    at, total, kept_state, kept_u = resume
+    at[i, j] = k
+    total[i, j] = s
+    kept_state[i, j] = states
+    if k >= 2:
+        kept_u[i, j] = u[k - 2:k]
+
+
+@njit(cache=True)
+def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo,
+                       hi, visit, slack, best, status, peaks, lower, resume):
     """Sum of squared contour errors of the equal-gain configurations, pruned exactly.
 
-    The configurations are visited in the order ``visit``. The moving axes are
-    simulated together, ``_CHUNK`` samples at a time (the cascade ones side by side:
+    Best first: the configuration of ``visit`` with the least lower bound (``lower``: its
+    running sum so far, 0 when never simulated; the first in the order ``visit`` among
+    equal ones) is simulated until its running sum, at the end of a chunk, passes the
+    next least bound (and its own bound on entry), then paused (kept in ``resume``, as an
+    abandoned one below) for the one of least bound then. A configuration is simulated
+    to the end only while no other can be proved to have a smaller sum, so a feasible one
+    of larger sum is simulated only until its running sum passes the least sum (times ``1
+    + slack``, to within a chunk), whichever order the grid would be visited in. The
+    moving axes are simulated together, ``_CHUNK`` samples at a time (the cascade ones side by side:
     :func:`oga.simulate.run_axes`, the same bits as :func:`oga.simulate.run` axis by axis),
     and checked axis after axis (:func:`_checked`); a configuration is dropped at its
     first violation of eq. 2 or of the following-error limit (at any sample, rapids
@@ -684,6 +723,17 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     :func:`oga.contour.ce_series`) the configuration's MSE is provably larger than that
     of a feasible configuration; it cannot be the least, feasible or not, and is
     abandoned there (checked after every term), its simulation too.
+
+    Resuming: an abandoned or paused configuration keeps, in ``resume``, the state of its
+    axes, the two commands and the running sum at the start of the chunk it was abandoned
+    in (or the next one, paused). It is taken up again (in this call or a later one) while
+    its ``lower`` is within the bound (so a simulation from the start would reach that
+    chunk unpruned): the peaks kept (those of every sample simulated) are checked against
+    ``limits`` (broken: infeasible, as such a simulation would find), and it is simulated
+    on from that chunk: the same operations on the same numbers from there, the same sum
+    to the last bit. A paused configuration taken up again pauses only past its own
+    bound, so the configurations are taken in the same order, and the memo holds the
+    same, whether it resumes or starts again from the first sample.
 
     Parameters
     ----------
@@ -708,10 +758,11 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     limits : ndarray, shape (A, 4)
         Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) and the following-error limit (m, inf:
         none) of each moving axis.
+    tree, lo, hi
+        The path's index (:func:`oga.contour.path_index` of ``pos``, the contour-error
+        window of :func:`oga.contour.ce_series`).
     visit : ndarray of int, shape (M, 2)
-        Grid indices ``(i, j)`` in visiting order (speed only).
-    window : int
-        Contour-error window (:func:`oga.contour.ce_series`).
+        Grid indices ``(i, j)``, in the order that breaks ties of ``lower`` (speed only).
     slack : float
         Relative margin of the pruning test.
     best : float
@@ -727,6 +778,9 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
         A lower bound of each configuration's sum (0: none known): one whose bound exceeds
         the pruning bound is not simulated (it stays :data:`_PRUNED`); receives the
         running sum where a configuration is pruned or completed.
+    resume : tuple
+        ``(at, total, state, u)`` of :class:`EqualGainMemo` (``at`` -1: start from the
+        first sample): read for the configurations visited, written for those pruned.
 
     Returns
     -------
@@ -745,23 +799,56 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     alone = np.ones(3, dtype=np.bool_)  # moving axes not in ``fused``: :func:`run` each
     alone[fused] = False
     states = np.zeros((3, rest_state(params[cols[0]], 0.0).size))
-    tree, lo, hi = path_index(pos, window)
-    for m in range(visit.shape[0]):
-        i, j = visit[m, 0], visit[m, 1]
+    at, total, kept_state, kept_u = resume
+    start = np.empty_like(states)  # the states at the start of the chunk
+    todo = np.ones(visit.shape[0], dtype=np.bool_)
+    while True:
         bound = best * (1.0 + slack)
-        if lower[i, j] > bound:  # pruned before, and still: its sum is at least that
-            status[i, j] = _PRUNED
-            continue
-        for a in range(n_ax):
-            states[cols[a]] = rest_state(params[cols[a]], pos[0, cols[a]])
-        s = 0.0
+        # the configuration of least lower bound next (the first in visiting order among
+        # equal ones); it pauses where its sum passes the next least
+        m, least, other = -1, np.inf, np.inf
+        for q in range(visit.shape[0]):
+            if not todo[q]:
+                continue
+            lq = lower[visit[q, 0], visit[q, 1]]
+            if lq > bound:  # pruned before, and still: its sum is at least that
+                status[visit[q, 0], visit[q, 1]] = _PRUNED
+                todo[q] = False
+            elif lq < least:
+                m, least, other = q, lq, least
+            elif lq < other:
+                other = lq
+        if m < 0:
+            break
+        todo[m] = False
+        i, j = visit[m, 0], visit[m, 1]
+        pause = max(other, least)
         near = -1  # nearest segment of the previous sample: the hint of the next
         alive = True
         pk = peaks[i, j]
-        pk[:] = 0.0
         status[i, j] = _INFEASIBLE
-        for k0 in range(0, n, _CHUNK):
+        first = at[i, j]
+        if first < 0:
+            for a in range(n_ax):
+                states[cols[a]] = rest_state(params[cols[a]], pos[0, cols[a]])
+            s = 0.0
+            first = 0
+            pk[:] = 0.0
+        else:  # abandoned or paused before: on from that chunk
+            for a in range(n_ax):
+                if not _holds(pk[a, 0], pk[a, 1], pk[a, 2], pk[a, 3], limits[a]):
+                    alive = False
+            if not alive:
+                continue
+            states[:] = kept_state[i, j]
+            if first >= 2:
+                u[first - 2:first] = kept_u[i, j]
+            s = total[i, j]
+            at[i, j] = -1
+        for k0 in range(first, n, _CHUNK):
             k1 = min(k0 + _CHUNK, n)
+            start[:] = states
+            s0 = s
             kp_k[k0:k1] = kp_si[i]
             kf_k[k0:k1] = kf[j]
             run_axes(states, params, fused, pos[k0:k1], vel[k0:k1], kp_k[k0:k1], kf_k[k0:k1],
@@ -786,8 +873,16 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
                         alive = False
                         status[i, j] = _PRUNED
                         lower[i, j] = s
+                        _keep(resume, i, j, k0, s0, start, u)
                         break
             if not alive:
+                break
+            if s > pause and k1 < n:  # another configuration's sum is now the least
+                status[i, j] = _PRUNED
+                lower[i, j] = s
+                _keep(resume, i, j, k1, s, states, u)
+                todo[m] = True
+                alive = False
                 break
         if alive:
             sse[i, j] = s

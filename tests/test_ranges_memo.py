@@ -52,3 +52,29 @@ def test_memo_restarts_when_the_limits_grow_or_the_toolpath_changes():
         design = design_machine(UCP, reserve, (1.0, 3.0))
         assert _same(best_fixed_gains(setpoints, design),
                      best_fixed_gains(setpoints, design, memo=memo)), (setpoints.source, reserve)
+
+
+@pytest.mark.parametrize("program", ["short_xz.ngc", "circle_r50_f3000.ngc"])
+def test_resumed_configurations_are_those_simulated_from_the_start(program):
+    # the fast path (an abandoned configuration resumes from the chunk it was abandoned in)
+    # against the slow one (its resume points cleared: simulated again from the first
+    # sample): the same gains and the same memo, bit for bit
+    sp = plan_toolpath(load_toolpath(DATA / program), UCP, feed_m_s=None, tol_m=2e-5)
+    fast, slow = EqualGainMemo(), EqualGainMemo()
+    resumed = 0
+    for reserve in (1.0, 0.95, 0.88, 0.8, 0.7, 0.55, 0.3):
+        design = design_machine(UCP, reserve, (1.0, 3.0))
+        if slow.resume is not None:
+            slow.resume[0][:] = -1
+        waiting = (None if fast.resume is None
+                   else (fast.resume[0] >= 0, fast.lower.copy(), fast.status.copy()))
+        assert _same(best_fixed_gains(sp, design, memo=fast),
+                     best_fixed_gains(sp, design, memo=slow)), reserve
+        if waiting is not None:  # visited again: simulated on, or its peaks broke a limit
+            mask, lower, status = waiting
+            resumed += int(np.sum(mask & ((fast.lower != lower) | (fast.status != status))))
+        for name in ("status", "sse", "lower"):
+            np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name))
+        known = fast.status != 1  # an infeasible one's peaks stop at different chunks
+        np.testing.assert_array_equal(fast.peaks[known], slow.peaks[known])
+    assert resumed > 0  # the fast path was taken
