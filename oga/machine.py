@@ -52,6 +52,7 @@ __all__ = [
     "load_machine",
     "machine_from_dict",
     "json_digest",
+    "machine_memo",
 ]
 
 #: 1 (m/min)/mm expressed in 1/s.
@@ -321,9 +322,9 @@ class Machine(_Frozen):
         """Per-axis (x, y, z) kinematic limits for the planner and the checks.
 
         Axes the machine lacks get limit 0 (they must not move). Memoised on the machine
-        (:func:`_memo_of`): every replay's checks ask for them.
+        (:func:`machine_memo`): every replay's checks ask for them.
         """
-        return _memo_of(self, "axis_limits", self._axis_limits)
+        return machine_memo(self, "axis_limits", self._axis_limits)
 
     def _axis_limits(self) -> "AxisLimits":
         """:meth:`axis_limits`, computed (read-only arrays in a frozen dataclass)."""
@@ -363,18 +364,18 @@ class Machine(_Frozen):
     def digest(self) -> str:
         """SHA-256 of the canonical JSON of this machine (identifies it in a table).
 
-        Memoised on the machine (:func:`_memo_of`): every replay keys its packed parameters
+        Memoised on the machine (:func:`machine_memo`): every replay keys its packed parameters
         by it."""
         # without the unset model kind (an axis has exactly one)
-        return _memo_of(self, "digest",
+        return machine_memo(self, "digest",
                         lambda: json_digest(self.model_dump(mode="json", exclude_none=True)))
 
 
-#: What :func:`_memo_of` keeps, by ``id`` of the machine, while the machine lives.
+#: What :func:`machine_memo` keeps, by ``id`` of the machine, while the machine lives.
 _MACHINE_MEMOS: dict[int, dict] = {}
 
 
-def _memo_of(machine: Machine, name: str, compute):
+def machine_memo(machine: Machine, name: str, compute):
     """``compute()``, kept for ``machine`` under ``name`` until the machine is collected.
 
     A Machine is frozen, so what depends on it alone can be kept. Not on the instance: a

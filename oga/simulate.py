@@ -91,7 +91,7 @@ from numba import njit
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
 from oga.linear import substep_matrices, substep_sequence_of
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, _memo_of
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, machine_memo
 
 __all__ = [
     "axis_params",
@@ -1171,7 +1171,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
     digest = machine.digest() if n else ""
-    n_params, n_state = _memo_of(machine, "simulate._sizes", lambda: _sizes(machine))
+    n_params, n_state = machine_memo(machine, "simulate._sizes", lambda: _sizes(machine))
     params, states = np.zeros((3, n_params)), np.zeros((3, n_state))
     fused = []  # the moving cascade axes: one :func:`run_axes`
     for c, a in enumerate(AXES):

@@ -23,7 +23,7 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of
-from oga.machine import Machine, _memo_of
+from oga.machine import Machine, machine_memo
 from oga.metrics import ContourMetrics, nan_max, contour_metrics
 from oga.kinematics import command_peaks
 from oga.simulate import simulate
@@ -53,7 +53,7 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
     ndarray, shape (3, 3)
         ``[axis, (v, a, j)]`` ratios; <= 1 means within the limit.
     """
-    limits = _memo_of(machine, "verify.limits", lambda: _limits(machine))
+    limits = machine_memo(machine, "verify.limits", lambda: _limits(machine))
     u = np.asarray(u, dtype=np.float64)
     check = np.ones(len(u), dtype=bool)
     out = np.zeros((3, 3))
