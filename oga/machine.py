@@ -33,7 +33,8 @@ from pydantic import (
 if TYPE_CHECKING:
     from feedplan.limits import AxisLimits
 
-from oga.defaults import DT_RANGE_S, MACHINE_FIELD_RANGES, MACHINE_MAX_BYTES
+from oga.defaults import (DT_RANGE_S, FRICTION_LINEAR_MAX_SHARE, MACHINE_FIELD_RANGES,
+                          MACHINE_MAX_BYTES)
 from oga.errors import MachineError
 from oga.files import read_limited
 
@@ -304,6 +305,15 @@ class Machine(_Frozen):
             raise ValueError(f"axes: unknown axis name(s) {bad}; use x, y, z")
         if not self.axes:
             raise ValueError("axes: at least one axis is required")
+        v_lin = self.timing.friction_linear_below_m_s
+        for name, ax in self.axes.items():
+            cas = ax.cascade
+            if v_lin is not None and cas is not None and (
+                    v_lin > FRICTION_LINEAR_MAX_SHARE * cas.friction_smoothing_m_s * (1 + 1e-12)):
+                raise ValueError(
+                    f"timing.friction_linear_below_m_s: {v_lin} m/s is above "
+                    f"{FRICTION_LINEAR_MAX_SHARE} of axes.{name}.cascade.friction_smoothing_m_s "
+                    f"({cas.friction_smoothing_m_s} m/s): the friction is not linear there")
         return self
 
     @property

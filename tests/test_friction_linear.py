@@ -130,6 +130,24 @@ def test_unset_it_changes_nothing_and_its_range_is_checked():
         machine_from_dict(data)
 
 
+def test_only_where_the_friction_is_linear():
+    """Far above the smoothing velocity the tangent is not the friction (tanh saturates): a
+    machine file may not ask for it, and the scenario plants of an axis with little smoothing
+    take the share of it where it holds."""
+    data = UCP.model_dump(mode="json", exclude_none=True)
+    data["timing"]["friction_linear_below_m_s"] = 2e-6  # above 0.01 of x's 1e-4 m/s
+    with pytest.raises(MachineError, match=r"axes\.x\.cascade\.friction_smoothing_m_s"):
+        machine_from_dict(data)
+    data["timing"]["friction_linear_below_m_s"] = 1e-6  # 0.01 of it: within
+    assert machine_from_dict(data).timing.friction_linear_below_m_s == 1e-6
+    sharp = UCP.model_dump(mode="json", exclude_none=True)
+    sharp["axes"]["z"]["cascade"]["friction_smoothing_m_s"] = 1e-6
+    plants = scenario_set(machine_from_dict(sharp), n=2, corners=False).plants
+    assert all(p.timing.friction_linear_below_m_s == pytest.approx(1e-8, rel=1e-12)
+               for p in plants)
+    assert {p.timing.friction_linear_below_m_s for p in PLANTS} == {V}
+
+
 def _dwell_case(n_move=400, n_dwell=3000):
     """A move, a dwell (the axis creeps to a stop: the map's periods), a move back."""
     te = UCP.te

@@ -75,8 +75,8 @@ def test_perturbed_values_are_nominal_times_factor_and_keep_static_above_coulomb
     assert perturbed_machine(ROBUST, f, friction_linear_below_m_s=None).timing == \
         ROBUST.timing
     own = ROBUST.model_copy(update={"timing": ROBUST.timing.model_copy(
-        update={"friction_linear_below_m_s": 3e-6})})
-    assert perturbed_machine(own, f).timing.friction_linear_below_m_s == 3e-6
+        update={"friction_linear_below_m_s": 5e-7})})
+    assert perturbed_machine(own, f).timing.friction_linear_below_m_s == 5e-7
     assert all(ax.uncertainty is None for ax in m.axes.values())
     for draw_f, _ in monte_carlo_draws(ROBUST, 200, 1):
         p = perturbed_machine(ROBUST, draw_f)

@@ -123,8 +123,10 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
         Name of the plant (default ``"<machine>-perturbed"``).
     friction_linear_below_m_s : float or None
         The plant's simulation setting ``timing.friction_linear_below_m_s``
-        (:class:`oga.machine.Timing`) where ``machine`` sets none (its own value wins);
-        None: unset (the exact kernel).
+        (:class:`oga.machine.Timing`) where ``machine`` sets none (its own value wins), at
+        most :data:`oga.defaults.FRICTION_LINEAR_MAX_SHARE` of every cascade axis's
+        ``friction_smoothing_m_s`` (where the friction is linear); None: unset (the exact
+        kernel).
 
     Returns
     -------
@@ -149,8 +151,11 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
             cas[f] = cas[f] * float(x)
         cas["static_n"] = max(cas["static_n"], cas["coulomb_n"])
     data["timing"]["dead_time_samples"] = machine.timing.dead_time_samples + int(dead_extra)
-    if friction_linear_below_m_s is not None:
-        data["timing"].setdefault("friction_linear_below_m_s", friction_linear_below_m_s)
+    if friction_linear_below_m_s is not None and "friction_linear_below_m_s" not in data["timing"]:
+        data["timing"]["friction_linear_below_m_s"] = min(
+            [friction_linear_below_m_s] + [defaults.FRICTION_LINEAR_MAX_SHARE
+                                           * ax["cascade"]["friction_smoothing_m_s"]
+                                           for ax in data["axes"].values() if "cascade" in ax])
     data["name"] = name or f"{machine.name}-perturbed"
     return machine_from_dict(data, where=f"perturbed plant of {machine.name}")
 
