@@ -338,10 +338,10 @@ ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), 
 #: (:class:`oga.machine.Timing`), which covers most periods of an axis standing still.
 ROBUST_FRICTION_LINEAR_BELOW_M_S = 1e-6
 #: ``timing.friction_linear_below_m_s`` at most this share of every cascade axis's
-#: ``friction_smoothing_m_s``: the tangent at rest is then the friction within
-#: ``x^2 / 3`` (3.3e-5) of it relative, ``x`` that share; far above it the tangent is not the
-#: friction at all (tanh saturates). The scenario plants take the least of
-#: :data:`ROBUST_FRICTION_LINEAR_BELOW_M_S` and this share of their axes' smoothing.
+#: ``friction_smoothing_m_s`` and ``stribeck_m_s``: the tangent at rest is then the friction
+#: within ``x^2 / 3 + x^2`` (1.3e-4) of it relative, ``x`` that share; far above it the
+#: tangent is not the friction at all (tanh saturates, the Stribeck peak falls). The
+#: scenario plants take the least of :data:`ROBUST_FRICTION_LINEAR_BELOW_M_S` and this share.
 FRICTION_LINEAR_MAX_SHARE = 0.01
 #: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
 #: to the first cut of the limit reserve (doubled at each further cut).

@@ -308,12 +308,14 @@ class Machine(_Frozen):
         v_lin = self.timing.friction_linear_below_m_s
         for name, ax in self.axes.items():
             cas = ax.cascade
-            if v_lin is not None and cas is not None and (
-                    v_lin > FRICTION_LINEAR_MAX_SHARE * cas.friction_smoothing_m_s * (1 + 1e-12)):
-                raise ValueError(
-                    f"timing.friction_linear_below_m_s: {v_lin} m/s is above "
-                    f"{FRICTION_LINEAR_MAX_SHARE} of axes.{name}.cascade.friction_smoothing_m_s "
-                    f"({cas.friction_smoothing_m_s} m/s): the friction is not linear there")
+            if v_lin is None or cas is None:
+                continue
+            for field in ("friction_smoothing_m_s", "stribeck_m_s"):
+                if v_lin > FRICTION_LINEAR_MAX_SHARE * getattr(cas, field) * (1 + 1e-12):
+                    raise ValueError(
+                        f"timing.friction_linear_below_m_s: {v_lin} m/s is above "
+                        f"{FRICTION_LINEAR_MAX_SHARE} of axes.{name}.cascade.{field} "
+                        f"({getattr(cas, field)} m/s): the friction is not linear there")
         return self
 
     @property

@@ -146,6 +146,16 @@ def test_only_where_the_friction_is_linear():
     assert all(p.timing.friction_linear_below_m_s == pytest.approx(1e-8, rel=1e-12)
                for p in plants)
     assert {p.timing.friction_linear_below_m_s for p in PLANTS} == {V}
+    slow = UCP.model_dump(mode="json", exclude_none=True)
+    slow["axes"]["x"]["cascade"]["stribeck_m_s"] = 5e-5
+    slow["timing"]["friction_linear_below_m_s"] = 1e-6
+    with pytest.raises(MachineError, match=r"axes\.x\.cascade\.stribeck_m_s"):
+        machine_from_dict(slow)
+    del slow["timing"]["friction_linear_below_m_s"]
+    plant = scenario_set(machine_from_dict(slow), n=1, corners=False).plants[0]
+    least = min(min(ax.cascade.friction_smoothing_m_s, ax.cascade.stribeck_m_s)
+                for ax in plant.axes.values())  # the plant's own (drawn) Stribeck velocities
+    assert least < 1e-4 and plant.timing.friction_linear_below_m_s == 0.01 * least
 
 
 def _dwell_case(n_move=400, n_dwell=3000):

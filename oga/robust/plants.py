@@ -125,8 +125,8 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
         The plant's simulation setting ``timing.friction_linear_below_m_s``
         (:class:`oga.machine.Timing`) where ``machine`` sets none (its own value wins), at
         most :data:`oga.defaults.FRICTION_LINEAR_MAX_SHARE` of every cascade axis's
-        ``friction_smoothing_m_s`` (where the friction is linear); None: unset (the exact
-        kernel).
+        ``friction_smoothing_m_s`` and ``stribeck_m_s`` (where the friction is linear); None:
+        unset (the exact kernel).
 
     Returns
     -------
@@ -153,9 +153,9 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
     data["timing"]["dead_time_samples"] = machine.timing.dead_time_samples + int(dead_extra)
     if friction_linear_below_m_s is not None and "friction_linear_below_m_s" not in data["timing"]:
         data["timing"]["friction_linear_below_m_s"] = min(
-            [friction_linear_below_m_s] + [defaults.FRICTION_LINEAR_MAX_SHARE
-                                           * ax["cascade"]["friction_smoothing_m_s"]
-                                           for ax in data["axes"].values() if "cascade" in ax])
+            [friction_linear_below_m_s] + [defaults.FRICTION_LINEAR_MAX_SHARE * ax["cascade"][f]
+                                           for ax in data["axes"].values() if "cascade" in ax
+                                           for f in ("friction_smoothing_m_s", "stribeck_m_s")])
     data["name"] = name or f"{machine.name}-perturbed"
     return machine_from_dict(data, where=f"perturbed plant of {machine.name}")
 
