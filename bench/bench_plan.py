@@ -116,13 +116,10 @@ def straight_blocks(path: Path, limits: AxisLimits, blocks, tol_m: float = TOL_M
     block whose curve is one line) counts as the line from its start to its end."""
     n, planned, best = 0, 0.0, 0.0
     for blk in blocks:
-        seg = path.segments[blk.segments[0]]
-        feeds = {path.segments[i].feed_m_s for i in blk.segments}
-        if blk.curve.is_line and not blk.rapid and len(feeds) == 1:
-            c = blk.curve
-            seg = Line(c.org[0], c.org[0] + c.length * c.e1[0], seg.feed_m_s, line=seg.line)
-        elif len(blk.segments) != 1 or not isinstance(seg, Line):
+        first, last = path.segments[blk.segments[0]], path.segments[blk.segments[-1]]
+        if not blk.curve.is_line or len({path.segments[i].feed_m_s for i in blk.segments}) > 1:
             continue
+        seg = Line(first.start, last.end, first.feed_m_s, rapid=blk.rapid, line=first.line)
         n += 1
         planned += plan(Path(seg.start, (seg,)), limits, tol_m=tol_m).duration
         d = (seg.end - seg.start) / seg.length

@@ -37,9 +37,9 @@ rest to rest:
   curve the chords follow allows.
 
 A run to be fitted whose vertices all lie within :data:`COLLINEAR_TOL_SHARE` of
-``fit_tol_m`` of the chord from its first vertex to its last, each further along it (:func:`collinear_run`: a straight move
-the CAM cut into pieces), is that chord, a line: a block of it alone is planned as a
-straight block (ruckig), not as a curve.
+``fit_tol_m`` of the chord from its first vertex to its last, each further along it
+(:func:`collinear_run`: a straight move the CAM cut into pieces), is that chord, a line: a
+block of it alone is planned as a straight block (ruckig), not as a curve.
 Lines and arcs are kept exact (but for the ends a blend replaces). A block's
 :class:`Curve` is parametrised by ``u`` in metres: arc length for lines and arcs, chord
 length of the programmed vertices for fitted splines (``|dr/du|`` within a few per mille
@@ -591,9 +591,9 @@ def _line_distances(verts: np.ndarray) -> np.ndarray:
     return np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
 
 
-def collinear_run(verts: np.ndarray, fit_tol_m: float) -> np.ndarray | None:
+def collinear_run(verts: np.ndarray, fit_tol_m: float) -> tuple[np.ndarray, float] | None:
     """Where a run of micro-segments is one straight move: the parameter (m along the chord
-    from ``verts[0]``) of each vertex, or None.
+    from ``verts[0]``) of each vertex and the largest distance of one from the chord, or None.
 
     Straight: every vertex within ``fit_tol_m`` of the chord from the first vertex to the
     last, and each one further along it than the one before (no move backwards). The chord
@@ -610,16 +610,20 @@ def collinear_run(verts: np.ndarray, fit_tol_m: float) -> np.ndarray | None:
 
     Returns
     -------
-    ndarray, shape (n + 1,), or None
-        Increasing from 0 to the chord's length.
+    (along, deviation_m) or None
+        ``along``, shape (n + 1,), increasing from 0 to the chord's length (m); the largest
+        distance of a vertex from the chord (m).
     """
     d = verts[-1] - verts[0]
     length = float(np.linalg.norm(d))
-    if length <= 0.0 or _line_distances(verts).max() > fit_tol_m:
+    if length <= 0.0:
+        return None
+    dev = float(_line_distances(verts).max())
+    if dev > fit_tol_m:
         return None
     along = (verts - verts[0]) @ (d / length)
     along[0], along[-1] = 0.0, length
-    return along if bool(np.all(np.diff(along) > 0.0)) else None
+    return (along, dev) if bool(np.all(np.diff(along) > 0.0)) else None
 
 
 # --------------------------------------------------------------------------- blocks
@@ -816,13 +820,14 @@ def _pieces(path: Path, ids: list[int], fit_tol_m: float,
         if run - k >= MICRO_RUN_MIN:
             run_ids = ids[k:run]
             verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
-            along = collinear_run(verts, COLLINEAR_TOL_SHARE * fit_tol_m)
-            if along is not None:  # a straight run: the line itself (ruckig plans it alone)
+            straight = collinear_run(verts, COLLINEAR_TOL_SHARE * fit_tol_m)
+            if straight is not None:  # a straight run: the line itself (ruckig plans it alone)
+                along, dev = straight
                 base = b.seg_u[-1]
                 b.line(verts[0], verts[-1])
                 b.seg_ids.extend(run_ids)
                 b.seg_u.extend(base + along[1:])
-                b.fit_dev = max(b.fit_dev, float(_line_distances(verts).max()))
+                b.fit_dev = max(b.fit_dev, dev)
                 k = run
                 continue
             for first, last, spl, dev in fit_polyline(verts, fit_tol_m):

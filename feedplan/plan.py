@@ -188,16 +188,16 @@ def _straight(seg: Line, limits: AxisLimits, dt: float, budget: int, feed_m_s: f
 
 
 def _one_line(blk, seg_feed: np.ndarray) -> bool:
-    """A feed block that is one line (a straight run of micro-segments, :func:`blocks_of`)
-    programmed at one feed."""
-    return (not blk.rapid and blk.curve.is_line
-            and float(np.ptp(seg_feed[blk.segments])) == 0.0)
+    """A block that is one line at one feed: a rapid, a lone feed line, or a straight run of
+    micro-segments (:func:`blocks_of`)."""
+    feeds = seg_feed[blk.segments]
+    return blk.curve.is_line and bool(np.all(feeds == feeds[0]))  # a rapid's: inf
 
 
 def _straight_run(blk, path: Path, limits: AxisLimits, dt: float, budget: int,
                   seg_feed: np.ndarray):
-    """:func:`_straight` of a block that is one line (:func:`_one_line`), each sample's
-    source line that of the programmed move it lies on."""
+    """:func:`_straight` of a block that is one line (:func:`_one_line`) from its first move's
+    start to its last move's end, each sample's source line that of the move it lies on."""
     curve, ids = blk.curve, blk.segments
     first, last = path.segments[ids[0]], path.segments[ids[-1]]
     pos, _ = _straight(Line(first.start, last.end, first.feed_m_s, line=first.line), limits,
@@ -1021,10 +1021,7 @@ def plan(
     used = 1
     for blk in blocks:
         share = float(np.sum(seg_time[blk.segments]))
-        first = path.segments[blk.segments[0]]
-        if len(blk.segments) == 1 and isinstance(first, Line):  # rapid or lone feed line
-            p, ln = _straight(first, limits, dt, budget - used, seg_feed[blk.segments[0]])
-        elif _one_line(blk, seg_feed):  # a straight run of micro-segments at one feed
+        if _one_line(blk, seg_feed):  # ruckig's profile along the line
             p, ln = _straight_run(blk, path, limits, dt, budget - used, seg_feed)
         else:
             p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt, budget - used,
