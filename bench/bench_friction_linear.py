@@ -22,32 +22,26 @@ A benchmark prints figures; it asserts nothing.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import time
-from pathlib import Path
 
 for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_var, "1")  # one thread, as the real-time target says
 
 import numpy as np  # noqa: E402
 
-from feedplan.read import load_toolpath  # noqa: E402
 from oga.contour import contour_error_of  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
 from oga.metrics import contour_metrics  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
-from oga.pipeline import plan_toolpath  # noqa: E402
 from oga.robust.certificate import certify_result  # noqa: E402
 from oga.robust.plants import scenario_set  # noqa: E402
 from oga.simulate import simulate  # noqa: E402
 from oga.verify import command_ratios  # noqa: E402
 
 from bench_optimize import REPEATS  # noqa: E402
+from bench_replay import programs  # noqa: E402  (--machine, --only and the programs)
 
-DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
-PROGRAMS = {"reference_xz": "reference_xz.ngc", "cncjs_toolpath": "cncjs_toolpath.nc"}
 GAINS = ((2.0, 0.7), (4.0, 1.0), (1.0, 0.0))
 
 
@@ -73,19 +67,13 @@ def _figures(sp, sim, plant, moving):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--machine", default="ucp710")
-    ap.add_argument("--only", default="")
-    args = ap.parse_args()
-    machine = load_machine(args.machine)
+    machine, planned = programs(__doc__.splitlines()[0])
     scen = scenario_set(machine)
     fast = scen.plants
     exact = tuple(_exact(p) for p in fast)
     print(f"machine {machine.name}: {len(fast)} plants, setting "
           f"{fast[0].timing.friction_linear_below_m_s} m/s; gains {GAINS}")
-    for name in (n for n in PROGRAMS if not args.only or n in args.only.split(",")):
-        sp = plan_toolpath(load_toolpath(DATA / PROGRAMS[name]), machine, feed_m_s=None,
-                           tol_m=2e-5)
+    for name, sp in planned:
         n = len(sp)
         moving = list(sp.moving_axes)
         gains = [(np.full((n, 3), kp), np.full((n, 3), kf)) for kp, kf in GAINS]

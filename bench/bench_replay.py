@@ -51,18 +51,25 @@ def _plants(machine):
     return [("nominal", machine)] + [(scen.labels[i], scen.plants[i]) for i in picks]
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def programs(description: str, argv: list[str] | None = None):
+    """The replay benchmarks' options ``--machine`` (default ucp710) and ``--only NAME,..``:
+    the machine, and ``(name, setpoints)`` of each program of :data:`PROGRAMS` chosen,
+    planned as ``oga plan`` plans it, one by one as iterated."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--machine", default="ucp710")
     ap.add_argument("--only", default="")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     machine = load_machine(args.machine)
     names = [n for n in PROGRAMS if not args.only or n in args.only.split(",")]
+    return machine, ((name, plan_toolpath(load_toolpath(DATA / PROGRAMS[name]), machine,
+                                          feed_m_s=None, tol_m=2e-5)) for name in names)
+
+
+def main() -> None:
+    machine, planned = programs(__doc__.splitlines()[0])
     print(f"{'program':16} {'plant':44} {'N':>6} {'sim':>6} {'/axis':>6} {'ce':>6} "
           f"{'metr':>6} {'ratio':>6} {'verify':>7}  (ns/sample, CPU)")
-    for name in names:
-        sp = plan_toolpath(load_toolpath(DATA / PROGRAMS[name]), machine, feed_m_s=None,
-                           tol_m=2e-5)
+    for name, sp in planned:
         n = len(sp)
         bounds = {a: machine.gains.kp_bounds_m_min_per_mm for a in machine.axes}
         kp, kf = np.full((n, 3), 3.0), np.full((n, 3), 0.8)
