@@ -19,6 +19,7 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import anyio
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
@@ -38,6 +39,11 @@ from oga.errors import InputError
 __all__ = ["Settings", "create_app", "default_workers"]
 
 log = logging.getLogger("oga.api")
+
+#: CPU-bound request handlers (reading a submitted toolpath or trace, rendering a report
+#: or a table) that run at once; more only contend for the GIL and delay ``/healthz``
+#: (20 submissions at once: /healthz up to 60-130 ms with one thread each, 20-45 ms with 1).
+CPU_REQUESTS = 1
 
 #: The web page: ``index.html`` served at ``/``, its script and style under ``/static/``.
 STATIC_DIR = Path(__file__).parent / "static"
@@ -217,6 +223,7 @@ def create_app(settings: Settings) -> FastAPI:
         elif settings.workers:
             pool = WorkerPool(settings.db_path, settings.workers, limits, settings.stall_s)
         app.state.pool = pool
+        app.state.cpu_limiter = anyio.CapacityLimiter(CPU_REQUESTS)
         if pool is not None:
             await run_in_threadpool(pool.start)
         try:

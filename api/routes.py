@@ -1,8 +1,11 @@
 """The ``/v1`` routes: jobs, their tables and summaries, the synchronous gain table, machines.
 
 Handlers are plain functions run in the thread pool (database and formatting
-work), except the synchronous gain table, which waits for its job without
-holding a thread. No handler optimises: the worker processes do.
+work). The CPU-bound ones (reading a submitted toolpath or trace, rendering a
+report or a table) run one at a time under the app's ``cpu_limiter``: in more
+threads they would only contend for the GIL, and ``/healthz`` and the light routes
+would wait behind a burst of them. The synchronous gain table waits for its job
+without holding a thread. No handler optimises: the worker processes do.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse
+import anyio
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 
@@ -57,6 +61,11 @@ _BODY_ERRORS = {
 
 def _store(request: Request) -> Store:
     return request.app.state.store
+
+
+async def _cpu(request: Request, fn, *args):
+    """``fn(*args)`` in a thread under the app's CPU limiter (one at a time)."""
+    return await anyio.to_thread.run_sync(fn, *args, limiter=request.app.state.cpu_limiter)
 
 
 def _job(request: Request, job_id: str) -> JobRow:
@@ -162,10 +171,10 @@ Name = Annotated[str, Query(max_length=63, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$",
 
 @router.post("/jobs", status_code=202, response_model=JobAccepted, responses=_BODY_ERRORS,
              summary="Submit a toolpath for optimisation")
-def submit_job(body: JobRequest, request: Request, response: Response) -> dict:
+async def submit_job(body: JobRequest, request: Request, response: Response) -> dict:
     """Queue a job. The toolpath is read at once (422 naming line and column if it is
     malformed); planning and the search run in a worker process. Poll ``GET /v1/jobs/{id}``."""
-    row = _accept(request, body, sync=False)
+    row = await _cpu(request, _accept, request, body, False)
     response.headers["Location"] = f"/v1/jobs/{row.id}"
     return {"id": row.id, "status": row.status}
 
@@ -209,13 +218,14 @@ def cancel_job(job_id: str, request: Request) -> dict:
     200: {"content": {m: {} for _, m in TABLE_FORMATS.values()},
           "description": "the gain table"}, **_ERRORS}, response_class=Response,
     summary="The gain table of a succeeded job")
-def get_table(job_id: str, request: Request, format: TableFormat = "csv",
-              name: Name = C_NAME) -> Response:
+async def get_table(job_id: str, request: Request, format: TableFormat = "csv",
+                    name: Name = C_NAME) -> Response:
     """``csv`` is byte-identical to ``oga optimize --out``; ``json`` holds the columns and
     the metadata; ``npz`` one float64 array per column; ``c`` a C header for firmware;
     ``linuxcnc`` a zip of the streamer and HAL files (mm, error-previous-target TRUE, no
     simulated feedback; ``oga export`` on the npz table for other settings)."""
-    return _table_response(request, _job(request, job_id), format, name)
+    row = await run_in_threadpool(_job, request, job_id)
+    return await _cpu(request, _table_response, request, row, format, name)
 
 
 @router.get("/jobs/{job_id}/summary", responses=_ERRORS, summary="The summary of a job")
@@ -232,12 +242,16 @@ def get_summary(job_id: str, request: Request) -> dict:
     **{code: {"description": _ERRORS[code]["description"], "content": {"application/json": {
         "schema": {"$ref": "#/components/schemas/ErrorBody"}}}} for code in (404, 409, 422)}},
     response_class=HTMLResponse, summary="The report of a succeeded job")
-def get_report(job_id: str, request: Request) -> Response:
+async def get_report(job_id: str, request: Request) -> Response:
     """As ``oga optimize --report``. Rebuilt from what the job stored: its toolpath is planned
     again (the setpoint hash must match the summary's) and the baseline gains and the stored
     table are replayed on the model; nothing is searched again. 409 until the job has
     succeeded (a failed job stores no schedule to replay). An identification job: its fit
     report (as ``oga identify --report``), the fitted model simulated on its trace again."""
+    return await _cpu(request, _report, request, job_id)
+
+
+def _report(request: Request, job_id: str) -> Response:
     from feedplan.read import read_toolpath
     from oga.options import options_from_dict
     from oga.pipeline import plan_toolpath
@@ -270,22 +284,27 @@ def get_report(job_id: str, request: Request) -> Response:
 
 @router.post("/identify", status_code=202, response_model=JobAccepted, responses=_BODY_ERRORS,
              summary="Submit a recorded trace: identify the machine's axis model")
-def submit_identify(body: IdentifyRequest, request: Request, response: Response) -> dict:
+async def submit_identify(body: IdentifyRequest, request: Request, response: Response) -> dict:
     """Queue an identification (``oga identify``). The trace is read and checked at once
     (422 naming the column and the row if it is malformed; an axis not traced, or not a
     cascade of the base machine, 422 too); the fit runs in a worker. When the job has
     succeeded, ``GET /v1/jobs/{id}/machine`` is the identified machine file and
     ``/summary`` the fitted values, their intervals and the residuals per axis."""
+    row = await _cpu(request, _accept_trace, request, body)
+    response.headers["Location"] = f"/v1/jobs/{row.id}"
+    return {"id": row.id, "status": row.status}
+
+
+def _accept_trace(request: Request, body: IdentifyRequest) -> JobRow:
+    """Check a trace (read, its axes against the base machine) and queue its identification."""
     from api.identify import identify_options, read_job_trace
 
     machine = _machine(body.machine)
     fmt, options = TRACE_PREFIX + body.trace.format, identify_options(body)
     read_job_trace(body.trace.content, fmt, machine, options, body.trace.name)
-    row = _store(request).submit(
+    return _store(request).submit(
         source=body.trace.name, toolpath_format=fmt, toolpath=body.trace.content,
         machine=machine.model_dump(mode="json", exclude_none=True), options=options)
-    response.headers["Location"] = f"/v1/jobs/{row.id}"
-    return {"id": row.id, "status": row.status}
 
 
 @router.get("/jobs/{job_id}/machine", responses={
@@ -319,7 +338,7 @@ async def gain_table(body: JobRequest, request: Request, format: TableFormat = "
     a worker ahead of queued jobs; if it is not done within the server's wait limit the
     answer is 202 with the job to poll. A schedule that fails verification answers 422
     with the violations."""
-    row = await run_in_threadpool(_accept, request, body, True)
+    row = await _cpu(request, _accept, request, body, True)
     settings = request.app.state.settings
     deadline = time.monotonic() + settings.sync_timeout_s
     while row.status not in FINISHED and time.monotonic() < deadline:
@@ -327,7 +346,7 @@ async def gain_table(body: JobRequest, request: Request, format: TableFormat = "
         row = await run_in_threadpool(_job, request, row.id)
     headers = {"X-Oga-Job-Id": row.id, "Location": f"/v1/jobs/{row.id}"}
     if row.status == "succeeded":
-        return await run_in_threadpool(_table_response, request, row, format, name)
+        return await _cpu(request, _table_response, request, row, format, name)
     if row.status == "failed":
         return JSONResponse(row.error, status_code=422, headers=headers)
     if row.status == "cancelled":
