@@ -15,12 +15,12 @@ import math
 import time
 from pathlib import PurePath
 
+import anyio
 import numpy as np
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse
-import anyio
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 
