@@ -10,7 +10,9 @@ replayed on the seeded Monte Carlo plants of the set plus its 32 corners, the ra
 median / p90 / worst, the plants where the schedule, the baseline, and the schedule alone
 break a check (eq. 2, the following-error limit, the plant's stable Kp range), and the
 largest contour error of both over the set. RT = motion time / CPU time (one thread,
-after a warm-up) of the nominal ``optimize``, and of the certificate. Every program
+after a warm-up) of the nominal ``optimize``, and of the certificate (the set's stable
+ranges and the 192 replays: work every robust optimize does besides its search, since it
+certifies its table on the same set, so about the bound of its RT). Every program
 starts cold, as a fresh ``oga optimize`` process does: the memos of stable ranges and
 packed axis parameters are emptied first (a server that sees the set again is faster).
 Then the robust search (:func:`oga.robust.search.robust_optimize`: rounds of the
