@@ -40,10 +40,11 @@ __all__ = ["Settings", "create_app", "default_workers"]
 
 log = logging.getLogger("oga.api")
 
-#: CPU-bound request handlers (reading a submitted toolpath or trace, rendering a report
-#: or a table) that run at once; more only contend for the GIL and delay ``/healthz``
-#: (20 submissions at once: /healthz up to 60-130 ms with one thread each, 20-45 ms with 1).
-CPU_REQUESTS = 1
+#: The kinds of CPU-bound request work, each run one at a time: reading a submitted toolpath
+#: or trace (milliseconds), and rendering a report or a table (up to seconds: a submission
+#: does not wait behind one). More threads only contend for the GIL and delay ``/healthz``
+#: (20 submissions at once: /healthz up to 60-130 ms with a thread each, 13-39 ms this way).
+CPU_WORK = ("read", "render")
 
 #: The web page: ``index.html`` served at ``/``, its script and style under ``/static/``.
 STATIC_DIR = Path(__file__).parent / "static"
@@ -223,7 +224,7 @@ def create_app(settings: Settings) -> FastAPI:
         elif settings.workers:
             pool = WorkerPool(settings.db_path, settings.workers, limits, settings.stall_s)
         app.state.pool = pool
-        app.state.cpu_limiter = anyio.CapacityLimiter(CPU_REQUESTS)
+        app.state.cpu_limiters = {kind: anyio.CapacityLimiter(1) for kind in CPU_WORK}
         if pool is not None:
             await run_in_threadpool(pool.start)
         try:

@@ -1,10 +1,10 @@
 """The ``/v1`` routes: jobs, their tables and summaries, the synchronous gain table, machines.
 
 Handlers are plain functions run in the thread pool (database and formatting
-work). The CPU-bound ones (reading a submitted toolpath or trace, rendering a
-report or a table) run one at a time under the app's ``cpu_limiter``: in more
-threads they would only contend for the GIL, and ``/healthz`` and the light routes
-would wait behind a burst of them. The synchronous gain table waits for its job
+work). The CPU-bound ones run one at a time per kind (``api.app.CPU_WORK``: reading a
+submitted toolpath or trace; rendering a report or a table): in more threads they would
+only contend for the GIL, and ``/healthz`` and the light routes would wait behind a burst
+of them. The synchronous gain table waits for its job
 without holding a thread. No handler optimises: the worker processes do.
 """
 
@@ -63,9 +63,10 @@ def _store(request: Request) -> Store:
     return request.app.state.store
 
 
-async def _cpu(request: Request, fn, *args):
-    """``fn(*args)`` in a thread under the app's CPU limiter (one at a time)."""
-    return await anyio.to_thread.run_sync(fn, *args, limiter=request.app.state.cpu_limiter)
+async def _cpu(request: Request, kind: str, fn, *args):
+    """``fn(*args)`` in a thread, one at a time with the other CPU work of its ``kind``."""
+    return await anyio.to_thread.run_sync(
+        fn, *args, limiter=request.app.state.cpu_limiters[kind])
 
 
 def _job(request: Request, job_id: str) -> JobRow:
@@ -174,7 +175,7 @@ Name = Annotated[str, Query(max_length=63, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$",
 async def submit_job(body: JobRequest, request: Request, response: Response) -> dict:
     """Queue a job. The toolpath is read at once (422 naming line and column if it is
     malformed); planning and the search run in a worker process. Poll ``GET /v1/jobs/{id}``."""
-    row = await _cpu(request, _accept, request, body, False)
+    row = await _cpu(request, "read", _accept, request, body, False)
     response.headers["Location"] = f"/v1/jobs/{row.id}"
     return {"id": row.id, "status": row.status}
 
@@ -225,7 +226,7 @@ async def get_table(job_id: str, request: Request, format: TableFormat = "csv",
     ``linuxcnc`` a zip of the streamer and HAL files (mm, error-previous-target TRUE, no
     simulated feedback; ``oga export`` on the npz table for other settings)."""
     row = await run_in_threadpool(_job, request, job_id)
-    return await _cpu(request, _table_response, request, row, format, name)
+    return await _cpu(request, "render", _table_response, request, row, format, name)
 
 
 @router.get("/jobs/{job_id}/summary", responses=_ERRORS, summary="The summary of a job")
@@ -248,7 +249,7 @@ async def get_report(job_id: str, request: Request) -> Response:
     table are replayed on the model; nothing is searched again. 409 until the job has
     succeeded (a failed job stores no schedule to replay). An identification job: its fit
     report (as ``oga identify --report``), the fitted model simulated on its trace again."""
-    return await _cpu(request, _report, request, job_id)
+    return await _cpu(request, "render", _report, request, job_id)
 
 
 def _report(request: Request, job_id: str) -> Response:
@@ -290,7 +291,7 @@ async def submit_identify(body: IdentifyRequest, request: Request, response: Res
     cascade of the base machine, 422 too); the fit runs in a worker. When the job has
     succeeded, ``GET /v1/jobs/{id}/machine`` is the identified machine file and
     ``/summary`` the fitted values, their intervals and the residuals per axis."""
-    row = await _cpu(request, _accept_trace, request, body)
+    row = await _cpu(request, "read", _accept_trace, request, body)
     response.headers["Location"] = f"/v1/jobs/{row.id}"
     return {"id": row.id, "status": row.status}
 
@@ -338,7 +339,7 @@ async def gain_table(body: JobRequest, request: Request, format: TableFormat = "
     a worker ahead of queued jobs; if it is not done within the server's wait limit the
     answer is 202 with the job to poll. A schedule that fails verification answers 422
     with the violations."""
-    row = await _cpu(request, _accept, request, body, True)
+    row = await _cpu(request, "read", _accept, request, body, True)
     settings = request.app.state.settings
     deadline = time.monotonic() + settings.sync_timeout_s
     while row.status not in FINISHED and time.monotonic() < deadline:
@@ -346,7 +347,7 @@ async def gain_table(body: JobRequest, request: Request, format: TableFormat = "
         row = await run_in_threadpool(_job, request, row.id)
     headers = {"X-Oga-Job-Id": row.id, "Location": f"/v1/jobs/{row.id}"}
     if row.status == "succeeded":
-        return await _cpu(request, _table_response, request, row, format, name)
+        return await _cpu(request, "render", _table_response, request, row, format, name)
     if row.status == "failed":
         return JSONResponse(row.error, status_code=422, headers=headers)
     if row.status == "cancelled":

@@ -376,6 +376,39 @@ def test_a_job_that_keeps_killing_its_worker_fails(queue_only):
     assert job["status"] == "failed" and job["error"]["type"] == "WorkerLost"
 
 
+def test_a_submission_does_not_wait_behind_a_report_being_rendered(queue_only, monkeypatch):
+    """CPU-bound request work runs one at a time per kind (api.app.CPU_WORK): while a report
+    renders (held here until the submission is answered), a submission, which is reading,
+    is answered; behind one limiter for both it would wait for the report."""
+    import threading
+
+    import api.routes as routes
+
+    entered, release, held_out = threading.Event(), threading.Event(), []
+    real = routes._report
+
+    def held(request, job_id):
+        entered.set()
+        held_out.append(not release.wait(20))  # True: the submission waited behind it
+        return real(request, job_id)
+
+    monkeypatch.setattr(routes, "_report", held)
+    job_id = queue_only.post("/v1/jobs", json=body()).json()["id"]
+    answers = []
+    report = threading.Thread(
+        target=lambda: answers.append(queue_only.get(f"/v1/jobs/{job_id}/report")))
+    report.start()
+    try:
+        assert entered.wait(20)
+        r = queue_only.post("/v1/jobs", json=body())
+        assert r.status_code == 202, r.text
+    finally:
+        release.set()
+        report.join(30)
+    assert held_out == [False]
+    assert answers[0].status_code == 409  # the job is queued: no report yet
+
+
 # -- API key --------------------------------------------------------------------------------------
 
 def test_api_key_guards_every_route_but_healthz(tmp_path):
