@@ -3,13 +3,15 @@ multi-scenario search does what a search on several plants should."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.machine import load_machine
+from oga.errors import OptionError
+from oga.machine import Machine, load_machine, machine_from_dict
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
 from oga.robust.certificate import certify, plant_bounds
@@ -139,3 +141,40 @@ def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
     assert done.full and tuple(p.label for p in done.cert.plants) == scen.labels
     np.testing.assert_array_equal(done.cert.ratio, full.ratio)
     assert _screen(scen, done) == tuple(range(len(scen)))  # later rounds: the whole set
+
+
+def _wide(**planner) -> Machine:
+    """ucp710 with mass x0.3-3 and Kv x0.3-2 on every axis (its planner fractions changed by
+    ``planner``): at the preset's fractions no equal fixed gains keep the limits on every
+    plant of that set."""
+    d = load_machine("ucp710").model_dump(mode="json", exclude_none=True)
+    for ax in d["axes"].values():
+        ax["uncertainty"] |= {"mass_kg": [0.3, 3.0], "kv_n_s_m": [0.3, 2.0]}
+    d["planner"] |= planner
+    return machine_from_dict(d)
+
+
+def test_no_robust_baseline_names_the_gains_the_break_and_a_remedy_that_works():
+    m = _wide()
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    with pytest.raises(OptionError) as err:
+        robust_optimize(sp, m)
+    msg = str(err.value)
+    found = re.search(r"Kp ([\d.]+) Kf ([\d.]+), break them on (\d+) of 96 plants; on '([^']+)': "
+                      r"(axis [xyz]: .*line \d+.*?)\)\. ", msg)
+    assert found, msg
+    kp, kf, label = float(found[1]), float(found[2]), found[4]
+    # the break it names, from a fresh replay of those gains on that plant
+    scen = scenario_set(m)
+    i = scen.labels.index(label)
+    n = len(sp)
+    v = verify(sp, scen.plants[i], np.full((n, 3), kp), np.full((n, 3), kf), {})
+    assert not v.limits_ok and found[5] == v.violations[0]
+    assert int(found[3]) >= 1
+    assert all(words in msg for words in ("accel_fraction", "jerk_fraction", "uncertainty",
+                                          "--nominal"))
+    # the remedy it names: with gentler planner fractions the baseline keeps every plant
+    g = _wide(accel_fraction=0.5, jerk_fraction=0.35)
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), g, feed_m_s=None, tol_m=2e-5)
+    r = robust_optimize(sp, g)
+    assert r.status == "ok" and not r.certificate.breaks("baseline")

@@ -173,6 +173,7 @@ def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range, progress=N
     refused: dict[tuple[float, float], dict[int, float]] = {}  # the excess of refused gains
     share = 1.0 / defaults.ROBUST_ROUNDS
     memo = EqualGainMemo()  # the grid's sums and peaks do not depend on the reserve
+    last = None  # the last gains refused, and their excess per plant
     for k in range(defaults.ROBUST_ROUNDS):
         best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range),
                                 progress=lambda f, k=k: progress(share * (k + 0.5 * f)),
@@ -194,11 +195,29 @@ def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range, progress=N
         if over <= 1.0:
             return kp0, kf0, reserve, tuple(replays[i] for i in range(len(scenarios)))
         refused[(kp0, kf0)] = excess
+        last = (kp0, kf0, excess)
         known.update(excess)
         order.sort(key=lambda i: -known.get(i, -np.inf))
         reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
-    raise OptionError("baseline: no equal fixed gains keep the limits on every plant "
-                      "of the uncertainty set")
+    raise OptionError(_no_baseline(setpoints, scenarios, bounds, last))
+
+
+def _no_baseline(setpoints, scenarios, bounds, last) -> str:
+    """Why no robust baseline was found, and what the user can change: the last gains
+    refused, on how many plants, and their worst break (replayed once more, in full)."""
+    why = "baseline: no equal fixed gains keep the limits on every plant of the uncertainty set"
+    if last is not None:
+        kp0, kf0, excess = last
+        worst = max(excess, key=excess.get)
+        n = len(setpoints)
+        v = verify(setpoints, scenarios.plants[worst], np.full((n, 3), kp0), np.full((n, 3), kf0),
+                   bounds[worst])
+        broken = sum(e > 1.0 for e in excess.values())
+        why += (f" (the last tried, Kp {kp0:g} Kf {kf0:g}, break them on {broken} of "
+                f"{len(scenarios)} plants; on {scenarios.labels[worst]!r}: {v.violations[0]})")
+    return (why + ". The motion leaves the loop too little room on these plants: plan it with "
+            "smaller [planner] accel_fraction and jerk_fraction in the machine file, narrow its "
+            "[axes.*.uncertainty], or search the nominal model only (--nominal, no certificate)")
 
 
 def robust_optimize(
