@@ -483,7 +483,7 @@ def mpc_chunk(
         kp_base, kf_base, lims[0], lims[1], lims[2], te, u_hist.reshape((1,) + u_hist.shape), w,
         kspace, commit, iters, trust_kp, trust_kf, lam, anchor, tree, win_lo, win_hi, moving,
         feed, live, points, kp_out, kf_out, u_out.reshape((1,) + u_out.shape), stats, stop,
-        settled, lims[3], restore, tail, np.ones(1),
+        settled, lims[3], restore, tail, np.ones(1), False,
     )
 
 
@@ -492,7 +492,7 @@ def mpc_multi_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
     lam, anchor, tree, win_lo, win_hi, moving, feed, live, points, kp_out, kf_out, u_out, stats,
-    stop, settled, ferror_max, restore, tail, weights,
+    stop, settled, ferror_max, restore, tail, weights, hold_in_rapids,
 ):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place, on S plants at once.
 
@@ -533,7 +533,8 @@ def mpc_multi_chunk(
     like eq. 2 (linearised rows, then the exact check of the line search); ``restore``
     is :data:`oga.defaults.MPC_RESTORE`; ``tail`` the samples a window whose adjusted
     axis comes to rest inside it looks further (:data:`oga.defaults.MPC_SETTLE_TAIL`,
-    0: none).
+    0: none); ``hold_in_rapids``: a window of rapid samples only commits the plan as it
+    is, no step searched (the robust search, :mod:`oga.robust.multi`).
     """
     n_s = params.shape[0]
     if (k1 - k0) % commit != 0 and k1 < pd.shape[0]:
@@ -638,10 +639,16 @@ def mpc_multi_chunk(
                     if vdT[a, k + i] != 0.0 or pdT[a, k + i] != pdT[a, k]:
                         idle[a] = False
                         break
+        hold = hold_in_rapids  # the plan as it is: every sample of the window a rapid's
+        if hold:
+            for i in range(wk):
+                if feed[k + i] or not live[k + i]:
+                    hold = False
+                    break
         nominal_points[:] = np.nan  # a new window: no nominal yet (NaN equals no plan)
         widen = 1.0  # trust-region factor, grown while no step keeps eq. 2 over the window
         restored = 0
-        for _it in range(iters + restore):
+        for _it in range(0 if hold else iters + restore):
             # 1: nominal prediction along the plan and, in the same pass, its derivatives
             #    with respect to every free control point of the axis (forward mode)
             for a in range(3):

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from feedplan.read import load_toolpath
+from feedplan.read import load_toolpath, read_toolpath
 from oga.errors import OptionError
 from oga.machine import Machine, load_machine, machine_from_dict
 from oga.options import options_from_dict
@@ -178,3 +178,35 @@ def test_no_robust_baseline_names_the_gains_the_break_and_a_remedy_that_works():
     sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), g, feed_m_s=None, tol_m=2e-5)
     r = robust_optimize(sp, g)
     assert r.status == "ok" and not r.certificate.breaks("baseline")
+
+
+#: Two 5 mm circles at F3000 joined by a 412 mm rapid (1.35 s, most of it at the axes' speed).
+RAPID_BETWEEN = ("G21 G90 G17\nG0 X0 Y0\nG1 X20 F3000\nG2 X20 Y0 I5 J0\nG1 X0 Y0\n"
+                 "G0 X400 Y100\nG1 X420 F3000\nG2 X420 Y100 I5 J0\nG1 X400\nM2\n")
+
+
+def test_the_robust_search_holds_its_gains_inside_a_rapid():
+    # in a long rapid the following error is large (15-25 mm at a low Kf), and a gain change
+    # at speed moves the command by dKp x that error: on LinuxCNC's plasmatest the search
+    # raised Kp and Kf there and broke vmax 1.4-1.6x on every plant, its nominal one too.
+    # A window of rapid samples only holds the plan: the gains stand still from one window
+    # after the rapid's start to one window before its end, and move elsewhere
+    m = load_machine("ucp710")
+    sp = plan_toolpath(read_toolpath(RAPID_BETWEEN, "gcode", source="rapid.ngc"), m,
+                       feed_m_s=None, tol_m=2e-5)
+    rapid = np.flatnonzero(sp.rapid)
+    s0, e0 = rapid[0], rapid[-1]
+    assert rapid.size == e0 - s0 + 1 > 1000  # one rapid
+    nom = perturbed_machine(m, {}, 0, m.name)
+    slow = perturbed_machine(m, {a: {"mass_kg": 1.2, "kv_n_s_m": 0.8, "tn_s": 1.3}
+                                 for a in ("x", "y", "z")}, 1)
+    n = len(sp)
+    bkp, bkf = _fixed(n, 1.1, 0.9)
+    kb = {a: (1.0, 2.5) for a in ("x", "y")}
+    base = tuple(verify(sp, p, bkp, bkf, kb) for p in (nom, slow))
+    opt = options_from_dict(None)
+    found = multi_search(sp, (nom, slow), base, opt, 1.1, 0.9, (1.0, 2.5), 0.8)
+    inner = slice(s0 + opt.np_value, e0 - opt.np_value + 1)
+    for gains in (found.kp, found.kf):
+        assert np.ptp(gains[inner, :2], axis=0).max() < 1e-12  # a constant spline, rounded
+        assert np.ptp(gains[:s0, :2], axis=0).max() > 1e-3

@@ -18,6 +18,19 @@ plan is linearised on every plant around its own prediction, and
   plant, the largest exact excess in the line search), the acceleration, jerk and
   following-error limits times a ``reserve`` (<= 1) that covers the plants outside the
   set; the Kp bounds are the range stable on every plant of the whole scenario set.
+- a window whose samples are all a rapid's commits the plan as it is, no step searched
+  (``hold_in_rapids`` of :func:`oga.mpc.mpc_multi_chunk`): no contour error counts there,
+  and in a long rapid at a low Kf the following error is 15-25 mm, so a gain change at
+  speed moves the command by dKp times that; where the windows searched there, on
+  LinuxCNC's plasmatest (baseline Kp 1.6, Kf 0) the second round raised Kp 1.07 -> 1.62
+  and Kf 0 -> 1 at speed and broke vmax 1.56x on the nominal plant itself, and
+  51MeanderAve's table broke vmax on all 96 plants (now certified: median 0.046, worst
+  0.056). On cncjs_toolpath the table changed (median 0.269 -> 0.278, p90 0.397 -> 0.342,
+  worst 0.683 -> 0.556, a third round); the other benchmark programs' are bit-identical.
+  Not solved: the windows that reach past a rapid's end still search while the axis is
+  at speed (plasmatest: jerk 2.4x in a rapid's last 112 samples, on every plant); holding
+  every commit of rapid samples instead (no search before the feed starts) missed the
+  median goal elsewhere (0.378 on cncjs_toolpath, 0.420 on arcspiral[:40]).
 
 Measured on reference_xz (ucp710, baseline Kp 1.3, Kf 0.9, replayed on the nominal
 plant, the 32 corners and 8 (first and last item) or 24 Monte Carlo plants; ratios median /
@@ -197,7 +210,7 @@ def multi_search(
                         *defaults.MPC_TRUST, options.lam_value, options.anchor_value, tree,
                         win_lo, win_hi, is_moving, feed_pad, live_pad, points, kp_out, kf_out,
                         u_out, stats, defaults.MPC_STOP, defaults.MPC_SETTLED_M, ferror_max,
-                        defaults.MPC_RESTORE, defaults.MPC_SETTLE_TAIL, weights)
+                        defaults.MPC_RESTORE, defaults.MPC_SETTLE_TAIL, weights, True)
     return MultiSearch(kp=kp_out, kf=kf_out, fallbacks=int(stats[STAT_FALLBACK]),
                        windows=int(stats[STAT_WINDOWS]),
                        time_s=time.perf_counter() - t0)
