@@ -4,8 +4,8 @@ Handlers are plain functions run in the thread pool (database and formatting
 work). The CPU-bound ones run one at a time per kind (``api.app.CPU_WORK``: reading a
 submitted toolpath or trace; rendering a report or a table): in more threads they would
 only contend for the GIL, and ``/healthz`` and the light routes would wait behind a burst
-of them. The synchronous gain table waits for its job
-without holding a thread. No handler optimises: the worker processes do.
+of them. The synchronous gain table waits for its job without holding a thread. No
+handler optimises: the worker processes do.
 """
 
 from __future__ import annotations

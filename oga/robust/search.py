@@ -213,8 +213,10 @@ def _no_baseline(setpoints, scenarios, bounds, last) -> str:
         v = verify(setpoints, scenarios.plants[worst], np.full((n, 3), kp0), np.full((n, 3), kf0),
                    bounds[worst])
         broken = sum(e > 1.0 for e in excess.values())
+        what = (v.violations[0] if not v.limits_ok  # the limit violations come first
+                else f"a limit ratio of {excess[worst]:.10f}")  # over 1 by less than verify's slack
         why += (f" (the last tried, Kp {kp0:g} Kf {kf0:g}, break them on {broken} of "
-                f"{len(scenarios)} plants; on {scenarios.labels[worst]!r}: {v.violations[0]})")
+                f"{len(scenarios)} plants; on {scenarios.labels[worst]!r}: {what})")
     return (why + ". The motion leaves the loop too little room on these plants: plan it with "
             "smaller [planner] accel_fraction and jerk_fraction in the machine file, narrow its "
             "[axes.*.uncertainty], or search the nominal model only (--nominal, no certificate)")
