@@ -185,8 +185,8 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
         cascade the sub-step matrices, PI, force limit, friction constants,
         sub-steps, lifted map, the bounds of its guard, the viscous friction, and the
         linear friction map with its guard (all zero where the machine leaves
-        ``timing.friction_linear_below_m_s`` unset): 100 entries; for an ARX axis Te, history lengths, friction, load gain and the
-        coefficients (``11 + nv + nw``). Zero-padded to the longest over the
+        ``timing.friction_linear_below_m_s`` unset): 100 entries; for an ARX axis Te,
+        history lengths, friction, load gain and the coefficients (``11 + nv + nw``). Zero-padded to the longest over the
         machine's axes, so every axis of a machine has the same P.
     """
     return _params_of(machine.digest(), machine, axis, lifted).copy()

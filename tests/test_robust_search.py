@@ -210,3 +210,12 @@ def test_the_robust_search_holds_its_gains_inside_a_rapid():
     for gains in (found.kp, found.kf):
         assert np.ptp(gains[inner, :2], axis=0).max() < 1e-12  # a constant spline, rounded
         assert np.ptp(gains[:s0, :2], axis=0).max() > 1e-3
+    # the robust table of that program, replayed afresh on every plant of the set (other
+    # plants than those searched; every sample, the rapid's included): no limit broken
+    # where its baseline keeps it
+    r = robust_optimize(sp, m)
+    assert r.status == "ok"
+    bkp, bkf = _fixed(n, r.result.baseline_kp["x"], r.result.baseline_kf["x"])
+    for plant in scenario_set(m).plants:
+        if verify(sp, plant, bkp, bkf, kb).limits_ok:
+            assert verify(sp, plant, r.schedule.kp_m_min_per_mm, r.schedule.kf, kb).limits_ok

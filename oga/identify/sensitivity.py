@@ -7,11 +7,12 @@ bit) and carries, beside the state ``(p, v, F, I)`` and the dead-time line, its 
 along ``D`` directions of the packed parameters (:func:`oga.simulate.axis_params`): the
 sub-step mechanics' coefficients, ``Kv``, ``1/Tn``, the friction's ``Fc``, ``Fs - Fc`` and
 ``1/vs``, the lifted map over Te (and the linear friction map, on a machine that sets
-``timing.friction_linear_below_m_s``; identification's do not). The derivative follows the branch the nominal
-simulation takes at each period (the lifted map where it is exact, else the sub-steps with
-the velocity PI, its force limit and anti-windup, and the friction through its slope), as
-:mod:`oga.tangent` does for the gains; it is exact for the computation performed, except
-where the axis sticks (the friction's slope there limited: see :func:`_advance_sens`).
+``timing.friction_linear_below_m_s``; identification's do not). The derivative follows
+the branch the nominal simulation takes at each period (the lifted map where it is exact,
+else the sub-steps with the velocity PI, its force limit and anti-windup, and the friction
+through its slope), as :mod:`oga.tangent` does for the gains; it is exact for the
+computation performed, except where the axis sticks (the friction's slope there limited:
+see :func:`_advance_sens`).
 """
 
 from __future__ import annotations
