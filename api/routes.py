@@ -113,11 +113,11 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
     its job. A synchronous job has its own, shorter motion-time limit and goes ahead of the
     queue.
     """
-    from feedplan.read import read_toolpath
+    from oga.pipeline import read_program
 
     machine = _machine(body.machine)
     tp = body.toolpath
-    path = read_toolpath(tp.content, tp.format, source=tp.name)
+    path = read_program(tp.content, tp.format, machine, body.options, source=tp.name)
     if not path.segments:
         raise ToolpathError("toolpath: the program has no moves")
     settings = request.app.state.settings
@@ -253,9 +253,8 @@ async def get_report(job_id: str, request: Request) -> Response:
 
 
 def _report(request: Request, job_id: str) -> Response:
-    from feedplan.read import read_toolpath
     from oga.options import options_from_dict
-    from oga.pipeline import plan_toolpath
+    from oga.pipeline import plan_toolpath, read_program
     from oga.report import render_report, replay_report_data
 
     store = _store(request)
@@ -274,7 +273,7 @@ def _report(request: Request, job_id: str) -> Response:
     table = table_from_npz(blob)
     machine = machine_from_dict(row.machine)
     options = options_from_dict(row.options)
-    path = read_toolpath(row.toolpath, row.toolpath_format, source=row.source)
+    path = read_program(row.toolpath, row.toolpath_format, machine, options, source=row.source)
     sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m)
     column = {name: table.data[:, i] for i, name in enumerate(table.header)}
     kp = np.column_stack([column[f"{a}_kp_m_min_per_mm"] for a in AXES])

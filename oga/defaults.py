@@ -298,6 +298,8 @@ MACHINE_FIELD_RANGES = {
     "coulomb_m_s": (0.0, 10.0),
     "viscous_ratio": (0.0, 100.0),
     "load_m_s_per_n": (0.0, 1.0),
+    # G-code home positions and work offsets (oga.machine.Home), mm
+    "position_mm": (-1e6, 1e6),
     # gains
     "kp_m_min_per_mm": (1e-3, 50.0),
     "kp_step_m_min_per_mm": (1e-2, 10.0),

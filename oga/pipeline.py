@@ -17,7 +17,7 @@ from oga.machine import Machine
 from oga.optimize import OptimizeResult, optimize
 from oga.options import OptimizeOptions
 
-__all__ = ["Job", "PLAN_SHARE", "plan_toolpath", "run_job", "toolpath_sha256"]
+__all__ = ["Job", "PLAN_SHARE", "plan_toolpath", "read_program", "run_job", "toolpath_sha256"]
 
 #: Share of a job's progress fraction given to planning (measured: about a third of the time
 #: of LinuxCNC's arcspiral goes to planning, the rest to the search).
@@ -53,6 +53,14 @@ class Job:
 def toolpath_sha256(text: str) -> str:
     """Hash of a toolpath's text (UTF-8, hex), as summaries and tables record it."""
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def read_program(text: str, fmt: str, machine: Machine, options: OptimizeOptions, *,
+                 source: str = "") -> Path:
+    """The path of a toolpath as the job reads it: G-code through ``options.reader``, with the
+    machine's home positions and work offsets and ``options.tool_table``."""
+    setup = machine.gcode_setup(options.tool_table) if fmt == "gcode" else None
+    return read_toolpath(text, fmt, source=source, reader=options.reader, setup=setup)
 
 
 def plan_toolpath(
@@ -105,7 +113,7 @@ def run_job(
     PlanError, OptimizeError
         Planning or search failed.
     """
-    path = read_toolpath(text, fmt, source=source)
+    path = read_program(text, fmt, machine, options, source=source)
     if progress is None:
         plan_progress = search_progress = None
     else:

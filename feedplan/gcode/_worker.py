@@ -52,6 +52,7 @@ class Canon:
         self.parameter_file = params
         self.mask = mask
         self.tools = tools
+        self.spindle = None  # index of the tool in the spindle (AXIS's StatMixin does this)
         self.left = max_records
         self.deadline = deadline
         self.out = []
@@ -79,7 +80,7 @@ class Canon:
         return time.monotonic() > self.deadline
 
     def get_tool(self, index):
-        t = self.tools.get(index)
+        t = self.tools.get(self.spindle if index == 0 and self.spindle else index)
         if t is None:
             return (-1,) + (0.0,) * 12 + (0,)
         return (t[0], t[1], t[2], t[3], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, t[4], 0.0, 0.0, 0)
@@ -114,6 +115,7 @@ class Canon:
         self._put("D", seconds)
 
     def change_tool(self, pocket):
+        self.spindle = pocket
         self._put("C", pocket)
 
     def set_g5x_offset(self, index, *p):

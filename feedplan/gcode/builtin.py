@@ -25,8 +25,9 @@ Read
   any: the ``G28 G91 Z0`` idiom), G28.1 / G30.1 (store the position), G53 (G0/G1 in machine
   coordinates), G54-G59.3 work offsets, G92 / G92.1 / G92.2 / G92.3; home positions and work
   offsets from the :class:`~feedplan.gcode.setup.Setup` (default: machine zero, no offset).
-- Tools: T (select; with a tool table the tool must be in it), M6 (change: a traverse to the
-  tool-change position when the setup has one; the motion stops), M61 Q; G43 (the tool in
+- Tools: T (select; with a tool table the tool must be in it), M6 (change: the motion stops;
+  no move, as LinuxCNC without ``[EMCIO]TOOL_CHANGE_POSITION``: a tool change is a pause of
+  unknown length, which no gain table spans in time anyway); G43 (the tool in
   the spindle) / G43 H / G43.2 H (add) / G43.1 (given) / G49 tool length offsets, lengths from
   the tool table (without one: length 0 and a warning: a constant Z shift changes no gain).
 - Dwell G4 P (the motion stops there); path control G61 / G61.1 (stop at every corner), G64
@@ -40,7 +41,7 @@ Read
 Not read here (a :class:`~oga.errors.GcodeError` with ``unsupported`` set: ``--reader auto``
 passes the program to LinuxCNC's interpreter): cutter compensation G41/G42, ``#`` parameters,
 ``[ ]`` expressions, O-word control flow, G10, G52, G88, splines, lathe cycles, G33, probing,
-G93/G95, G96, M19, M66-M73, user M codes. Anything else that is wrong names the line, the
+G93/G95, G96, M19, M61, M66-M73, user M codes. Anything else that is wrong names the line, the
 column of the offending word and the feature.
 """
 
@@ -68,7 +69,7 @@ ARC_END_TOL_MM = 0.05
 ARC_END_TOL_IN = 0.002
 #: LinuxCNC's arc checks (interp_internal.hh): centre-format radius difference (absolute, and
 #: relative above it), R-format reach, zero radius; program units.
-_LCNC_ARC_ABS = {MM_M: 2 * 0.01 * math.sqrt(2) * 1.0, INCH_M: 2 * 0.001 * math.sqrt(2)}
+_LCNC_ARC_ABS = {MM_M: 2 * 0.01 * math.sqrt(2), INCH_M: 2 * 0.001 * math.sqrt(2)}
 _LCNC_ARC_REL = 0.001
 _LCNC_RADIUS_TOL = {MM_M: 0.00005 * 25.4, INCH_M: 0.00005}
 
@@ -117,10 +118,10 @@ _LINUXCNC_G = {
     880: "G88 (boring cycle with manual retract)", 930: "G93 (inverse time feed mode)",
     950: "G95 (feed per revolution)", 960: "G96 (constant surface speed)",
 }
-_M_GROUP = {**dict.fromkeys((0, 1, 2, 30, 60), "stopping"), **dict.fromkeys((6, 61), "tool"),
+_M_GROUP = {**dict.fromkeys((0, 1, 2, 30, 60), "stopping"), 6: "tool",
             **dict.fromkeys((3, 4, 5), "spindle"), **dict.fromkeys((7, 8, 9), "coolant"),
             **dict.fromkeys(range(48, 54), "override"), **dict.fromkeys(range(62, 66), "output")}
-_LINUXCNC_M = {19: "M19 (spindle orientation)", 66: "M66 (wait on input)",
+_LINUXCNC_M = {19: "M19 (spindle orientation)", 61: "M61 (set the tool number)", 66: "M66 (wait on input)",
                67: "M67 (analog output)", 68: "M68 (analog output)", 70: "M70 (save modal "
                "state)", 71: "M71 (invalidate saved state)", 72: "M72 (restore modal state)",
                73: "M73 (save and restore modal state)", 98: "M98 (subprogram call)",
@@ -143,7 +144,7 @@ class _Reader:
         self.axes = axes
         self.absent_axes = _FOREIGN_AXES + "".join(a for a in _AXES if a.lower() not in axes)
         self.setup = setup
-        self.out = PathBuilder(source)
+        self.out = PathBuilder(source, setup.work_offsets_m[0])
         self.unit_m: float | None = None  # None until G20/G21
         self.motion: int | None = None  # 0, 10, 20, 30, a cycle, or None (G80)
         self.incremental = False
@@ -156,12 +157,15 @@ class _Reader:
         self.tlo = np.zeros(3)
         self.g28 = setup.g28_m.copy()
         self.g30 = setup.g30_m.copy()
-        self.selected: int | None = None
+        self.selected = 0  # T0: no tool
         self.spindle_tool: int | None = None
         self.spindle = 0  # 1 clockwise, -1 counter-clockwise
         self.cycle = CycleMemory()
         self.percent = 0
         self.ended = False
+        # the interpreter's position in program units (LinuxCNC's current_x/y/z): the moves
+        # are computed there, as LinuxCNC does, and go to the path in machine coordinates
+        self.cur = np.zeros(3)
 
     def error(self, message: str, line: int, column: int) -> GcodeError:
         return GcodeError(message, line, column, self.source)
@@ -172,9 +176,17 @@ class _Reader:
         return self.setup.work_offsets_m[self.work] + self.g92 + self.tlo
 
     @property
-    def prog(self) -> np.ndarray:
-        """The current position in program coordinates, m."""
-        return self.out.pos - self.offsets
+    def unit(self) -> float:
+        """Metres per program unit (mm until G20/G21, LinuxCNC's start-up units)."""
+        return MM_M if self.unit_m is None else self.unit_m
+
+    def machine(self, p) -> np.ndarray:
+        """Machine coordinates (m) of the program point ``p`` (program units)."""
+        return np.asarray(p, dtype=np.float64) * self.unit + self.offsets
+
+    def _offsets_changed(self, old: np.ndarray) -> None:
+        """The offsets changed (from ``old``, m): the tool stays, its program position moves."""
+        self.cur = self.cur + (old - self.offsets) / self.unit
 
     # -- one block ---------------------------------------------------------------------------
     def block(self, text: str, n: int) -> bool:
@@ -214,7 +226,7 @@ class _Reader:
         if special[0] in (280, 300):
             self._home(special, args, n)
         elif special[0] in (281, 301):
-            home = self.out.pos.copy()
+            home = self.machine(self.cur)
             if special[0] == 281:
                 self.g28 = home
             else:
@@ -344,7 +356,7 @@ class _Reader:
             "J": arc or motion == 870, "K": arc or motion == 870, "L": cycle,
             "P": special == 40 or control == 640 or arc or motion in (740, 820, 840, 860, 890)
             or bool(m & {50, 51, 52, 53, 62, 63, 64, 65}),
-            "Q": motion in (730, 830) or control == 640 or 61 in m,
+            "Q": motion in (730, 830) or control == 640,
             "R": arc or cycle,
         }
         for letter, used in uses.items():
@@ -387,7 +399,7 @@ class _Reader:
 
     # -- settings ------------------------------------------------------------------------------
     def _tools(self, gcodes: dict, mcodes: dict, args: dict, n: int) -> None:
-        """T (select), M6 (change), M61 (set), spindle M3/M4/M5."""
+        """T (select), M6 (change), spindle M3/M4/M5."""
         if "T" in args:
             t = args["T"]
             if t.value != int(t.value) or t.value < 0:
@@ -396,20 +408,9 @@ class _Reader:
             self._known_tool(int(t.value), n, t.column)
             self.selected = int(t.value)
         tool = mcodes.get("tool")
-        if tool is not None and tool.value == 6:
-            if self.selected is None:
-                raise self.error("M6 (tool change) without a tool selected (T)", n, tool.column)
+        if tool is not None:  # M6 (without a T before: tool 0, no tool, as LinuxCNC)
             self.out.stop()
-            if self.setup.tool_change_m is not None:
-                self.out.traverse(self.setup.tool_change_m, n, tool.column)
-                self.out.stop()
             self.spindle_tool = self.selected
-        elif tool is not None:  # M61 Q: the tool in the spindle, no change
-            q = args.get("Q")
-            if q is None or q.value != int(q.value) or q.value < 0:
-                raise self.error("M61 needs Q, a tool number", n, tool.column)
-            self._known_tool(int(q.value), n, q.column)
-            self.spindle_tool = int(q.value)
         spindle = mcodes.get("spindle")
         if spindle is not None:
             self.spindle = {3: 1, 4: -1, 5: 0}[int(spindle.value)]
@@ -423,11 +424,18 @@ class _Reader:
         if "plane" in gcodes:
             self.out.plane = _PLANE[gcodes["plane"][0]]
         if "units" in gcodes:
-            self.unit_m = _UNIT_M[gcodes["units"][0]]
+            new = _UNIT_M[gcodes["units"][0]]
+            if new != self.unit:  # LinuxCNC converts its position (feed: a speed, kept)
+                self.cur = self.cur * 25.4 if new == MM_M else self.cur / 25.4
+            self.unit_m = new
         if "tool length" in gcodes:
+            old = self.offsets
             self._tool_length(*gcodes["tool length"], args, n)
+            self._offsets_changed(old)
         if "work system" in gcodes:
+            old = self.offsets
             self.work = _WORK[gcodes["work system"][0]]
+            self._offsets_changed(old)
         control = gcodes.get("path control", (None,))[0]
         if control in (610, 611):
             self.blend_tol_m = 0.0
@@ -473,35 +481,34 @@ class _Reader:
 
     # -- home, offsets -------------------------------------------------------------------------
     def _target(self, args: dict, n: int) -> np.ndarray:
-        """Machine coordinates (m) of the end point of the block's axis words (G90/G91);
-        the axes not named stay where they are."""
-        end = self.out.pos.copy()
-        offsets = self.offsets
+        """The end point (program units) of the block's axis words (G90/G91); the axes not
+        named keep their values."""
+        end = self.cur.copy()
         for k, a in enumerate(_AXES):
             if a in args:
-                v = self._in_range(args[a], n)
-                end[k] = end[k] + v if self.incremental else v + offsets[k]
+                self._in_range(args[a], n)
+                end[k] = end[k] + args[a].value if self.incremental else args[a].value
         return end
 
     def _home(self, special: tuple[int, Word], args: dict, n: int) -> None:
         """G28/G30: traverse through the given point to the home of the named axes (all
-        when none is named)."""
+        when none is named; LinuxCNC's ``convert_home``)."""
         code, word = special
-        self.out.traverse(self._target(args, n), n, word.column)
-        home = self.g28 if code == 280 else self.g30
-        named = [k for k, a in enumerate(_AXES) if a in args]
-        end = self.out.pos.copy()
-        for k in named or range(3):
-            end[k] = home[k]
-        self.out.traverse(end, n, word.column)
+        self.cur = self._target(args, n)
+        self.out.traverse(self.machine(self.cur), n, word.column)
+        home = (self.g28 if code == 280 else self.g30) - self.offsets
+        for k in [k for k, a in enumerate(_AXES) if a in args] or range(3):
+            self.cur[k] = home[k] / self.unit
+        self.out.traverse(self.machine(self.cur), n, word.column)
 
     def _g92(self, code: int, args: dict, n: int) -> None:
         """G92 (the current point gets the given coordinates), G92.1 / G92.2 / G92.3."""
+        old = self.offsets
         if code == 920:
-            base = self.out.pos - self.setup.work_offsets_m[self.work] - self.tlo
             for k, a in enumerate(_AXES):
                 if a in args:
-                    self.g92[k] = base[k] - self._in_range(args[a], n)
+                    self.g92[k] += (self.cur[k] - args[a].value) * self.unit
+                    self._in_range(args[a], n)
             self.g92_saved = self.g92.copy()
         elif code == 921:
             self.g92 = np.zeros(3)
@@ -510,6 +517,7 @@ class _Reader:
             self.g92 = np.zeros(3)
         else:
             self.g92 = self.g92_saved.copy()
+        self._offsets_changed(old)
 
     # -- motion --------------------------------------------------------------------------------
     def _motion(self, code: int, gcodes: dict, args: dict, n: int) -> None:
@@ -521,30 +529,34 @@ class _Reader:
             self.cycle.il = None
         if code == 800:
             return
-        if gcodes.get("non-modal", (None,))[0] == 530:  # machine coordinates
-            end = self.out.pos.copy()
-            for k, a in enumerate(_AXES):
-                if a in args:
-                    end[k] = self._in_range(args[a], n)
-        elif code in CYCLES:
+        self._unit(n)
+        if code in CYCLES:
             self._cycle(code, previous, args, n, column)
             return
+        if gcodes.get("non-modal", (None,))[0] == 530:  # machine coordinates
+            end = self.cur.copy()
+            offsets = self.offsets
+            for k, a in enumerate(_AXES):
+                if a in args:
+                    end[k] = (self._in_range(args[a], n) - offsets[k]) / self.unit
         else:
             end = self._target(args, n)
         if code == 0:
-            self.out.traverse(end, n, column)
+            self.out.traverse(self.machine(end), n, column)
         elif code == 10:
-            self.out.feed(end, n, column)
+            self.out.feed(self.machine(end), n, column)
         else:
             self._arc(code, end, args, n, column)
+        self.cur = end
 
     def _arc(self, code: int, end: np.ndarray, args: dict, n: int, column: int) -> None:
-        """G2/G3 to ``end`` (machine coordinates, m), LinuxCNC's checks."""
+        """G2/G3 to ``end`` (program units): LinuxCNC's checks and centre (``arc_data_ijk``,
+        ``arc_data_r``), in program units as LinuxCNC computes them."""
         plane = self.out.plane
         i, j, normal = PLANES[plane]
         first, second, third = _plane_roles(plane)
         g = f"{_PLANE_G[plane]} ({plane.upper()} plane)"
-        unit = self._unit(n)
+        unit = self.unit
         offsets = {L: args[L] for L in "IJK" if L in args}
         if "IJK"[normal] in offsets:
             w = offsets.pop("IJK"[normal])
@@ -561,30 +573,26 @@ class _Reader:
             raise self.error(f"arc in {g} needs {first} or {second}", n, column)
         for w in offsets.values():
             self._in_range(w, n)
-        # LinuxCNC works in program coordinates; the centre is found there
-        start_p = self.prog
-        end_p = end - self.offsets
-        a, b = start_p[[i, j]], end_p[[i, j]]
+        a, b = self.cur[[i, j]], end[[i, j]]
         if "R" in args:
             w = args["R"]
-            r = self._in_range(w, n)
-            tol = _LCNC_RADIUS_TOL[unit] * unit
+            self._in_range(w, n)
+            r = w.value
             if a[0] == b[0] and a[1] == b[1]:
                 raise self.error("an R-form arc needs an end point different from its start "
                                  "(use I/J/K for a full circle)", n, w.column)
-            mid = (a + b) / 2.0
-            half = float(np.hypot(*(mid - b)))
-            if half - abs(r) > tol:
-                raise self.error(f"R {abs(w.value):g} is too small to reach the end point "
-                                 f"{2 * half / unit:g} away", n, w.column)
+            mid = (b + a) / 2.0
+            half = float(np.hypot(mid[0] - b[0], mid[1] - b[1]))
+            if half - abs(r) > _LCNC_RADIUS_TOL[unit]:
+                raise self.error(f"R {abs(r):g} is too small to reach the end point "
+                                 f"{2 * half:g} away", n, w.column)
             if half / abs(r) > 1 - 1e-12:
                 half = abs(r)
-            ccw = code == 30
-            turn_left = (not ccw and r > 0) or (ccw and r < 0)
+            turn_left = (code == 20 and r > 0) or (code == 30 and r < 0)
             theta = math.atan2(b[1] - a[1], b[0] - a[0]) + (-math.pi / 2 if turn_left
                                                               else math.pi / 2)
             offset = abs(r) * math.cos(math.asin(half / abs(r)))
-            c = mid + offset * np.array([math.cos(theta), math.sin(theta)])
+            c = np.array([mid[0] + offset * math.cos(theta), mid[1] + offset * math.sin(theta)])
         else:
             w = min(offsets.values(), key=lambda w: w.column)
             if self.arc_absolute:
@@ -592,32 +600,29 @@ class _Reader:
                     if L not in offsets:
                         raise self.error(f"{L} word missing in an absolute-centre arc (G90.1)",
                                          n, w.column)
-            off = np.array([offsets[L].value * unit if L in offsets else 0.0
+            off = np.array([offsets[L].value if L in offsets else 0.0
                             for L in ("IJK"[i], "IJK"[j])])
             c = off if self.arc_absolute else a + off
-            r0, r1 = float(np.hypot(*(a - c))), float(np.hypot(*(b - c)))
-            if min(r0, r1) < _LCNC_RADIUS_TOL[unit] * unit:
-                raise self.error(f"arc radius is zero (radius to start {r0 / unit:g}, to end "
-                                 f"{r1 / unit:g})", n, w.column)
+            r0, r1 = float(np.hypot(*(c - a))), float(np.hypot(*(c - b)))
+            if min(r0, r1) < _LCNC_RADIUS_TOL[unit]:
+                raise self.error(f"arc radius is zero (radius to start {r0:g}, to end {r1:g})",
+                                 n, w.column)
             err = abs(r1 - r0)
-            tol = _LCNC_ARC_ABS[unit] * unit
+            tol = _LCNC_ARC_ABS[unit]
             if err > 100 * tol or (err / max(r0, r1) > _LCNC_ARC_REL and err > tol):
-                raise self.error(f"arc end point is off the circle: radius to start {r0 / unit:g}, "
-                                 f"to end {r1 / unit:g} (LinuxCNC refuses it)", n, w.column)
+                raise self.error(f"arc end point is off the circle: radius to start {r0:g}, "
+                                 f"to end {r1:g} (LinuxCNC refuses it)", n, w.column)
         turns = int(round(args["P"].value)) if "P" in args else 1
-        center = start_p.copy()
+        center = self.cur.copy()
         center[[i, j]] = c
-        self.out.arc(end, center + self.offsets, turns if code == 30 else -turns, n, column,
-                     end_tol_m=(ARC_END_TOL_IN if unit == INCH_M else ARC_END_TOL_MM) * unit,
-                     unit_m=unit)
+        self.out.arc(self.machine(end), self.machine(center), turns if code == 30 else -turns,
+                     n, column, unit_m=unit,
+                     end_tol_m=(ARC_END_TOL_IN if unit == INCH_M else ARC_END_TOL_MM) * unit)
 
     def _cycle(self, code: int, previous: int | None, args: dict, n: int, column: int) -> None:
         """A canned cycle block: its moves (:func:`~feedplan.gcode.cycles.cycle_moves`)."""
-        plane = self.out.plane
-        roles = PLANES[plane]
-        letters = _plane_roles(plane)
-        unit = self._unit(n)
-        cur = self.prog / unit
+        roles = PLANES[self.out.plane]
+        letters = _plane_roles(self.out.plane)
         words_ = {role: args[L].value for role, L in zip("abc", letters) if L in args}
         words_.update({L: args[L].value for L in "RPQLIJK" if L in args})
         for L in (*letters, "R", "I", "J", "K"):
@@ -629,23 +634,20 @@ class _Reader:
             return self.error(message, n, w.column if w is not None else column)
 
         ijk = "".join("IJK"[k] for k in roles)
-        moves, _ = cycle_moves(code, previous, tuple(cur[list(roles)]), words_, self.incremental,
-                               self.retract_r, unit == INCH_M, self.spindle, self.cycle, error,
-                               ijk)
+        moves, _ = cycle_moves(code, previous, tuple(self.cur[list(roles)]), words_,
+                               self.incremental, self.retract_r, self.unit == INCH_M,
+                               self.spindle, self.cycle, error, ijk)
         self.out.blend_tol_m = 0.0  # LinuxCNC runs cycles in exact-path mode
-        m0, offsets = self.out.pos.copy(), self.offsets
         for kind, value in moves:
             if kind == "D":
                 self.out.stop()
                 continue
-            end = m0.copy()  # an axis at its starting value stays exactly where it was
-            for role, v in zip(roles, value):
-                if v != cur[role]:
-                    end[role] = v * unit + offsets[role]
+            self.cur = self.cur.copy()
+            self.cur[list(roles)] = value
             if kind == "T":
-                self.out.traverse(end, n, column)
+                self.out.traverse(self.machine(self.cur), n, column)
             else:
-                self.out.feed(end, n, column)
+                self.out.feed(self.machine(self.cur), n, column)
         self.out.blend_tol_m = self.blend_tol_m
 
     def path(self) -> Path:

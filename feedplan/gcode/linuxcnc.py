@@ -17,7 +17,11 @@ the table into it (``tooldata_load``).
 The canonical calls map onto the path as LinuxCNC's motion controller sees them: machine
 position = XY rotation of (program position + G92 offset) + work offset + tool length offset
 (LinuxCNC's ``find_relative``); arcs keep their end, centre, plane, rotation sense and turns.
-What the module does not report is taken from the source line: path control (G61/G64 P; a
+One difference from a machine remains: where the interpreter re-reads the position from the
+controller (after M6), the module gives back the last move's end in the program units it
+had then (a program switching G20/G21 and then changing tools: the built-in reader keeps the
+converted position, as LinuxCNC's controller does). What the module does not report is taken
+from the source line: path control (G61/G64 P; a
 move of a block that names none gets the mode in effect, its P the last G64 line's) and
 whether a block is a canned cycle (cycles run in exact-path mode). Without a tool table, every
 tool the program names (T, H words) gets length 0 (a warning), as the built-in reader does.
@@ -152,7 +156,7 @@ def _tool_table(setup: Setup, text: str) -> str:
     """The tool table LinuxCNC gets (P = index, lengths in mm): the setup's, or every tool the
     program names with length 0."""
     if setup.tools is not None:
-        rows = [(t.number, *(v * 1e3 for v in t.offset_m), t.diameter_m * 1e3)
+        rows = [(t.number, *(float(v) * 1e3 for v in t.offset_m), float(t.diameter_m) * 1e3)
                 for t in setup.tools]
     else:
         numbers = sorted({int(x) for x in _TOOL_WORD.findall(_COMMENT.sub("", text))
@@ -169,7 +173,7 @@ def _parameters(setup: Setup) -> str:
         rows.update({base + k: v * 1e3 for k, v in enumerate(xyz)})
     for w, xyz in enumerate(setup.work_offsets_m):
         rows.update({5221 + 20 * w + k: v * 1e3 for k, v in enumerate(xyz)})
-    return "".join(f"{k}\t{v!r}\n" for k, v in sorted(rows.items()))
+    return "".join(f"{k}\t{float(v)!r}\n" for k, v in sorted(rows.items()))
 
 
 def _run(program: str, tools: str, params: str, axes: str, timeout_s: float) -> list[str]:
@@ -323,9 +327,6 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
             out.stop()
         elif kind == "C":
             out.stop()
-            if setup.tool_change_m is not None:
-                out.traverse(setup.tool_change_m, n)
-                out.stop()
         elif kind == "O":
             g5x = np.array(v[1:4]) * INCH_M
         elif kind == "G":

@@ -6,9 +6,11 @@ canonical calls, in machine coordinates and metres: traverses, straight feeds, a
 into a Path, the same way for both, so that the two readers' paths can be compared move by
 move.
 
-- The machine is at machine zero before the program (LinuxCNC's assumption); the first move
-  that goes elsewhere positions the tool and is not a segment (the tool starts at rest at
-  its end: where it was before is unknown).
+- Before the program the tool is at the program zero of G54 (where LinuxCNC's interpreter
+  assumes it: machine zero without a G54 offset); the first move positions the tool and is not a segment (the tool starts at rest at its end: where it was
+  before is unknown). A block that moves without naming an axis (``G0`` alone) is a move
+  to where the tool is: as the first move, it puts the start at that program zero; so do
+  the axes the first move does not name.
 - Zero-length moves are dropped; traverses are ``Line(rapid=True, feed_m_s=inf)``.
 - An arc's sweep follows LinuxCNC's rotation: the sign is the sense about the plane normal
   (positive counter-clockwise, G3), ``|rotation| - 1`` extra full turns (the P word); an end
@@ -58,11 +60,13 @@ class PathBuilder:
     ----------
     source : str
         Name of the program, for messages and ``Path.source``.
+    before_m : array_like, shape (3,), optional
+        Where the machine is before the program, m (default machine zero).
     """
 
-    def __init__(self, source: str = "") -> None:
+    def __init__(self, source: str = "", before_m=(0.0, 0.0, 0.0)) -> None:
         self.source = source
-        self.pos = np.zeros(3)  # machine zero until the first move
+        self.pos = np.array(before_m, dtype=np.float64).reshape(3)
         self.start: np.ndarray | None = None
         self.segments: list[Line | Arc] = []
         self.warnings: list[str] = []
@@ -92,9 +96,8 @@ class PathBuilder:
             raise self.error(f"{'XYZ'[k]} {end[k] * 1e3:.6g} mm (machine coordinates, offsets "
                              f"included): out of range (|{'XYZ'[k]}| <= {MAX_COORD_M * 1e3:g} mm)",
                              line, column)
-        if self.start is None:  # the first move that moves positions the tool
-            if not (end[0] == self.pos[0] and end[1] == self.pos[1] and end[2] == self.pos[2]):
-                self.start = self.pos = end
+        if self.start is None:  # the first move positions the tool
+            self.start = self.pos = end
             return None
         if len(self.segments) >= MAX_SEGMENTS:
             raise self.error(f"more than {MAX_SEGMENTS} moves (the limit of one program)",

@@ -1,7 +1,7 @@
 """What a program's meaning depends on beyond its text: home positions, work offsets, tools.
 
-LinuxCNC keeps these in its parameter file (G28/G30 positions, G54-G59.3 offsets), its INI
-file (the tool-change position) and its tool table. :class:`Setup` holds them for both
+LinuxCNC keeps these in its parameter file (G28/G30 positions, G54-G59.3 offsets) and its
+tool table. :class:`Setup` holds them for both
 readers, in machine coordinates and metres; the default is LinuxCNC's own without those files:
 every position and offset at machine zero, no tool table.
 
@@ -56,9 +56,6 @@ class Setup:
     ----------
     g28_m, g30_m : ndarray, shape (3,)
         Where G28 and G30 go (LinuxCNC's parameters 5161-5163 and 5181-5183).
-    tool_change_m : ndarray, shape (3,) or None
-        Where an M6 tool change goes first, at traverse rate (LinuxCNC's
-        ``[EMCIO]TOOL_CHANGE_POSITION``); None: the change makes no move.
     work_offsets_m : ndarray, shape (9, 3)
         Offsets of G54 .. G59.3 (parameters 5221.. in steps of 20).
     tools : tuple of Tool or None
@@ -68,23 +65,19 @@ class Setup:
 
     g28_m: np.ndarray = field(default_factory=lambda: _xyz((0.0, 0.0, 0.0)))
     g30_m: np.ndarray = field(default_factory=lambda: _xyz((0.0, 0.0, 0.0)))
-    tool_change_m: np.ndarray | None = None
     work_offsets_m: np.ndarray = field(default_factory=lambda: np.zeros((9, 3)))
     tools: tuple[Tool, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "g28_m", _xyz(self.g28_m))
         object.__setattr__(self, "g30_m", _xyz(self.g30_m))
-        if self.tool_change_m is not None:
-            object.__setattr__(self, "tool_change_m", _xyz(self.tool_change_m))
         w = np.array(self.work_offsets_m, dtype=np.float64).reshape(9, 3)
         w.flags.writeable = False
         object.__setattr__(self, "work_offsets_m", w)
         if self.tools is not None:
             object.__setattr__(self, "tools", tuple(self.tools))
-        for name, v in (("g28_m", self.g28_m), ("g30_m", self.g30_m),
-                        ("tool_change_m", self.tool_change_m), ("work_offsets_m", w)):
-            if v is not None and not np.all(np.isfinite(v)):
+        for name, v in (("g28_m", self.g28_m), ("g30_m", self.g30_m), ("work_offsets_m", w)):
+            if not np.all(np.isfinite(v)):
                 raise ValueError(f"Setup.{name} must be finite")
 
     def tool(self, number: int) -> Tool | None:
