@@ -80,7 +80,8 @@ def parse_gcode(text: str, source: str = "", axes: str = "xyz", *, reader: str =
         return read_linuxcnc(text, source, axes_l, setup)
     try:
         return read_builtin(text, source, axes_l, setup)
-    except GcodeError as err:
+    except GcodeError as builtin_err:
+        err = builtin_err
         if reader == "builtin":
             raise
         if not linuxcnc_available():
@@ -93,7 +94,8 @@ def parse_gcode(text: str, source: str = "", axes: str = "xyz", *, reader: str =
         try:
             path = read_linuxcnc(text, source, axes_l, setup)
         except GcodeError as lerr:
-            if lerr.line == err.line:  # the built-in reader's column is exact
+            if lerr.line == err.line and not getattr(err, "unsupported", False):
+                # both refuse the same line: the built-in reader's column is exact
                 raise GcodeError(lerr.message, lerr.line, err.column, lerr.source) from None
             raise
     note = (f"line {err.line}:{err.column}: {err.message.split(' (not in the built-in')[0]}: "

@@ -153,7 +153,7 @@ def main(argv):
     except _TooMany:
         result, line, message = -1, 0, f"more than {max_records} canonical calls"
     except KeyboardInterrupt:
-        result, line, message = -2, 0, f"not finished within {seconds} s (an endless loop?)"
+        result, line, message = -2, 0, f"not finished within {float(seconds):g} s (an endless loop?)"
     except Exception as err:  # an error a callback raised (probing, tapping)
         result, line, message = -3, 0, str(err)
     canon.out.append(f"E {result} {line} {message}")

@@ -294,7 +294,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
                 if message.strip() == _NO_END:
                     out.warn(NO_END)
                     break
-                where = line or int(err_line)
+                where = max(line or int(err_line), 1)
                 src = lines[where - 1] if 0 < where <= len(lines) else ""
                 raise GcodeError(f"LinuxCNC: {message.strip()}", where, _column(src, message),
                                  source)
