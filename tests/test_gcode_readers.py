@@ -215,7 +215,7 @@ def test_features_against_hand_computed_positions():
                                atol=1e-15)
     arcs = parse_gcode(FEATURES["arcs_units"], "a", reader="builtin")
     helix = next(s for s in arcs.segments if s.line == 7)  # G2 ... R5 P2
-    assert helix.sweep_rad == pytest.approx(-3 * math.pi, rel=1e-12)  # half + one full turn
+    assert helix.sweep_rad == pytest.approx(-2.5 * math.pi, rel=1e-12)  # 90 deg + one turn
     assert helix.rise == pytest.approx(-0.002, rel=1e-12)
 
 
