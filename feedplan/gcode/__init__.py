@@ -8,7 +8,9 @@ Two readers give the same path for the same program (the tests compare them move
   linuxcnc-uspace) for everything it runs: cutter compensation, O-word subroutines and
   loops, parameters and expressions;
 - ``auto`` (the default): the built-in reader, and LinuxCNC's where the built-in one refuses
-  the program and LinuxCNC is installed (a warning names what the built-in reader refused).
+  the program and LinuxCNC is installed (a warning names what the built-in reader refused);
+  where both refuse it, the refusal is LinuxCNC's for a construct the built-in reader does not
+  read, the built-in reader's (its exact column) for an error both see.
 
 Both take a :class:`Setup` (home positions, work offsets, tool table). Modules: ``lexer``
 (the words of a line), ``builtin`` (modal state, home, offsets, tools), ``cycles`` (canned
@@ -94,10 +96,9 @@ def parse_gcode(text: str, source: str = "", axes: str = "xyz", *, reader: str =
         try:
             path = read_linuxcnc(text, source, axes_l, setup)
         except GcodeError as lerr:
-            if lerr.line == err.line and not getattr(err, "unsupported", False):
-                # both refuse the same line: the built-in reader's column is exact
-                raise GcodeError(lerr.message, lerr.line, err.column, lerr.source) from None
-            raise
+            if not getattr(err, "unsupported", False):
+                raise err from None  # both refuse it: the built-in reader says where, exactly
+            raise lerr from None
     note = (f"line {err.line}:{err.column}: {err.message.split(' (not in the built-in')[0]}: "
             "read by LinuxCNC's interpreter")
     return Path(start=path.start, segments=path.segments, plane=path.plane, source=path.source,
