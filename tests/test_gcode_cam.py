@@ -123,7 +123,9 @@ def test_cli_reads_plans_and_refuses_with_line_and_column(tmp_path, capsys):
     bad.write_text((CAM / "fusion_haas.nc").read_text().replace("N25 G90\n", "N25 G90\nM31\n"))
     assert main(["plan", str(bad), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"{bad}:10:1: LinuxCNC: Unknown m code used: M31" in err, err
+    assert f"{bad}:10:1: M31 is not an M-code LinuxCNC knows" in err, err
+    assert main(["plan", str(bad), "--reader", "linuxcnc", "--out", str(out)]) == 2
+    assert f"{bad}:10:1: LinuxCNC: Unknown m code used: M31" in capsys.readouterr().err
     tools.write_text("T1 P1 Z30\nT2 P2 Y\n")
     assert main(["plan", src, "--tool-table", str(tools), "--out", str(out)]) == 2
     assert f"{tools}:2:7: tool table: Y word '' is not a number" in capsys.readouterr().err
@@ -162,7 +164,7 @@ def test_api_reader_option_and_422_naming_line_and_column(tmp_path):
         assert "G41 (cutter radius compensation)" in r.json()["message"]
         r = post("G21 G0 X0\nG1 X1 F100\nM31\nM2\n")
         assert r.status_code == 422 and (r.json()["line"], r.json()["column"]) == (3, 1)
-        assert "Unknown m code used: M31" in r.json()["message"]
+        assert "M31 is not an M-code LinuxCNC knows" in r.json()["message"]
         r = post(comp, tool_table="T1 P1 Z0 Q\n")
         assert r.status_code == 422 and "options.tool_table" in r.json()["message"]
         assert post(comp, reader="rs274").status_code == 422
