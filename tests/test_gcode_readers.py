@@ -289,7 +289,8 @@ def test_endless_loop_probeopen_and_too_many_moves_are_bounded(monkeypatch):
     import feedplan.gcode.moves as moves
 
     monkeypatch.setattr(moves, "MAX_SEGMENTS", 50)
-    looped = "G21 G0 X0\n#1=0\no1 while [#1 LT 100]\nG1 X[#1 MOD 2] F600\n#1=[#1+1]\no1 endwhile\nM2\n"
+    looped = ("G21 G0 X0\n#1=0\no1 while [#1 LT 100]\nG1 X[#1 MOD 2] F600\n#1=[#1+1]\n"
+              "o1 endwhile\nM2\n")
     with pytest.raises(GcodeError, match="more than 50 moves") as err:
         read_linuxcnc(looped, "many.ngc")
     assert err.value.line == 4

@@ -21,11 +21,13 @@ record                     canonical call (lengths in inches, as the module give
 ``E result line text``     the end: the interpreter's result code, line and message
 =========================  ==========================================================
 
-Usage: ``python _worker.py PROGRAM TOOLS PARAMS MAX_RECORDS SECONDS MODULE_PATH AXIS_MASK``.
+Usage: ``python _worker.py PROGRAM TOOLS PARAMS MAX_RECORDS SECONDS MODULE_PATH AXIS_MASK
+MEMORY_BYTES`` (the worker bounds its own address space and writes no core file).
 """
 
 import ctypes
 import os
+import resource
 import sys
 import time
 
@@ -137,7 +139,9 @@ class Canon:
 
 
 def main(argv):
-    program, tool_file, params, max_records, seconds, module_path, mask = argv[1:8]
+    program, tool_file, params, max_records, seconds, module_path, mask, memory = argv[1:9]
+    resource.setrlimit(resource.RLIMIT_AS, (int(memory), int(memory)))
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
     deadline = time.monotonic() + float(seconds)
     sys.path.append(module_path)
     os.environ["HOME"] = os.path.dirname(os.path.abspath(tool_file))  # the tool table's mmap
@@ -153,7 +157,8 @@ def main(argv):
     except _TooMany:
         result, line, message = -1, 0, f"more than {max_records} canonical calls"
     except KeyboardInterrupt:
-        result, line, message = -2, 0, f"not finished within {float(seconds):g} s (an endless loop?)"
+        result, line = -2, 0
+        message = f"not finished within {float(seconds):g} s (an endless loop?)"
     except Exception as err:  # an error a callback raised (probing, tapping)
         result, line, message = -3, 0, str(err)
     canon.out.append(f"E {result} {line} {message}")

@@ -121,7 +121,8 @@ _LINUXCNC_G = {
 _M_GROUP = {**dict.fromkeys((0, 1, 2, 30, 60), "stopping"), 6: "tool",
             **dict.fromkeys((3, 4, 5), "spindle"), **dict.fromkeys((7, 8, 9), "coolant"),
             **dict.fromkeys(range(48, 54), "override"), **dict.fromkeys(range(62, 66), "output")}
-_LINUXCNC_M = {19: "M19 (spindle orientation)", 61: "M61 (set the tool number)", 66: "M66 (wait on input)",
+_LINUXCNC_M = {19: "M19 (spindle orientation)", 61: "M61 (set the tool number)",
+               66: "M66 (wait on input)",
                67: "M67 (analog output)", 68: "M68 (analog output)", 70: "M70 (save modal "
                "state)", 71: "M71 (invalidate saved state)", 72: "M72 (restore modal state)",
                73: "M73 (save and restore modal state)", 98: "M98 (subprogram call)",
@@ -472,8 +473,9 @@ class _Reader:
         number = int(h.value) if h is not None else self.spindle_tool
         offset = np.zeros(3)
         if self.setup.tools is None:
-            self.out.warn_once("without a tool table", f"line {n}: G43 without a tool table (--tool-table): "
-                          "tool length 0 (a constant Z shift changes no gain)")
+            self.out.warn_once("without a tool table", f"line {n}: G43 without a tool table "
+                               "(--tool-table): tool length 0 (a constant Z shift changes no "
+                               "gain)")
         elif number:
             self._known_tool(number, n, (h or word).column)
             offset = np.array(self.setup.tool(number).offset_m)

@@ -40,12 +40,12 @@ from pathlib import Path as FilePath
 
 import numpy as np
 
-from feedplan.gcode.builtin import INCH_M, NO_END
+from feedplan.gcode.builtin import ARC_END_TOL_IN, ARC_END_TOL_MM, INCH_M, MM_M, NO_END
 from feedplan.gcode.cycles import CYCLES
 from feedplan.gcode.lexer import words as line_words
 from feedplan.gcode.moves import PathBuilder
 from feedplan.gcode.setup import Setup
-from feedplan.path import Path
+from feedplan.path import PLANES, Path
 from oga.defaults import (LINUXCNC_PYTHON_PATH, LINUXCNC_READ_MEMORY_BYTES,
                           LINUXCNC_READ_TIMEOUT_S, MAX_SEGMENTS)
 from oga.errors import GcodeError, OgaError
@@ -54,7 +54,6 @@ __all__ = ["read_linuxcnc", "linuxcnc_available", "linuxcnc_python"]
 
 _WORKER = FilePath(__file__).with_name("_worker.py")
 _PLANES = {1: "xy", 2: "yz", 3: "zx"}
-_ROLES = {"xy": (0, 1, 2), "yz": (1, 2, 0), "zx": (2, 0, 1)}
 #: LinuxCNC's message for a program that does not end with M2, M30 or a closing %.
 _NO_END = "File ended with no percent sign or program end"
 _TOOL_WORD = re.compile(r"[TtHh][ \t]*(\d+)")
@@ -89,13 +88,6 @@ def linuxcnc_available() -> bool:
 def _env(home: str) -> dict[str, str]:
     """A minimal environment: no INI file, the C locale, HOME for the tool data's mmap."""
     return {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "HOME": home, "LC_ALL": "C"}
-
-
-def _limits() -> None:  # in the child, before it runs the interpreter
-    import resource
-
-    resource.setrlimit(resource.RLIMIT_AS, (LINUXCNC_READ_MEMORY_BYTES,) * 2)
-    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
 
 
 def _column(text: str, message: str) -> int:
@@ -189,10 +181,11 @@ def _run(program: str, tools: str, params: str, axes: str, timeout_s: float) -> 
                 f.write(content)
         mask = sum(1 << "xyz".index(a) for a in axes)
         cmd = [python, str(_WORKER), "program.ngc", "tools.tbl", "params.var",
-               str(4 * MAX_SEGMENTS + 1000), repr(timeout_s), LINUXCNC_PYTHON_PATH, str(mask)]
+               str(4 * MAX_SEGMENTS + 1000), repr(timeout_s), LINUXCNC_PYTHON_PATH, str(mask),
+               str(LINUXCNC_READ_MEMORY_BYTES)]
         try:
             done = subprocess.run(cmd, cwd=tmp, env=_env(tmp), capture_output=True,
-                                  timeout=timeout_s + 10, preexec_fn=_limits)
+                                  timeout=timeout_s + 10)
         except subprocess.TimeoutExpired:
             return [f"E -2 0 not finished within {timeout_s:g} s (an endless loop?)"]
     out = done.stdout.decode("utf-8", "replace").splitlines()
@@ -239,7 +232,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
         [t.rstrip("\r") for t in lines], source)
     records = _run("\n".join(program) + "\n", _tool_table(setup, text), _parameters(setup),
                    axes, timeout_s)
-    out = PathBuilder(source)
+    out = PathBuilder(source, setup.work_offsets_m[0])
     for w in warnings:
         out.warn(w)
     g5x = np.zeros(3)
@@ -249,7 +242,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
     line, state = 0, None
     last_g64_p: float | None = None
     last_seen = 0
-    unit_m = 1e-3
+    unit_m = MM_M
 
     def machine(p) -> np.ndarray:
         v = np.asarray(p, dtype=np.float64) * INCH_M + g92
@@ -280,7 +273,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
         if kind == "N":
             fields = [int(x) for x in rest.split()]
             line, state = fields[0], fields[1:]
-            unit_m = INCH_M if state[4] == 200 else 1e-3
+            unit_m = INCH_M if state[4] == 200 else MM_M
             if last_seen < line:  # lines run since the last report (a linear program)
                 for k in range(last_seen + 1, line + 1):
                     if k in control and control[k][0] is None:
@@ -307,7 +300,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
             (out.traverse if kind == "T" else out.feed)(machine(v[:3]), n)
         elif kind == "A":
             check_axes(v[6:], n)
-            i, j, k = _ROLES[out.plane]
+            i, j, k = PLANES[out.plane]
             if rot and out.plane != "xy":
                 raise GcodeError("an arc outside G17 with an XY rotation (G10 L2 R) cannot be "
                                  "planned", n, 1, source)
@@ -316,7 +309,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
             prog_centre = prog_end.copy()
             prog_centre[[i, j]] = v[2], v[3]
             out.blend_tol_m = blend(n)
-            end_tol = 0.002 * INCH_M if unit_m == INCH_M else 0.05e-3
+            end_tol = (ARC_END_TOL_IN if unit_m == INCH_M else ARC_END_TOL_MM) * unit_m
             out.arc(machine(prog_end), machine(prog_centre), int(v[4]), n,
                     end_tol_m=end_tol, unit_m=unit_m)
         elif kind == "P":
@@ -337,6 +330,7 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
             tlo = np.array(v[:3]) * INCH_M
             src = _COMMENT.sub("", lines[n - 1]) if 0 < n <= len(lines) else ""
             if setup.tools is None and re.search(r"G\s*4\s*3(?![\s\d]*\.\s*1)", src, re.I):
-                out.warn_once("without a tool table", f"line {n}: G43 without a tool table (--tool-table): tool length 0 "
-                         "(a constant Z shift changes no gain)")
+                out.warn_once("without a tool table", f"line {n}: G43 without a tool table "
+                              "(--tool-table): tool length 0 (a constant Z shift changes no "
+                              "gain)")
     return out.path()

@@ -7,10 +7,11 @@ into a Path, the same way for both, so that the two readers' paths can be compar
 move.
 
 - Before the program the tool is at the program zero of G54 (where LinuxCNC's interpreter
-  assumes it: machine zero without a G54 offset); the first move positions the tool and is not a segment (the tool starts at rest at its end: where it was
-  before is unknown). A block that moves without naming an axis (``G0`` alone) is a move
-  to where the tool is: as the first move, it puts the start at that program zero; so do
-  the axes the first move does not name.
+  assumes it: machine zero without a G54 offset); the first move positions the tool and is
+  not a segment (the tool starts at rest at its end: where it was before is unknown). A block
+  that moves without naming an axis (``G0`` alone) is a move to where the tool is: as the
+  first move, it puts the start at that program zero; so do the axes the first move does not
+  name.
 - Zero-length moves are dropped; traverses are ``Line(rapid=True, feed_m_s=inf)``.
 - An arc's sweep follows LinuxCNC's rotation: the sign is the sense about the plane normal
   (positive counter-clockwise, G3), ``|rotation| - 1`` extra full turns (the P word); an end
