@@ -4,9 +4,10 @@
 acceleration and jerk as backward finite differences of the float64 positions
 (``v_k = (p_k - p_{k-1}) / dt``, then ``a`` and ``j`` by further backward
 differences; the machine is taken at rest before the first and after the last
-sample), the path speed against the programmed feed, and the distance of every
-feed sample to the programmed lines and arcs (exact: distance to the circle or
-helix, not to a chord). :func:`deviation_m` is the geometric part, shared with
+sample), the path speed against the programmed feed of the move each sample belongs to
+(its own source line's, where it lies on it: :func:`move_hint`, :func:`_sample_feeds`), and
+the distance of every feed sample to the programmed lines and arcs (exact: distance to the
+circle or helix, not to a chord). :func:`deviation_m` is the geometric part, shared with
 the planner's check-and-slow-down loop.
 """
 
