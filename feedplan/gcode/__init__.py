@@ -7,10 +7,11 @@ Two readers give the same path for the same program (the tests compare them move
 - ``linuxcnc`` (:mod:`feedplan.gcode.linuxcnc`): LinuxCNC's own interpreter (package
   linuxcnc-uspace) for everything it runs: cutter compensation, O-word subroutines and
   loops, parameters and expressions;
-- ``auto`` (the default): the built-in reader, and LinuxCNC's where the built-in one refuses
-  the program and LinuxCNC is installed (a warning names what the built-in reader refused);
-  where both refuse it, the refusal is LinuxCNC's for a construct the built-in reader does not
-  read, the built-in reader's (its exact column) for an error both see.
+- ``auto`` (the default): the built-in reader, and LinuxCNC's where the built-in one meets a
+  construct it does not read (``unsupported``) and LinuxCNC is installed (a warning names the
+  construct); an error of the program itself (which the built-in reader sees as LinuxCNC's
+  interpreter does) is the built-in reader's refusal, at its exact column, and costs no run
+  of the interpreter.
 
 Both take a :class:`Setup` (home positions, work offsets, tool table). Modules: ``lexer``
 (the words of a line), ``builtin`` (modal state, home, offsets, tools), ``cycles`` (canned
@@ -84,21 +85,14 @@ def parse_gcode(text: str, source: str = "", axes: str = "xyz", *, reader: str =
         return read_builtin(text, source, axes_l, setup)
     except GcodeError as builtin_err:
         err = builtin_err
-        if reader == "builtin":
-            raise
+        if reader == "builtin" or not getattr(err, "unsupported", False):
+            raise  # an error LinuxCNC's interpreter has too (the built-in reader mirrors it)
         if not linuxcnc_available():
-            if getattr(err, "unsupported", False):
-                raise GcodeError(err.message.replace(
-                    "--reader linuxcnc reads it", "LinuxCNC's interpreter (--reader linuxcnc, "
-                    "package linuxcnc-uspace, not installed here) reads it"),
-                    err.line, err.column, err.source) from None
-            raise
-        try:
-            path = read_linuxcnc(text, source, axes_l, setup)
-        except GcodeError as lerr:
-            if not getattr(err, "unsupported", False):
-                raise err from None  # both refuse it: the built-in reader says where, exactly
-            raise lerr from None
+            raise GcodeError(err.message.replace(
+                "--reader linuxcnc reads it", "LinuxCNC's interpreter (--reader linuxcnc, "
+                "package linuxcnc-uspace, not installed here) reads it"),
+                err.line, err.column, err.source) from None
+        path = read_linuxcnc(text, source, axes_l, setup)
     note = (f"line {err.line}:{err.column}: {err.message.split(' (not in the built-in')[0]}: "
             "read by LinuxCNC's interpreter")
     return Path(start=path.start, segments=path.segments, plane=path.plane, source=path.source,
