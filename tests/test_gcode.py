@@ -269,6 +269,9 @@ REFERENCE = "G21 G90 G17\nG0 X0 Y0 Z1\nG1 Z-0.1 F24\nG1 X-0.992 Y25\nG2 X24.008 
     # comments whole-line, after code, between words; ';' comments; blank lines
     "(header)\nG21 G90 G17 (units)\n\nG0 X0 Y0 Z1 ; go\nG1 (plunge) Z-0.1 F24\n"
     "G1 X-0.992 Y25;x\nG2 X24.008 Y50 I25 J0 (arc)\n",
+    # a blank after a comment (the lexer once refused "(c) "), a comment between two words
+    "(header) \nG21 G90 G17 (units)  \nG0 X0 Y0 Z1 \t\nG1 Z-0.1 (plunge) F24 \n"
+    "G1 X-0.992 Y25 ( ) \nG2 X24.008 Y50 I25 J0\t(arc)\t\n",
     # N words, lower case, no spaces
     "N0010 g21g90g17\nn20 g0x0y0z1\nN30g1z-.1f24\nN0040 g1x-.992y25\nN50 g2x24.008y50i25j0\n",
     # spaces and TABs inside words, leading and trailing dots
