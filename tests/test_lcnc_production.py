@@ -293,11 +293,12 @@ def _deviation(rows, f, n, axes, rec, k_end) -> int:
 
     m = min(n, k_end - f)
     tail = _tail(rows, axes)[f:f + m]
-    bad = np.abs(tail[:, CVEL] - rec.current_vel_m_s[:m] * 1e3) > LINUXCNC_MOTION["vel_tol_m_s"] * 1e3
+    vel_tol, pos_tol = LINUXCNC_MOTION["vel_tol_m_s"] * 1e3, LINUXCNC_MOTION["pos_tol_m"] * 1e3
+    bad = np.abs(tail[:, CVEL] - rec.current_vel_m_s[:m] * 1e3) > vel_tol
     bad |= tail[:, LINE] != rec.line[:m]
     for i, a in enumerate(axes):
         bad |= np.abs(rows[f:f + m, PER_AXIS * i + 3] - rec.cmd_m[:m, AXES.index(a)] * 1e3) \
-            > LINUXCNC_MOTION["pos_tol_m"] * 1e3
+            > pos_tol
     return int(np.flatnonzero(bad)[0]) if bad.any() else m
 
 

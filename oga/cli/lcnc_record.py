@@ -48,10 +48,11 @@ def run(args: argparse.Namespace) -> int:
                          joints=parse_joints(args.joints) if args.joints else None,
                          home=not args.no_home, timeout_s=args.timeout)
     write_text(args.out, rec.text)
-    moving = rec.rows - rec.first_motion_row
+    moving = rec.last_motion_row - rec.first_motion_row + 1
     print(f"recorded {FilePath(args.program).name} on {FilePath(args.ini).name}: {rec.rows} "
-          f"servo periods of {rec.period_ns} ns, motion from row {rec.first_motion_row} "
-          f"({moving * rec.period_ns * 1e-9:.3f} s to the end), units {rec.units}, joints "
+          f"servo periods of {rec.period_ns} ns, motion in rows {rec.first_motion_row}.."
+          f"{rec.last_motion_row} ({moving * rec.period_ns * 1e-9:.3f} s), units {rec.units}, "
+          "joints "
           + ", ".join(f"{a}={j}" for a, j in rec.joints.items()) + ", error-previous-target "
           + ", ".join(f"{a}={'TRUE' if v else 'FALSE'}"
                       for a, v in rec.error_previous_target.items())

@@ -228,8 +228,10 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
     depth = n + 1 if fifo_rows is None else int(fifo_rows)
     if not 2 <= depth <= LINUXCNC["max_rows"] + 1:
         raise OptionError(f"fifo_rows: 2..{LINUXCNC['max_rows'] + 1}, got {fifo_rows}")
-    unit = UNIT_M[lc.units] if lc.units in UNIT_M else 1.0
-    units = lc.units if lc.units in UNIT_M else "m"
+    if lc.units not in UNIT_M:
+        raise InputError(f"recording: units {lc.units!r}; LinuxCNC machines run in "
+                         f"{' or '.join(UNIT_M)} (the recording's header names them)")
+    units, unit = lc.units, UNIT_M[lc.units]
     cols, names = [], []
     for a in axes:
         k = AXES.index(a)

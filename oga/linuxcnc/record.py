@@ -99,6 +99,9 @@ def recorder_tcl(joints: dict[str, int], channel: int = 0,
           "    set sig oga-$pin\n    hal net $sig $pin\n  }\n  return $sig\n}")
     h.raw("set oga_thread [thread_info ::OGA]")
     types = "ff" * len(joints) + "".join(t for _, _, t in _MOTION)
+    h.raw("if {[lsearch -exact [hal list comp] sampler] >= 0} {return -code error \"oga "
+          "lcnc-record: the configuration loads sampler already (a component loads once): "
+          "record on a copy without it\"}")
     h.loadrt("sampler", depth=depth, cfg=types)
     h.raw("hal addf sampler.0 $oga_thread [expr {$::OGA($oga_thread,motion-controller) + 1}]")
     k = 0
@@ -135,8 +138,8 @@ class Recording:
         The recording file (:mod:`oga.recorded.lcnc`'s format).
     rows : int
         Servo periods recorded.
-    first_motion_row : int
-        Row (0-based) of the first period whose command moved.
+    first_motion_row, last_motion_row : int
+        Rows (0-based) of the first and the last period whose command moved.
     units : str
         Machine units.
     period_ns : int
@@ -154,6 +157,7 @@ class Recording:
     text: str
     rows: int
     first_motion_row: int
+    last_motion_row: int
     units: str
     period_ns: int
     joints: dict
@@ -250,7 +254,8 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
     fmt = ["%d"] + ["%.17g"] * (2 * n_axes) + ["%d", "%d", "%.17g"]
     lines = [" ".join(f % v for f, v in zip(fmt, row)) for row in body]
     out = "\n".join([f"# {h}" for h in header] + lines) + "\n"
-    return Recording(text=out, rows=len(rows), first_motion_row=int(moved[0]) + 1, units=units,
+    return Recording(text=out, rows=len(rows), first_motion_row=int(moved[0]) + 1,
+                     last_motion_row=int(moved[-1]) + 1, units=units,
                      period_ns=period_ns, joints=joints, error_previous_target=ept,
                      errors=errors, seconds=res.seconds)
 

@@ -172,8 +172,8 @@ def run_session(ini: str | os.PathLike, job: dict, *, halfiles: dict[str, str] |
     ini : path
         The configuration's INI file.
     job : dict
-        The display's job (:mod:`oga.linuxcnc.display`) without ``out``; paths in it are
-        absolute.
+        The display's job (:mod:`oga.linuxcnc.display`) without ``out``; its ``program`` is
+        copied into the session (LinuxCNC runs the copy).
     halfiles : dict of str to str, optional
         HAL files (name -> text; ``.hal`` or ``.tcl``) added after the configuration's.
     files : dict of str to str, optional
@@ -228,7 +228,12 @@ def run_session(ini: str | os.PathLike, job: dict, *, halfiles: dict[str, str] |
             hal_paths.append(inside(work / name))
         for name, text in (files or {}).items():
             (work / name).write_text(text)
-        (work / "job.json").write_text(json.dumps({**job, "out": inside(out)}))
+        job = {**job, "out": inside(out)}
+        if "program" in job:  # a copy LinuxCNC reads wherever the program is (/tmp is private)
+            program = Path(job["program"])
+            (work / program.name).write_bytes(program.read_bytes())
+            job["program"] = inside(work / program.name)
+        (work / "job.json").write_text(json.dumps(job))
         ini_copy.write_text(edit_ini(ini.read_text(), display=inside(display),
                                      job=inside(work / "job.json"),
                                      halfiles=tuple(hal_paths)))
@@ -278,7 +283,7 @@ def run_session(ini: str | os.PathLike, job: dict, *, halfiles: dict[str, str] |
         status_path = out / "status.json"
         if not status_path.exists():
             raise LinuxcncError(f"LinuxCNC ended (exit status {proc.returncode}) before the "
-                                f"display reported; its output ends: {_tail(log_path)}")
+                                f"display reported: {_errors(log_text) or _tail(log_path)}")
         status = json.loads(status_path.read_text())
         if not status.get("ok"):
             raise LinuxcncError(f"the display failed: {status.get('exception')}; LinuxCNC "
@@ -306,6 +311,14 @@ def _stop(proc: subprocess.Popen) -> None:
             return
         except subprocess.TimeoutExpired:
             continue
+
+
+def _errors(log: str, most: int = 8) -> str:
+    """The lines of LinuxCNC's logs that report an error, joined ("" if none)."""
+    keys = ("error", "fail", "can't", "cannot", "not found", "no such")
+    found = [ln.strip() for ln in log.splitlines()
+             if any(k in ln.lower() for k in keys) and "=" not in ln.split(" ", 1)[0]]
+    return " | ".join(list(dict.fromkeys(found))[:most])
 
 
 def _tail(path: Path, n: int = 1500) -> str:

@@ -32,7 +32,7 @@ from feedplan.plan import derivatives, plane_of
 from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import LINUXCNC, TRACE_MAX_BYTES
 from oga.files import read_limited
-from oga.identify.trace import check_speed, read_table
+from oga.identify.trace import TraceError, check_speed, read_table
 from oga.machine import Machine
 from oga.recorded.check import SetpointsError, check_limits, check_period
 from oga.recorded.lcnc import LinuxcncPeriods, parse_header, pid_law
@@ -74,7 +74,8 @@ def _integers(x: np.ndarray, name: str, rows: np.ndarray) -> np.ndarray:
     bad = np.flatnonzero(x != np.round(x))
     if bad.size:
         k = int(bad[0])
-        raise SetpointsError(f"column {name!r}, row {int(rows[k])}: {x[k]!r} is not an integer")
+        raise SetpointsError(f"column {name!r}, row {int(rows[k])}: {float(x[k])!r} is not an "
+                             "integer")
     return np.round(x).astype(np.int64)
 
 
@@ -126,10 +127,19 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
         units = units or header.units
         if header.period_ns is not None:
             check_period(header.period_ns * 1e-9, te, "servo-period-ns")
+    if fmt == "halsampler" and not columns:
+        raise SetpointsError("a halsampler recording without an oga lcnc-record header needs "
+                             "its column names in order (--setpoints-columns, e.g. "
+                             "sample,x_cmd_m,z_cmd_m)")
     units = units or "m"
     if units not in UNITS:
         raise SetpointsError(f"units: expected one of {', '.join(UNITS)}, got {units!r}")
-    table = read_table(text, fmt, columns=columns, te_s=te, extra=_EXTRA)
+    try:
+        table = read_table(text, fmt, columns=columns, te_s=te, extra=_EXTRA)
+    except SetpointsError:
+        raise
+    except TraceError as err:  # the trace readers' message, as this reader's error
+        raise SetpointsError(str(err)) from None
     col, data, rows = table.columns, table.data, table.rows
     check_period(table.dt_s, te, "t_s" if "t_s" in col else "sample")
     scale = UNITS[units]
@@ -140,7 +150,10 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
     for k, a in enumerate(AXES):
         if a in axes:
             raw[:, k] = data[:, col[f"{a}_cmd_m"]] * scale
-            check_speed(raw[:, k], table.dt_s, f"{a}_cmd_m", rows, units)
+            try:
+                check_speed(raw[:, k], table.dt_s, f"{a}_cmd_m", rows, units)
+            except TraceError as err:
+                raise SetpointsError(str(err)) from None
     line = _integers(data[:, col["line"]], "line", rows) if "line" in col else None
     if "rapid" in col:
         rapid = _integers(data[:, col["rapid"]], "rapid", rows)
