@@ -157,10 +157,10 @@ class JobOut(BaseModel):
     started_at: str | None
     finished_at: str | None
     source: str = Field(description="program name")
-    toolpath_format: str = Field(description="gcode, csv or json for an optimisation (setpoints-csv, "
-                                 "setpoints-halsampler or setpoints-twincat on recorded "
-                                 "setpoints); trace-csv, trace-halsampler or trace-twincat for "
-                                 "an identification")
+    toolpath_format: str = Field(description="gcode, csv or json for an optimisation "
+                                 "(setpoints-csv, setpoints-halsampler or setpoints-twincat on "
+                                 "recorded setpoints); trace-csv, trace-halsampler or "
+                                 "trace-twincat for an identification")
     machine: str = Field(description="machine name")
     options: dict[str, Any]
     attempts: int = Field(description="times a worker started this job")

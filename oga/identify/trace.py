@@ -171,14 +171,16 @@ def _read_csv(text: str) -> tuple[list[str], np.ndarray, np.ndarray]:
     return (names, *_table(lines[1:], names, 2, lambda s: s.split(",")))
 
 
-def _read_halsampler(text: str, columns: list[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
+def _read_halsampler(text: str,
+                     columns: list[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
     if not columns:
         raise TraceError("a halsampler trace needs --columns naming its columns in order")
     lines = ["" if ln.startswith("#") else ln for ln in text.splitlines()]  # comments
     return (columns, *_table(lines, columns, 1, str.split))
 
 
-def _read_twincat(text: str, columns: list[str] | None) -> tuple[list[str], np.ndarray, np.ndarray]:
+def _read_twincat(text: str,
+                  columns: list[str] | None) -> tuple[list[str], np.ndarray, np.ndarray]:
     lines = text.splitlines()
     sep = "\t" if any("\t" in ln for ln in lines[:50]) else (
         ";" if any(";" in ln for ln in lines[:50]) else ",")
@@ -321,8 +323,6 @@ def read_trace(
     TraceError
         Anything wrong, naming the column and the row.
     """
-    if fmt not in FORMATS:
-        raise TraceError(f"unknown trace format {fmt!r}; use one of {', '.join(FORMATS)}")
     if units not in ("m", "mm"):
         raise TraceError(f"--units must be m or mm, got {units!r}")
     table = read_table(text, fmt, columns=columns, te_s=te_s)

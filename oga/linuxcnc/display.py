@@ -14,11 +14,12 @@ display: ``display.py -ini INIFILE``. The job is the JSON file named by ``[OGA] 
 - ``runs``: per run ``prepare`` (steps before the start, in order: ``{"setp": {pin:
   value}}``, ``{"mdi": "G0 X0"}`` (run and waited for), ``{"wait_pin": name}`` (until
   TRUE), ``{"sleep": s}``, ``{"back_to_start": {"X": k, ...}}`` (G53 G0 to the previous
-  run's first sampled positions, columns k)), ``actions`` (``{"after_s": t, "do": "feed_override" | "rapid_override"
-  | "pause" | "resume" | "abort" | "estop" | "setp", "value": .., "name": ..}``, ``t``
-  seconds after the first motion), ``tail_s``, ``timeout_s``, ``retry`` (``{"column": k,
-  "min_rows": m, "attempts": a}``: run again, up to ``a`` times in all, while fewer than
-  ``m`` sampled rows have the bit column ``k`` TRUE);
+  run's first sampled positions, columns k)), ``actions`` (``{"after_s": t, "do":
+  "feed_override" | "rapid_override" | "pause" | "resume" | "abort" | "estop" | "setp",
+  "value": .., "name": ..}``, ``t`` seconds after the first motion), ``tail_s``,
+  ``timeout_s``, ``retry`` (``{"column": k, "min_rows": m, "attempts": a}``: run again, up
+  to ``a`` times in all, while fewer than ``m`` sampled rows have the bit column ``k``
+  TRUE);
 - ``out``: folder for ``run<i>.txt`` (one sampled row per servo period, exact values) and
   ``status.json`` (what happened: errors of LinuxCNC's error channel, rows, overruns).
 

@@ -39,8 +39,6 @@ __all__ = ["LinuxcncError", "SessionResult", "linuxcnc_python", "edit_ini", "run
 
 #: LinuxCNC's lock file (its start script's, fixed).
 LOCKFILE = "/tmp/linuxcnc.lock"
-#: Seconds a session may take besides its runs' own timeouts (start, homing, shut-down).
-_SLACK_S = 120.0
 
 
 class LinuxcncError(OgaError, RuntimeError):
