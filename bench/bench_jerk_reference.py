@@ -367,14 +367,14 @@ def chosen_blocks(blocks, segs, planned, toppra, threshold: float, top: int) -> 
 
 
 def block_references(path, blocks, planned, limits: AxisLimits, chosen: set[int], args,
-                     log=None) -> list[dict]:
-    """Per block at ``limits``: its toppra time and its jerk-limited reference (ruckig for a
-    straight block, IPOPT for the ``chosen`` curved ones, else toppra's time, status
-    "toppra"); ``log(text)`` gets a line per IPOPT solve."""
+                     log=None, toppra=None) -> list[dict]:
+    """Per block at ``limits``: its toppra time (``toppra``, or computed) and its jerk-limited
+    reference (ruckig for a straight block, IPOPT for the ``chosen`` curved ones, else toppra's
+    time, status "toppra"); ``log(text)`` gets a line per IPOPT solve."""
     segs = path.segments
     rows = []
     for b, blk in enumerate(blocks):
-        tp, note = toppra_bound_s(path, limits, [blk])
+        tp, note = (toppra[b], "") if toppra is not None else toppra_bound_s(path, limits, [blk])
         line = straight_of(blk, segs)
         first = segs[blk.segments[0]]
         r = dict(i=b, line=first.line, planned=planned[b], toppra=tp, note=note,
@@ -417,10 +417,10 @@ def measure(name: str, text: str, machine, args) -> dict:
     tp = [toppra_bound_s(path, shares, [blk])[0] for blk in blocks]
     chosen = chosen_blocks(blocks, path.segments, planned, tp, args.threshold, args.top)
     out = dict(name=name, plan_s=sp.duration)
-    for label, limits in (("shares", shares), ("full", full)):
+    for label, limits, known in (("shares", shares, tp), ("full", full, None)):
         print(f"  {name} at the {label} limits:", flush=True)
         out[label] = block_references(path, blocks, planned, limits, chosen, args,
-                                      lambda t: print(t, flush=True))
+                                      lambda t: print(t, flush=True), known)
     return out
 
 

@@ -37,6 +37,12 @@ Columns of the first table, per program:
   ``v/a/j``: worst finite-difference ratio to the limits over the axes;
 - ``wall_s``, ``cpu_s``: wall-clock and process CPU time of parsing plus planning.
 
+With ``--jerk`` (about an hour: IPOPT), the first table also gives the jerk-limited reference of
+``bench/bench_jerk_reference.py`` along the same blocks, at the planning limits (``jerk_s``, the
+machine's ``[planner]`` shares: ``p/jerk`` is the planner's own loss) and at the full axis limits
+(``jfull_s``, ``p/jfull``), and ``reserve`` = ``jerk_s / jfull_s``, what the shares cost; then
+the blocks where ``p/jerk`` is largest.
+
 The second table splits the CPU time (one core; numba compiled before timing) into the
 stages: ``read`` (G-code to Path), ``fit`` (blocks and micro-segment splines,
 ``blocks_of``), ``plan`` (speed profiles, filtering, check-and-slow-down rounds), ``setpoints``
@@ -262,7 +268,6 @@ class _PerBlock:
         planner._straight, planner._plan_feed = self._straight, self._feed
 
 
-
 def measure(name: str, text: str, limits: AxisLimits, toppra: bool, jerk=None) -> dict:
     """Plan one program, check it, time it, compare it with toppra and ruckig; with ``jerk``
     (the reference options of :func:`bench_jerk_reference.add_reference_args`), with the
@@ -298,8 +303,11 @@ def measure(name: str, text: str, limits: AxisLimits, toppra: bool, jerk=None) -
 
         chosen = jr.chosen_blocks(st.blocks, path.segments, pb.times,
                                   [t for t, _ in per_block], jerk.threshold, jerk.top)
-        row["jerk"] = {label: jr.block_references(path, st.blocks, pb.times, lim, chosen, jerk)
-                       for label, lim in (("shares", limits), ("full", MACHINE.axis_limits()))}
+        row["jerk"] = {
+            "shares": jr.block_references(path, st.blocks, pb.times, limits, chosen, jerk,
+                                          toppra=[t for t, _ in per_block]),
+            "full": jr.block_references(path, st.blocks, pb.times, MACHINE.axis_limits(), chosen,
+                                        jerk)}
     return row
 
 
@@ -322,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
                          "limits (minutes per program)")
     ap.add_argument("--shared", type=FilePath, default=ROOT.parent / "shared",
                     help="the shared folder holding toolpaths/external (default ../shared)")
-    import bench_jerk_reference as jr
+    import bench_jerk_reference as jr  # here: it imports this module
 
     jr.add_reference_args(ap)
     args = ap.parse_args(argv)
