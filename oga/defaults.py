@@ -214,6 +214,30 @@ AFSMC_TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)
 LINUXCNC = {"units": "mm", "error_previous_target": True, "thread": "servo-thread",
             "max_rows": 4_000_000}
 __all__ += ["LINUXCNC"]
+#: LinuxCNC production tables (``oga export --recording``): the gains leave the table for the
+#: fixed baseline once the motion controller's commanded joint position differs from the
+#: recorded row by more than ``pos_tol_m`` (m; LinuxCNC repeats a program's commands to about
+#: 1e-14 mm from the same start), or its trajectory speed ``motion.current-vel`` by more than
+#: ``vel_tol_m_s`` (m/s; a feed override, feed hold or pause changes it in the first servo
+#: period by about acceleration x period, 1 mm/s at 1 m/s^2 and 1 ms), or the feed or rapid
+#: override leaves 1 by more than ``override_tol``. The feeder refills the stream every
+#: ``feeder_poll_s`` seconds at most once the program is idle after a run.
+LINUXCNC_MOTION = {"pos_tol_m": 1e-6, "vel_tol_m_s": 1e-6, "override_tol": 1e-6,
+                   "feeder_poll_s": 0.02}
+#: ``oga lcnc-record``: longest LinuxCNC start (s, until the machine is on and idle), longest
+#: run of the program (s), servo periods recorded before the sampler's FIFO must be read
+#: (the display reads it every few ms), and the runs of the program that must give the same
+#: commands (LinuxCNC's planner starts a program differently when its task queues the next
+#: moves late: measured on a loaded 2-core host, about one start in 15; a table follows one
+#: motion only).
+LINUXCNC_RECORD = {"start_timeout_s": 60.0, "run_timeout_s": 3600.0, "fifo_rows": 1_000_000,
+                   "repeats": 2}
+__all__ += ["LINUXCNC_MOTION", "LINUXCNC_RECORD"]
+#: ``--setpoints``: relative slack on the axis limits a recorded setpoint's finite differences
+#: (velocity, acceleration, jerk) may reach before the file is refused (float64 rounding of
+#: the positions, not a tolerance on the limits).
+SETPOINTS_LIMIT_SLACK = 1e-6
+__all__ += ["SETPOINTS_LIMIT_SLACK"]
 
 # --- service bounds (oga serve: what one job may use) -----------------------------------------
 #: CPU time one attempt of a job may use (RLIMIT_CPU of its worker), s; the job fails beyond.

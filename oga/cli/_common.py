@@ -218,7 +218,8 @@ def check_files(args: argparse.Namespace, *names: str) -> None:
     (``args.<name>``, flag ``--<name>``) can be written and names a file of its own,
     neither another output nor an input."""
     seen = {}
-    for name, label in (("toolpath", "TOOLPATH"), ("machine", "--machine")):
+    for name, label in (("toolpath", "TOOLPATH"), ("setpoints", "--setpoints"),
+                        ("machine", "--machine")):
         value = getattr(args, name, None)
         if value and os.path.exists(value):
             if not os.path.isfile(value):
