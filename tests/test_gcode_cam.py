@@ -111,6 +111,15 @@ def test_back_and_forth_beyond_the_tracker_window(machine):
     assert 1.1 < bad.speed_ratio < 2.0
 
 
+def test_the_program_of_oga_excite_plans_through_oga_plan(tmp_path, capsys):
+    """Its back-and-forth X section failed the old check ("path speed 6x", exit 1)."""
+    program, out = str(tmp_path / "excite.ngc"), str(tmp_path / "excite.csv")
+    assert main(["excite", "--machine", "ucp710", "--axes", "x", "--travel-mm", "20", "--out",
+                 program]) == 0
+    assert main(["plan", program, "--machine", "ucp710", "--out", out]) == 0
+    assert "limits ok" in capsys.readouterr().out
+
+
 def test_cli_reads_plans_and_refuses_with_line_and_column(tmp_path, capsys):
     src = str(CAM / "fusion_mpcnc.gcode")
     tools = tmp_path / "tools.tbl"
@@ -168,3 +177,5 @@ def test_api_reader_option_and_422_naming_line_and_column(tmp_path):
         r = post(comp, tool_table="T1 P1 Z0 Q\n")
         assert r.status_code == 422 and "options.tool_table" in r.json()["message"]
         assert post(comp, reader="rs274").status_code == 422
+        for name in PROGRAMS:  # read at submission: every corpus program is accepted
+            assert post((CAM / name).read_text()).status_code == 202, name

@@ -269,6 +269,7 @@ def test_auto_reads_what_the_builtin_reader_does_not_through_linuxcnc():
     ("G21 G0 X0 Y0\nG2 X2 Y0 I1 K1 F100\nM2\n", 2, 13, "K word given for arc in xy plane"),
     ("G21 G0 X0\nG1 X1 F100\n% vfd on\nM2\n", 3, 1, "Bad character '%' used"),
     ("G21 G0 X0\n#1 = [1 / 0]\nM2\n", 2, 1, "Attempt to divide by zero"),
+    ("G21 G0 X0\no100 call\nM2\n", 2, 1, "EOF in file:bad.ngc seeking o-word: o<100>"),
 ])
 def test_a_program_linuxcnc_refuses_is_refused_at_line_and_column(text, line, column, what):
     with pytest.raises(GcodeError) as err:

@@ -289,8 +289,10 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
                     break
                 where = max(line or int(err_line), 1)
                 src = lines[where - 1] if 0 < where <= len(lines) else ""
-                raise GcodeError(f"LinuxCNC: {message.strip()}", where, _column(src, message),
-                                 source)
+                # the interpreter reads the program from a copy: name the user's file
+                message = message.strip().replace("file:program.ngc",
+                                                  f"file:{source or 'the program'}")
+                raise GcodeError(f"LinuxCNC: {message}", where, _column(src, message), source)
             break
         v = [float(x) for x in rest.split()]
         n = line
