@@ -113,13 +113,13 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
     its job. A synchronous job has its own, shorter motion-time limit and goes ahead of the
     queue.
     """
-    from feedplan.read import read_toolpath
+    from oga.pipeline import read_program
 
     machine = _machine(body.machine)
     if body.setpoints is not None:
         return _accept_setpoints(request, body, machine, sync)
     tp = body.toolpath
-    path = read_toolpath(tp.content, tp.format, source=tp.name)
+    path = read_program(tp.content, tp.format, machine, body.options, source=tp.name)
     if not path.segments:
         raise ToolpathError("toolpath: the program has no moves")
     settings = request.app.state.settings
@@ -298,8 +298,7 @@ async def get_report(job_id: str, request: Request) -> Response:
 
 
 def _report(request: Request, job_id: str) -> Response:
-    from feedplan.read import read_toolpath
-    from oga.pipeline import SETPOINTS_PREFIX, plan_toolpath, stored_options
+    from oga.pipeline import SETPOINTS_PREFIX, plan_toolpath, read_program, stored_options
     from oga.report import render_report, replay_report_data
 
     store = _store(request)
@@ -324,7 +323,8 @@ def _report(request: Request, job_id: str) -> Response:
         sp = read_setpoints(row.toolpath, machine, row.toolpath_format.removeprefix(
             SETPOINTS_PREFIX), source=row.source, **(read or {})).setpoints
     else:
-        path = read_toolpath(row.toolpath, row.toolpath_format, source=row.source)
+        path = read_program(row.toolpath, row.toolpath_format, machine, options,
+                            source=row.source)
         sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m)
     column = {name: table.data[:, i] for i, name in enumerate(table.header)}
     kp = np.column_stack([column[f"{a}_kp_m_min_per_mm"] for a in AXES])

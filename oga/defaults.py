@@ -249,6 +249,22 @@ API_JOB_MEMORY_BYTES = 4 * 1024**3
 API_STALL_S = 120.0
 
 
+# --- G-code readers ------------------------------------------------------------------------
+#: The G-code readers (``--reader``): the built-in one, LinuxCNC's interpreter (package
+#: linuxcnc-uspace), or the built-in one and LinuxCNC's for the programs it does not read.
+GCODE_READERS = ("auto", "builtin", "linuxcnc")
+#: The default reader.
+GCODE_READER = "auto"
+#: Folder holding LinuxCNC's Python module ``gcode`` (Debian's linuxcnc-uspace).
+LINUXCNC_PYTHON_PATH = "/usr/lib/python3/dist-packages"
+#: Bounds of one run of LinuxCNC's interpreter on a program: wall time (an endless O-word loop
+#: ends there), address space of its process, bytes.
+LINUXCNC_READ_TIMEOUT_S = 120.0
+LINUXCNC_READ_MEMORY_BYTES = 2 * 1024**3
+__all__ += ["GCODE_READERS", "GCODE_READER", "LINUXCNC_PYTHON_PATH", "LINUXCNC_READ_TIMEOUT_S",
+            "LINUXCNC_READ_MEMORY_BYTES"]
+
+
 # --- input bounds ------------------------------------------------------------------------------
 # What a user may submit: programs, options and machine files beyond these are refused with an
 # error naming the limit and the value, before anything is allocated from them.
@@ -306,6 +322,8 @@ MACHINE_FIELD_RANGES = {
     "coulomb_m_s": (0.0, 10.0),
     "viscous_ratio": (0.0, 100.0),
     "load_m_s_per_n": (0.0, 1.0),
+    # G-code home positions and work offsets (oga.machine.Home), mm
+    "position_mm": (-1e6, 1e6),
     # gains
     "kp_m_min_per_mm": (1e-3, 50.0),
     "kp_step_m_min_per_mm": (1e-2, 10.0),

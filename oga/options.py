@@ -1,8 +1,8 @@
 """Options of the gain search: one pydantic model for library, CLI and API.
 
 Field names are the CLI flags of ``oga optimize`` (``np``, ``lam``, ``adjust``,
-``gains``, ``baseline``, ``kp_range``, ``nominal``, ``feed``, ``tolerance``); unknown keys
-are refused. Defaults come from :mod:`oga.defaults`.
+``gains``, ``baseline``, ``kp_range``, ``nominal``, ``feed``, ``tolerance``, ``reader``;
+``tool_table`` holds the text of the ``--tool-table`` file); unknown keys are refused. Defaults come from :mod:`oga.defaults`.
 """
 
 from __future__ import annotations
@@ -72,6 +72,12 @@ class OptimizeOptions(BaseModel):
         Overrides the program's feed.
     tolerance_mm : float
         Interpolation tolerance of the feed planner.
+    reader : {"auto", "builtin", "linuxcnc"}
+        The G-code reader (:func:`feedplan.gcode.parse_gcode`): the built-in one, LinuxCNC's
+        interpreter, or the built-in one and LinuxCNC's where it refuses (the default).
+    tool_table : str or None
+        A LinuxCNC tool table (its text; lengths in mm) for G43's tool lengths; None: no
+        table (G43 applies length 0, with a warning).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", populate_by_name=True)
@@ -96,6 +102,18 @@ class OptimizeOptions(BaseModel):
                                          allow_inf_nan=False)] = Field(
         defaults.TOL_M * 1e3, alias="tolerance"
     )
+
+    reader: Literal["auto", "builtin", "linuxcnc"] = defaults.GCODE_READER
+    tool_table: Annotated[str, Field(max_length=1 << 20)] | None = None
+
+    @field_validator("tool_table")
+    @classmethod
+    def _tools(cls, v):
+        if v is not None:
+            from feedplan.gcode.setup import parse_tool_table
+
+            parse_tool_table(v)  # GcodeError (a ValueError) naming the line and column
+        return v
 
     @field_validator("adjust", "gains", mode="before")
     @classmethod

@@ -22,7 +22,7 @@ from oga.options import OptimizeOptions
 if TYPE_CHECKING:
     from oga.recorded import RecordedSetpoints
 
-__all__ = ["Job", "PLAN_SHARE", "SETPOINTS_PREFIX", "plan_toolpath", "run_job",
+__all__ = ["Job", "PLAN_SHARE", "SETPOINTS_PREFIX", "plan_toolpath", "read_program", "run_job",
            "stored_options", "toolpath_sha256"]
 
 #: Input format of a job whose input is recorded setpoints: this prefix and the file's format
@@ -86,6 +86,14 @@ def stored_options(stored: dict) -> tuple[OptimizeOptions, dict | None]:
 def toolpath_sha256(text: str) -> str:
     """Hash of a toolpath's text (UTF-8, hex), as summaries and tables record it."""
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def read_program(text: str, fmt: str, machine: Machine, options: OptimizeOptions, *,
+                 source: str = "") -> Path:
+    """The path of a toolpath as the job reads it: G-code through ``options.reader``, with the
+    machine's home positions and work offsets and ``options.tool_table``."""
+    setup = machine.gcode_setup(options.tool_table) if fmt == "gcode" else None
+    return read_toolpath(text, fmt, source=source, reader=options.reader, setup=setup)
 
 
 def plan_toolpath(
@@ -159,7 +167,7 @@ def run_job(
         from oga.errors import OptionError
 
         raise OptionError("setpoints options apply to recorded setpoints only")
-    path = read_toolpath(text, fmt, source=source)
+    path = read_program(text, fmt, machine, options, source=source)
     if progress is None:
         plan_progress = search_progress = None
     else:
