@@ -326,8 +326,13 @@ EXCITE_TRAVEL_MM = 100.0
 # robust --------------------------------------------------------------------------------------
 #: Monte Carlo plants drawn from a machine's uncertainty set (the certificate's sample).
 ROBUST_MC_PLANTS = 64
+#: Most Monte Carlo plants a certificate may ask for (``certify``; a bound at 95 % of 0.06 %).
+ROBUST_MC_PLANTS_MAX = 5000
 #: Seed of that draw (a certificate is reproducible).
 ROBUST_SEED = 17
+#: Level of the certificate's upper confidence bound on the share of the set's machines where
+#: the table fails (oga.robust.certificate).
+ROBUST_CONFIDENCE = 0.95
 #: Groups of uncertain parameters whose set corners are added to the Monte Carlo plants, all
 #: axes at the same end of their own ranges (2^groups corners): the parameters that move the
 #: schedule's result (friction level, mass, Kv, Tn, dead time); the rest stay nominal.
@@ -370,6 +375,18 @@ ROBUST_P90_GOAL = 0.5
 #: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
 #: on each searched plant that its limits keep, whatever the reserve (oga.robust.multi).
 ROBUST_BASELINE_FLOOR = 0.85
+#: Robust baseline (:mod:`oga.robust.baseline`): the Monte Carlo plants whose geometric mean
+#: MSE(CE) it minimises (the first ones of the set), and those of them its grid is screened
+#: on; the refinement's steps at most, the step (in grid steps) below which it stops, and the
+#: share of each limit its models keep clear of; the confirmations on every plant at most.
+ROBUST_BASELINE_PLANTS = 32
+ROBUST_BASELINE_GRID_PLANTS = 8
+ROBUST_BASELINE_ITERATIONS = 30
+ROBUST_BASELINE_TOL = 1e-2
+ROBUST_BASELINE_GAIN = 5e-4
+ROBUST_BASELINE_MARGIN = 1e-4
+ROBUST_BASELINE_SEED = 0.9
+ROBUST_BASELINE_CONFIRMATIONS = 8
 
 # corner blending -----------------------------------------------------------------------------
 #: Share of the plan's tolerance given to corner blends (feedplan.blend; the rest is left to

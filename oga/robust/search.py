@@ -52,6 +52,8 @@ from oga.metrics import track_max
 from oga.optimize import GainSchedule, OptimizeResult
 from oga.ranges import EqualGainMemo, best_fixed_gains
 from oga.options import OptimizeOptions, options_from_dict
+from oga.parallel import resolve_threads
+from oga.robust.baseline import robust_baseline
 from oga.robust.certificate import Certificate, certify, plant_bounds
 from oga.robust.multi import multi_search
 from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
@@ -228,6 +230,7 @@ def robust_optimize(
     options: OptimizeOptions | dict | None = None,
     scenarios: ScenarioSet | None = None,
     progress: Callable[[float], None] | None = None,
+    threads: int | None = None,
 ) -> RobustResult:
     """The robust schedule of ``setpoints`` over ``machine``'s uncertainty set (module doc).
 
@@ -265,7 +268,8 @@ def robust_optimize(
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")
     report = _Progress(progress)
-    bounds = plant_bounds(scenarios, moving)
+    threads = resolve_threads(threads)
+    bounds = plant_bounds(scenarios, moving, threads)
     nominal = perturbed_machine(machine, {}, 0, machine.name)
     nominal_bounds = plant_bounds(ScenarioSet(
         status="nominal-only", nominal=machine, plants=(nominal,), labels=("nominal",),
@@ -274,9 +278,12 @@ def robust_optimize(
     kp_hi = min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving)
     n = len(setpoints)
     report(PROGRESS_BOUNDS)
-    kp0, kf0, base_reserve, base_replays = _robust_baseline(
-        setpoints, machine, scenarios, bounds, (kp_lo, kp_hi),
-        report.between(PROGRESS_BOUNDS, PROGRESS_BASELINE))
+    base = robust_baseline(setpoints, machine, scenarios, bounds, (kp_lo, kp_hi), threads=threads,
+                           progress=report.between(PROGRESS_BOUNDS, PROGRESS_BASELINE))
+    if not base.ok:
+        raise OptionError(base.message)
+    kp0, kf0, base_replays = base.kp, base.kf, base.replays
+    base_reserve = 1.0
     bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
     for arr in (bkp, bkf):
         arr.flags.writeable = False
