@@ -160,7 +160,8 @@ def run_claimed(store: Store, job: JobRow) -> str:
             store.succeed(job.id, job.attempts, json_safe(ident.summary()),
                           ident.toml.encode("utf-8"))
             return "succeeded"
-        options = options_from_dict(job.options)
+        # one thread per job unless its options say otherwise: jobs run side by side
+        options = options_from_dict(job.options, threads=job.options.get("threads") or 1)
         done = run_job(job.toolpath, job.toolpath_format, machine, options, source=job.source,
                        progress=progress)
         result = done.result

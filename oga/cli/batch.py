@@ -150,7 +150,9 @@ def _run_one(task: _Task, progress) -> dict:
     t0 = time.perf_counter()
     try:
         text, fmt = read_file(task.file) if task.text is None else (task.text, task.fmt)
-        job = run_job(text, fmt, machine_from_dict(task.machine), options_from_dict(task.options),
+        # one thread per program unless --threads says otherwise: programs run side by side
+        options = options_from_dict(task.options, threads=task.options.get("threads") or 1)
+        job = run_job(text, fmt, machine_from_dict(task.machine), options,
                       source=FilePath(task.file).name, progress=progress)
         res = job.result
         summary = job.summary()

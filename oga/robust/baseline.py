@@ -635,21 +635,33 @@ def robust_baseline(
     kp_lo, kp_hi = kp_range
     search = _Search(packed, screen, objective, (kp_lo, kp_hi), tuple(g.kf_range), threads)
     if not kp_lo <= kp_hi:
-        return _none(setpoints, plants, bounds, objective, None, search,
-                     f"no Kp is stable on every plant (common range {kp_lo}..{kp_hi})")
+        raise OptionError(f"baseline: no Kp is stable on every plant of the uncertainty set "
+                          f"(common range {kp_lo}..{kp_hi} (m/min)/mm): narrow its "
+                          "[axes.*.uncertainty], or search the nominal model only (--nominal)")
     kp_grid = decimal_grid(kp_lo, kp_hi, 2 * g.kp_step_m_min_per_mm)
     kf_grid = decimal_grid(*g.kf_range, 2 * g.kf_step)
     n = len(setpoints)
     steps = (g.kp_step_m_min_per_mm, g.kf_step)
-    confirmations, last, x = 0, None, None
+
+    def confirm(x: _Point) -> list[Verification]:
+        kp_t, kf_t = np.full((n, 3), x.kp), np.full((n, 3), x.kf)
+        return thread_map(lambda i: verify(setpoints, all_plants[i], kp_t, kf_t,
+                                           (bounds + (nominal_bounds,))[i]),
+                          range(len(all_plants)), threads)
+
+    confirmations, x = 0, None
     while True:
         report(min(0.9, 0.3 * confirmations + 0.05))
         if x is None or not x.holds:  # (again) from the grid's best
             best = search.grid(kp_grid, kf_grid)
-            if best is None:
-                return _none(setpoints, plants, bounds, objective, last, search,
+            if best is None:  # name the gains closest to keeping the limits on the screen
+                mid = ((kp_lo + kp_hi) / 2, sum(g.kf_range) / 2)
+                x = min((search.point(kp, kf, screen) for kp in (kp_lo, mid[0], kp_hi)
+                         for kf in (g.kf_range[0], mid[1], g.kf_range[1])), key=_excess_of)
+                x = search.refine(x, steps, screen)
+                return _none(plants, objective, (x, confirm(x)), search,
                              "no equal fixed gains keep the limits on every plant of the "
-                             "uncertainty set")
+                             "uncertainty set", "the closest to keeping them")
             if confirmations == 0:  # the corners near a limit there: critical from the start
                 search.seed(best, range(plants.n_monte_carlo, len(all_plants)))
             # the screen's optimum first (cheap), then the aggregate's from there
@@ -658,19 +670,15 @@ def robust_baseline(
         x = search.refine(x, steps, objective)
         if not x.holds:
             continue
-        kp_t, kf_t = np.full((n, 3), x.kp), np.full((n, 3), x.kf)
-        replays = thread_map(lambda i: verify(setpoints, all_plants[i], kp_t, kf_t,
-                                              (bounds + (nominal_bounds,))[i]),
-                             range(len(all_plants)), threads)
+        replays = confirm(x)
         confirmations += 1
         broke = [i for i, v in enumerate(replays) if not v.ok]
-        last = (x, replays)
         if not broke:
             break
         if confirmations == defaults.ROBUST_BASELINE_CONFIRMATIONS:
-            return _none(setpoints, plants, bounds, objective, last, search,
+            return _none(plants, objective, (x, replays), search,
                          f"no equal fixed gains found keep the limits on every plant of the "
-                         f"uncertainty set in {confirmations} tries")
+                         f"uncertainty set in {confirmations} tries", "the last tried")
         search.critical += [i for i in broke if i not in search.critical]
         x = search.point(x.kp, x.kf, objective)  # it breaks a limit there: restored next
     report(1.0)
@@ -690,18 +698,19 @@ def _alone(machine: Machine, plant: Machine) -> ScenarioSet:
                        n_corners=0)
 
 
-def _none(setpoints, plants, bounds, objective, last, search, why) -> BaselineResult:
-    """The result when no gains keep every plant's checks, its message naming the last gains
-    confirmed (on how many plants they break, the worst break) and the remedies."""
-    if last is not None:
-        best, replays = last
-        labels = tuple(plants.labels) + ("nominal",)
-        broke = [i for i, v in enumerate(replays) if not v.ok]
-        worst = max(broke, key=lambda i: _excess(replays[i]))
-        v = replays[worst]
-        what = v.violations[0] if v.violations else "a check"
-        why += (f" (the last tried, Kp {best.kp:.4g} Kf {best.kf:.4g}, break them on "
-                f"{len(broke)} of {len(replays)} plants; on {labels[worst]!r}: {what})")
+def _none(plants, objective, last, search, why, which) -> BaselineResult:
+    """The result when no gains keep every plant's checks, its message naming the gains
+    ``last`` (a point and its replays on every plant; ``which`` says what they are), on how
+    many plants they break a check, the worst break, and the remedies."""
+    x, replays = last
+    labels = tuple(plants.labels) + ("nominal",)
+    broke = [i for i, v in enumerate(replays) if not v.ok] or list(range(len(replays)))
+    worst = max(broke, key=lambda i: _excess(replays[i]))
+    v = replays[worst]
+    what = v.violations[0] if v.violations else "no check broken"
+    why += (f" ({which}, Kp {x.kp:.4g} Kf {x.kf:.4g}, break them on "
+            f"{sum(not v.ok for v in replays)} of {len(replays)} plants; on "
+            f"{labels[worst]!r}: {what})")
     why += (". The motion leaves the loop too little room on these plants: plan it with "
             "smaller [planner] accel_fraction and jerk_fraction in the machine file, narrow its "
             "[axes.*.uncertainty], or search the nominal model only (--nominal, no certificate)")

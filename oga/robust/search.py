@@ -3,21 +3,19 @@
 1. **Kp range**: the stable range common to every plant of the scenario set and the
    nominal plant (the least ``kp_max``, the largest ``kp_min`` over them and the moving
    axes).
-2. **Baseline**: the best equal fixed gains that keep the limits and stability on every
-   plant: the best fixed gains (:func:`oga.ranges.best_fixed_gains`) of a *design
-   machine* (nominal dynamics, that Kp range, acceleration, jerk and following-error
-   limits times a reserve ``r``), ``r`` cut after each try by the largest limit excess
-   over the plants (and a margin doubling per cut) until they keep every limit on every
-   plant (:func:`_robust_baseline`). Its replays on the set are kept: every certificate
-   below reuses them.
+2. **Baseline** (:func:`oga.robust.baseline.robust_baseline`): the equal fixed gains of least
+   geometric-mean MSE(CE) over the set's Monte Carlo plants among those that keep every
+   plant's limits and stable range (checked on the plants themselves). Its replays on the
+   set are kept: every certificate below reuses them.
 3. **Rounds** (:data:`oga.defaults.ROBUST_ROUNDS` at most) of the multi-scenario search
    (:func:`oga.robust.multi.multi_search`): the first on the nominal plant alone, each
    next one on the nominal plant and the plants of the set where the previous schedule
    did worst (the set refreshed round by round, :data:`oga.defaults.ROBUST_ACTIVE` plants
    at most, the oldest leaving; a plant whose joining doubled the median ratio leaves for
-   good), limits times the baseline's reserve, cut further (the same rule, floored on each
-   searched plant near the baseline's own peak there) while the schedule breaks a limit on
-   a plant where the baseline keeps it. Each schedule is certified on the whole set
+   good), the acceleration, jerk and following-error limits times a reserve (1 at first),
+   cut after a round whose schedule breaks a limit on a plant where the baseline keeps it
+   (by the largest such excess, and a margin doubling per cut; floored on each searched
+   plant near the baseline's own peak there). Each schedule is certified on the whole set
    (:func:`oga.robust.certificate.certify`), the first round's on a screen first (the
    corners and typical plants: where it fails there, as the nominal plant's schedule
    does, the whole set's certificate would fail too, :class:`_Round`; the exported
@@ -47,26 +45,22 @@ import numpy as np
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import OptionError
-from oga.machine import Machine, machine_from_dict
-from oga.metrics import track_max
+from oga.machine import Machine
 from oga.optimize import GainSchedule, OptimizeResult
-from oga.ranges import EqualGainMemo, best_fixed_gains
 from oga.options import OptimizeOptions, options_from_dict
 from oga.parallel import resolve_threads
-from oga.robust.baseline import robust_baseline
+from oga.robust.baseline import BaselineResult, robust_baseline
 from oga.robust.certificate import Certificate, certify, plant_bounds
 from oga.robust.multi import multi_search
 from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
-from oga.simulate import simulate
-from oga.verify import command_ratios, ferror_ratios, verify
+from oga.verify import verify
 
-__all__ = ["RobustResult", "design_machine", "robust_optimize"]
+__all__ = ["RobustResult", "robust_optimize"]
 
 
 @dataclass(frozen=True, eq=False)
 class RobustResult:
-    """What :func:`robust_optimize` found (``baseline_reserve`` and ``active`` added to the
-    prototype's fields).
+    """What :func:`robust_optimize` found.
 
     Attributes
     ----------
@@ -89,8 +83,8 @@ class RobustResult:
         Searches run.
     alpha : (float, float)
         Shares of the searched schedule's departure from the baseline that are kept, Kp and Kf.
-    baseline_reserve : float
-        The limit reserve of the design machine the baseline was found on.
+    baseline : BaselineResult
+        The robust baseline (:func:`oga.robust.baseline.robust_baseline`).
     active : tuple of str
         Labels of the plants the kept round searched on besides the nominal one.
     """
@@ -103,24 +97,8 @@ class RobustResult:
     kp_max: float
     rounds: int
     alpha: tuple[float, float]
-    baseline_reserve: float = 1.0
+    baseline: BaselineResult | None = None
     active: tuple = ()
-
-
-def design_machine(machine: Machine, reserve: float, kp_bounds: tuple[float, float]) -> Machine:
-    """``machine`` with acceleration, jerk and following-error limits times ``reserve`` and
-    its configured Kp bounds cut to ``kp_bounds``; no uncertainty section."""
-    data = machine.model_dump(mode="json", exclude_none=True)
-    for ax in data["axes"].values():
-        ax.pop("uncertainty", None)
-        lim = ax["limits"]
-        for k in ("amax_m_s2", "jmax_m_s3", "ferror_max_m"):
-            if k in lim:
-                lim[k] = lim[k] * reserve
-    lo, hi = data["gains"]["kp_bounds_m_min_per_mm"]
-    data["gains"]["kp_bounds_m_min_per_mm"] = [max(lo, kp_bounds[0]), min(hi, kp_bounds[1])]
-    data["name"] = f"{machine.name}-design"
-    return machine_from_dict(data, where="design machine")
 
 
 def _excess(verifications) -> float:
@@ -130,98 +108,6 @@ def _excess(verifications) -> float:
         worst = max(worst, float(np.max(v.command_ratio)),
                     float(np.nanmax(np.append(v.ferror_ratio, 0.0))))
     return worst
-
-
-def _replay_excess(setpoints, plant, kp, kf) -> float:
-    """:func:`_excess` of the replay of ``kp, kf`` on ``plant`` from the simulation alone:
-    the command ratios and following errors :func:`oga.verify.verify` computes, without
-    its contour error (half its cost; a baseline refused costs no more)."""
-    sim = simulate(setpoints, plant, kp, kf)
-    track = track_max(setpoints.pos, sim.pos)  # contour_metrics' track_max_m
-    ferror = ferror_ratios(track, plant)
-    return max(float(np.max(command_ratios(sim.u, setpoints, plant))),
-               float(np.nanmax(np.append(ferror, 0.0))))
-
-
-def _robust_baseline(setpoints, machine, scenarios, bounds, kp_range, progress=None):
-    """The best equal fixed gains that keep the limits and stability on every plant, found
-    as the best fixed gains of a design machine whose limit reserve is cut until they do.
-
-    Returns ``(kp, kf, reserve, replays)``: the gains, the reserve, and the baseline's
-    replays on every plant of ``scenarios`` (kept: every certificate reuses them).
-
-    Each candidate is replayed in full (:func:`oga.verify.verify`) plant by plant (the
-    corners first, then in the order of the last known excess) until one exceeds a limit;
-    the candidate is then refused, and the other plants give only their excess
-    (:func:`_replay_excess`: the same figures without the contour error), whose largest
-    sets the next reserve. Gains refused before (a reserve cut that moves no grid value)
-    are refused again from their known excess, not replayed. The excess is taken on every
-    plant, not on a screen of them: a screen of the corners and the plants that broke a
-    limit before took a third of the excess replays (cncjs_toolpath 59 instead of 187),
-    but on arcspiral[:40] it missed the largest excess (a Monte Carlo plant), cut the
-    reserve less, and the robust table's price rose from 0.59 to 1.02. The gains, reserves
-    and replays are those of replaying every plant in full (tests/test_robust_speed.py).
-    ``progress(f)``: f in [0, 1) after each replay, each candidate an equal share of
-    :data:`~oga.defaults.ROBUST_ROUNDS`.
-    """
-    progress = _Progress(progress)
-    moving = tuple(AXES[i] for i in setpoints.moving_axes)
-    n = len(setpoints)
-    reserve = 1.0
-    corners = range(scenarios.n_monte_carlo, len(scenarios))
-    # the corners (the set's extremes) first: where a limit breaks first, usually
-    order = [*corners, *range(scenarios.n_monte_carlo)]
-    known: dict[int, float] = {}  # each plant's last excess
-    refused: dict[tuple[float, float], dict[int, float]] = {}  # the excess of refused gains
-    share = 1.0 / defaults.ROBUST_ROUNDS
-    memo = EqualGainMemo()  # the grid's sums and peaks do not depend on the reserve
-    last = None  # the last gains refused, and their excess per plant
-    for k in range(defaults.ROBUST_ROUNDS):
-        best = best_fixed_gains(setpoints, design_machine(machine, reserve, kp_range),
-                                progress=lambda f, k=k: progress(share * (k + 0.5 * f)),
-                                memo=memo)
-        if best is None:
-            break
-        kp0, kf0 = float(best.kp[moving[0]]), float(best.kf[moving[0]])
-        bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
-        # gains refused at a larger reserve are refused again: their replays are known
-        replays, excess = {}, dict(refused.get((kp0, kf0), {}))
-        for j, i in enumerate(order):
-            progress(share * (k + 0.5 + 0.5 * j / len(order)))
-            if max(excess.values(), default=0.0) <= 1.0:
-                replays[i] = verify(setpoints, scenarios.plants[i], bkp, bkf, bounds[i])
-                excess[i] = _excess((replays[i],))
-            elif i not in excess:
-                excess[i] = _replay_excess(setpoints, scenarios.plants[i], bkp, bkf)
-        over = max(excess.values())
-        if over <= 1.0:
-            return kp0, kf0, reserve, tuple(replays[i] for i in range(len(scenarios)))
-        refused[(kp0, kf0)] = excess
-        last = (kp0, kf0, excess)
-        known.update(excess)
-        order.sort(key=lambda i: -known.get(i, -np.inf))
-        reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2**k)
-    raise OptionError(_no_baseline(setpoints, scenarios, bounds, last))
-
-
-def _no_baseline(setpoints, scenarios, bounds, last) -> str:
-    """Why no robust baseline was found, and what the user can change: the last gains
-    refused, on how many plants, and their worst break (replayed once more, in full)."""
-    why = "baseline: no equal fixed gains keep the limits on every plant of the uncertainty set"
-    if last is not None:
-        kp0, kf0, excess = last
-        worst = max(excess, key=excess.get)
-        n = len(setpoints)
-        v = verify(setpoints, scenarios.plants[worst], np.full((n, 3), kp0), np.full((n, 3), kf0),
-                   bounds[worst])
-        broken = sum(e > 1.0 for e in excess.values())
-        what = (v.violations[0] if not v.limits_ok  # the limit violations come first
-                else f"a limit ratio of {excess[worst]:.10f}")  # over 1 by less than verify's slack
-        why += (f" (the last tried, Kp {kp0:g} Kf {kf0:g}, break them on {broken} of "
-                f"{len(scenarios)} plants; on {scenarios.labels[worst]!r}: {what})")
-    return (why + ". The motion leaves the loop too little room on these plants: plan it with "
-            "smaller [planner] accel_fraction and jerk_fraction in the machine file, narrow its "
-            "[axes.*.uncertainty], or search the nominal model only (--nominal, no certificate)")
 
 
 def robust_optimize(
@@ -242,10 +128,14 @@ def robust_optimize(
     options : OptimizeOptions or dict, optional
         Full-mode options; ``baseline`` is set by the robust search.
     scenarios : ScenarioSet, optional
-        Default :func:`oga.robust.plants.scenario_set` of ``machine``.
+        Default :func:`oga.robust.plants.scenario_set` of ``machine`` with ``options.certify``
+        Monte Carlo plants.
     progress : callable, optional
         Called with the fraction done (0..1, never falling) after each replay or search step:
         the stable ranges, the baseline (:data:`PROGRESS_BASELINE`), then the rounds.
+    threads : int, optional
+        Threads for independent replays (default ``options.threads``, else the available
+        cores); the result is the same for any count.
 
     Returns
     -------
@@ -263,12 +153,12 @@ def robust_optimize(
         raise OptionError(f"mode: the robust search is the full mode's (got {options.mode!r}); "
                           "the paper's search runs on the nominal model only (--nominal)")
     if scenarios is None:
-        scenarios = scenario_set(machine)
+        scenarios = scenario_set(machine, n=options.certify or defaults.ROBUST_MC_PLANTS)
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")
     report = _Progress(progress)
-    threads = resolve_threads(threads)
+    threads = resolve_threads(options.threads if threads is None else threads)
     bounds = plant_bounds(scenarios, moving, threads)
     nominal = perturbed_machine(machine, {}, 0, machine.name)
     nominal_bounds = plant_bounds(ScenarioSet(
@@ -283,7 +173,6 @@ def robust_optimize(
     if not base.ok:
         raise OptionError(base.message)
     kp0, kf0, base_replays = base.kp, base.kf, base.replays
-    base_reserve = 1.0
     bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
     for arr in (bkp, bkf):
         arr.flags.writeable = False
@@ -291,7 +180,7 @@ def robust_optimize(
     base_nominal = verify(setpoints, nominal, bkp, bkf, kp_bounds)
     active: list[int] = []  # plants of the set searched on besides the nominal one
     rejected: set[int] = set()  # plants whose joining made the schedule worse
-    reserve, last = base_reserve, None
+    reserve, last = 1.0, None
     tried: list[_Round] = []
     step = (PROGRESS_ROUNDS - PROGRESS_BASELINE) / defaults.ROBUST_ROUNDS
     for rounds in range(1, defaults.ROBUST_ROUNDS + 1):
@@ -359,7 +248,7 @@ def robust_optimize(
     )
     return RobustResult(status="ok" if ok else "failed", schedule=schedule, result=result,
                         certificate=cert, reserve=reserve, kp_max=kp_hi, rounds=rounds,
-                        alpha=alpha, baseline_reserve=base_reserve,
+                        alpha=alpha, baseline=base,
                         active=tuple(scenarios.labels[i] for i in active))
 
 
