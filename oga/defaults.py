@@ -352,14 +352,15 @@ FRICTION_LINEAR_MAX_SHARE = 0.01
 #: to the first cut of the limit reserve (doubled at each further cut).
 ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
-#: Robust search (prototype): shares of the searched schedule's departure from the baseline
-#: tried (Kf; Kp), and the plants (where the schedule does worst) of the small scenario set they are
-#: tried on.
-ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
-ROBUST_KP_ALPHAS = (1.0, 0.75, 0.5, 0.25)
+#: Robust search: bisection steps of the share of the searched schedule's departure from the
+#: baseline kept where its certificate fails (oga.robust.search._shrink: to 1/128).
+ROBUST_SHRINK_STEPS = 7
+#: Robust search: the typical Monte Carlo plants the first round's schedule is screened on.
 ROBUST_SUBSET = 8
-#: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
-#: be chosen by its median ratio on the typical ones.
+#: Robust search: the Monte Carlo plants (the set's first) its rounds search and judge on,
+#: with the corners; the kept table is certified on the whole set.
+ROBUST_SEARCH_PLANTS = 64
+#: Robust search: the worst ratio a round aims for (with ROBUST_MEDIAN_GOAL, ROBUST_P90_GOAL).
 ROBUST_WORST_GOAL = 0.9
 
 # robust search -------------------------------------------------------------------------------

@@ -119,7 +119,9 @@ def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
     full = certify(sp, m, found.kp, found.kf, bkp, bkf, scen, bounds, base)
     np.testing.assert_array_equal(done.ratio[list(keep)], full.ratio[list(keep)])
     assert np.isnan(np.delete(done.ratio, keep)).all()
-    assert done.key[0] and done.key[1:] <= (len(full.breaks("schedule-only")), full.worst)
+    # the screen's plants that fail, and its worst ratio, bound the whole set's from below
+    assert done.key[0] and done.key[1] <= int(full.failures().sum())
+    assert done.key[2] <= full.worst
     if done.fails_screen:
         assert full.worst > 0.9 or full.breaks("schedule-only")
     done.complete(sp, m, bkp, bkf, scen, bounds, base)
@@ -160,10 +162,12 @@ def test_the_robust_search_holds_its_gains_inside_a_rapid():
         assert np.ptp(gains[:s0, :2], axis=0).max() > 1e-3
     # the robust table of that program, replayed afresh on every plant of the set (other
     # plants than those searched; every sample, the rapid's included): no limit broken
-    # where its baseline keeps it
-    r = robust_optimize(sp, m)
-    assert r.status == "ok"
+    # where its baseline keeps it (the table is the baseline where no searched one passes)
+    r = robust_optimize(sp, m, threads=2)
     bkp, bkf = _fixed(n, r.result.baseline_kp["x"], r.result.baseline_kf["x"])
+    if r.status != "ok":
+        np.testing.assert_array_equal(r.schedule.kp_m_min_per_mm, bkp)
+        np.testing.assert_array_equal(r.schedule.kf, bkf)
     for plant in scenario_set(m).plants:
         if verify(sp, plant, bkp, bkf, kb).limits_ok:
             assert verify(sp, plant, r.schedule.kp_m_min_per_mm, r.schedule.kf, kb).limits_ok

@@ -308,12 +308,12 @@ def certify(
                        scenarios=scenarios, plants=tuple(replays), ratio=ratio)
 
 
-def certify_result(result, scenarios: ScenarioSet | None = None) -> Certificate:
+def certify_result(result, scenarios: ScenarioSet | None = None, threads: int = 1) -> Certificate:
     """:func:`certify` of an :class:`oga.optimize.OptimizeResult`'s searched schedule
-    against its fixed baseline, on its machine's set."""
+    against its fixed baseline, on its machine's set (on ``threads`` threads)."""
     n = len(result.setpoints)
     base_kp = np.tile([result.baseline_kp[a] for a in AXES], (n, 1))
     base_kf = np.tile([result.baseline_kf[a] for a in AXES], (n, 1))
     s = result.searched_schedule
     return certify(result.setpoints, result.machine, s.kp_m_min_per_mm, s.kf, base_kp, base_kf,
-                   scenarios)
+                   scenarios, threads=threads)
