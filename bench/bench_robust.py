@@ -17,10 +17,13 @@ emptied; numba's compiled kernels are warm). It prints:
   than the baseline or breaks a check the baseline keeps);
 - the price: MSE(CE) of the exported table on the nominal machine over that of the nominal
   best fixed gains (:func:`oga.ranges.best_fixed_gains`);
-- RT = motion time / time taken: ``RT cpu`` over the process's CPU time on one thread (all
-  threads' CPU time on a shared host is what a quiet one would take, roughly), ``RT 1``,
-  ``RT 2``.. over the wall time on that many threads; ``same``: every thread count gave the
-  first one's schedule and certificate, bit for bit;
+- RT = motion time / time taken: ``RT cpu`` over the process's CPU time on one thread, ``par``
+  the share of that CPU time spent in the independent replays that run on threads (the
+  rest, the multi-plant window search above all, runs on one), ``RT 2*`` the RT on two
+  threads that share would give at best (Amdahl: the serial CPU time plus half the
+  parallel one); ``RT 1``, ``RT 2``.. over the wall time on that many threads (on a shared
+  host, only as good as its load); ``same``: every thread count gave the first one's
+  schedule and certificate, bit for bit;
 - the robust baseline (Kp, Kf), the rounds, the shrink's shares (1: none) and the plants
   searched on besides the nominal one.
 
@@ -97,6 +100,27 @@ def _cold() -> None:
         cached.cache_clear()
 
 
+class _Timed:
+    """``thread_map`` of the robust modules, timed: the wall time spent inside it."""
+
+    modules = ("oga.robust.certificate", "oga.robust.baseline")
+
+    def __init__(self):
+        self.inside = 0.0
+        self._orig = {m: importlib.import_module(m).thread_map for m in self.modules}
+        for m, f in self._orig.items():
+            importlib.import_module(m).thread_map = self._wrap(f)
+
+    def _wrap(self, f):
+        def timed(*args, **kw):
+            t0 = time.perf_counter()
+            try:
+                return f(*args, **kw)
+            finally:
+                self.inside += time.perf_counter() - t0
+        return timed
+
+
 def _same(a, b) -> bool:
     """The two robust results give the same schedule and certificate, bit for bit."""
     return (np.array_equal(a.schedule.kp_m_min_per_mm, b.schedule.kp_m_min_per_mm)
@@ -120,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     scen = scenario_set(machine, **({} if args.certify is None else {"n": args.certify}),
                         seed=args.seed)
     only = {s for s in args.only.split(",") if s}
+    timed = _Timed()
     warm = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), machine, feed_m_s=None, tol_m=2e-5)
     for t in threads:  # compile (or load) every kernel first
         robust_optimize(warm, machine, scenarios=scenario_set(machine, n=2), threads=t)
@@ -127,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{scen.seed}, {scen.n_corners} corners); {os.cpu_count()} cores, load "
           f"{os.getloadavg()[0]:.1f}")
     print(f"{'program':18s} {'motion s':>8s} {'median':>7s} {'p90':>7s} {'worst':>7s} "
-          f"{'sch only':>8s} {'bound':>7s} {'price':>7s} {'RT cpu':>7s} "
+          f"{'sch only':>8s} {'bound':>7s} {'price':>7s} {'RT cpu':>7s} {'par':>5s} {'RT 2*':>6s} "
           + " ".join(f"{'RT ' + str(t):>6s}" for t in threads)
           + f" {'same':>5s}  status, baseline, rounds, shares, searched on")
     for name, file, lines in PROGRAMS:
@@ -137,15 +162,17 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:18s} (missing: {file})")
             continue
         sp = plan_toolpath(_path(file, lines), machine, feed_m_s=None, tol_m=2e-5)
-        runs, walls, cpu = [], [], None
+        runs, walls, cpu, par = [], [], None, None
         try:
             for t in threads:
                 _cold()
+                timed.inside = 0.0
                 w0, c0 = time.perf_counter(), time.process_time()
                 runs.append(robust_optimize(sp, machine, options, scenarios=scen, threads=t))
                 walls.append(time.perf_counter() - w0)
-                if t == 1:
+                if t == 1:  # on one thread the time inside thread_map is its CPU time, roughly
                     cpu = time.process_time() - c0
+                    par = min(timed.inside / walls[-1], 1.0)
         except OgaError as err:
             print(f"{name:18s} {sp.duration:8.1f} failed: {err}", flush=True)
             continue
@@ -160,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{cert.worst:7.3f} {len(cert.breaks('schedule-only')):8d} "
               f"{bound * 100:6.2f}% {price:7.3f} "
               f"{sp.duration / cpu if cpu else float('nan'):7.2f} "
+              f"{par if par is not None else float('nan'):5.2f} "
+              f"{sp.duration / (cpu * (1 - par / 2)) if cpu else float('nan'):6.2f} "
               + " ".join(f"{sp.duration / w:6.2f}" for w in walls)
               + f" {'yes' if all(_same(rob, r) for r in runs[1:]) else 'NO':>5s}  {rob.status}, "
               f"Kp {rob.result.baseline_kp[a]:.4f} Kf {rob.result.baseline_kf[a]:.4f}, "

@@ -166,3 +166,20 @@ def test_the_confidence_bound_is_in_the_summary_the_cli_and_the_report():
         options_from_dict({"certify": 8, "nominal": True})
     with pytest.raises(OptionError, match="threads"):
         options_from_dict({"threads": 0})
+
+
+def test_the_refinement_qp_is_the_least_of_a_dense_grid():
+    from oga.robust.baseline import _qp
+
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        m = int(rng.integers(0, 6))
+        rows, rhs = rng.normal(size=(m, 2)), rng.uniform(0.0, 1.0, size=m)
+        low = rng.normal(size=(2, 2))
+        h, g, r = low @ low.T + 0.01 * np.eye(2), rng.normal(size=2), rng.uniform(0.2, 2.0)
+        x = _qp(g, h, rows, rhs, r)
+        grid = np.stack(np.meshgrid(*[np.linspace(-r, r, 201)] * 2), -1).reshape(-1, 2)
+        inside = np.all(grid @ rows.T <= rhs, axis=1)
+        value = 2 * grid @ g + np.einsum("ij,jk,ik->i", grid, h, grid)
+        assert np.all(np.abs(x) <= r * (1 + 1e-12)) and np.all(rows @ x <= rhs + 1e-9)
+        assert 2 * x @ g + x @ h @ x <= value[inside].min() + 1e-12

@@ -134,9 +134,9 @@ class BaselineResult:
 
 @dataclass
 class _Candidate:
-    """What is known of one (Kp, Kf): its per-plant sums of squared contour errors over the
-    objective plants (complete ones), the plants where it breaks a limit or holds them (by
-    index in the packed list), and its least known total (lower bound when abandoned)."""
+    """What is known of one grid candidate (Kp, Kf): its per-plant sums of squared contour
+    errors over the screen (complete ones), the plants where it breaks a limit or holds them
+    (by index in the packed list), and its least known total (lower bound when abandoned)."""
 
     kp: float
     kf: float
@@ -144,7 +144,7 @@ class _Candidate:
     broke: set = field(default_factory=set)
     held: set = field(default_factory=set)
     lower: float = 0.0
-    total: float | None = None  # the sum over every objective plant, once complete
+    total: float | None = None  # the sum over the screen, once complete
 
 
 class _Packed:
@@ -414,35 +414,35 @@ def _qp(g, h, rows, rhs, radius):
     a = np.vstack([rows, np.eye(2), -np.eye(2)])
     b = np.concatenate([rhs, np.full(4, radius)])
     h = h + 1e-12 * max(np.trace(h), 1e-300) * np.eye(2)
-    tol = 1e-12 * (1.0 + np.abs(b))
-    points = [np.zeros(2)]
+    points = [np.zeros((1, 2))]
     try:
-        points.append(np.linalg.solve(h, -g))
+        points.append(np.linalg.solve(h, -g)[None, :])
     except np.linalg.LinAlgError:
         pass
-    for i in range(len(a)):
-        ai = a[i]
-        n2 = ai @ ai
-        if n2 == 0.0:
-            continue
-        base = ai * (b[i] / n2)
-        d = np.array([-ai[1], ai[0]])
-        curv = d @ h @ d
-        if curv > 0.0:
-            points.append(base - d * ((g @ d + d @ h @ base) / curv))
-        for j in range(i + 1, len(a)):
-            m = np.array([ai, a[j]])
-            if abs(np.linalg.det(m)) > 1e-14 * (n2 + a[j] @ a[j]):
-                points.append(np.linalg.solve(m, [b[i], b[j]]))
-    points = np.array(points)
+    n2 = np.einsum("ij,ij->i", a, a)
+    ok = n2 > 0.0
+    base = a[ok] * (b[ok] / n2[ok])[:, None]  # each row's line: base + t d
+    d = np.column_stack([-a[ok, 1], a[ok, 0]])
+    curv = np.einsum("ij,jk,ik->i", d, h, d)
+    t = -(d @ g + np.einsum("ij,jk,ik->i", d, h, base)) / np.where(curv > 0.0, curv, 1.0)
+    points.append((base + d * t[:, None])[curv > 0.0])  # the least on each row's line
+    i, j = np.triu_indices(len(a), 1)  # each pair of rows' corner
+    det = a[i, 0] * a[j, 1] - a[i, 1] * a[j, 0]
+    keep = np.abs(det) > 1e-14 * (n2[i] + n2[j])
+    i, j, det = i[keep], j[keep], det[keep]
+    points.append(np.column_stack([(b[i] * a[j, 1] - b[j] * a[i, 1]) / det,
+                                   (a[i, 0] * b[j] - a[j, 0] * b[i]) / det]))
+    points = np.vstack(points)
+    tol = 1e-12 * (1.0 + np.abs(b[:-4]))
     inside = np.all(np.abs(points) <= radius * (1.0 + 1e-12), axis=1)
-    excess = np.max(points @ a[:-4].T - b[:-4] - tol[:-4], axis=1, initial=0.0)
+    excess = np.max(points @ a[:-4].T - b[:-4] - tol, axis=1, initial=0.0)
     value = 2.0 * points @ g + np.einsum("ij,jk,ik->i", points, h, points)
     if np.any(inside & (excess <= 0.0)):
         value = np.where(inside & (excess <= 0.0), value, np.inf)
     else:  # none meets the rows: the least excess, then the least value
         value = np.where(inside & (excess <= excess[inside].min()), value, np.inf)
     return points[int(np.argmin(value))]
+
 
 class _Search:
     """The state of one :func:`robust_baseline` search (module doc)."""
@@ -459,12 +459,8 @@ class _Search:
             self.known[key] = _Candidate(*key)
         return self.known[key]
 
-    def inside(self, kp: float, kf: float) -> bool:
-        return (self.kp_box[0] - 1e-12 <= kp <= self.kp_box[1] + 1e-12
-                and self.kf_box[0] - 1e-12 <= kf <= self.kf_box[1] + 1e-12)
-
     def _evaluate(self, c: _Candidate, bound: float) -> None:
-        """Learn ``c``'s total over the objective plants unless it exceeds ``bound``, then,
+        """Learn ``c``'s total over the screen unless it exceeds ``bound``, then,
         where it is below ``bound``, whether it holds on the critical plants (writes ``c``
         only)."""
         if c.broke & set(self.critical):
@@ -496,7 +492,7 @@ class _Search:
                     return
 
     def feasible_total(self, c: _Candidate) -> float:
-        """``c``'s total if it is known to hold on the critical and objective plants, else inf."""
+        """``c``'s total if it is known to hold on the critical and screen plants, else inf."""
         if c.total is None or any(q in c.broke or q not in c.held
                                   for q in self.critical + list(self.screen)):
             return math.inf
@@ -598,8 +594,8 @@ def robust_baseline(
     threads: int | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> BaselineResult:
-    """The equal fixed gains of least mean MSE(CE) over the objective plants among those that
-    keep every plant's checks (module doc).
+    """The equal fixed gains of least geometric-mean MSE(CE) over the objective plants among
+    those that keep every plant's checks (module doc).
 
     Parameters
     ----------
