@@ -56,9 +56,9 @@ class JobRequest(_Strict):
     options: OptimizeOptions = Field(
         default_factory=OptimizeOptions,
         description="the options of `oga optimize` (np, knot, lam, anchor, adjust, gains, baseline, "
-        "kp_range, nominal, feed in mm/min, tolerance in mm), same defaults: a machine with an "
-        "uncertainty set (ucp710) gets the robust search and its certificate unless "
-        '"nominal": true')
+        "kp_range, nominal, certify, threads, feed in mm/min, tolerance in mm), same defaults "
+        "but threads (one per job unless given): a machine with an uncertainty set (ucp710) "
+        'gets the robust search and its certificate unless "nominal": true')
 
 
 class TraceIn(_Strict):

@@ -21,11 +21,13 @@
    (:func:`oga.robust.certificate.certify`), the first round's on a screen first (the
    corners and typical plants: where it fails there, as the nominal plant's schedule
    does, the whole set's certificate would fail too, :class:`_Round`; the exported
-   table's certificate is always the whole set's); the rounds stop at the first that breaks no
-   such limit and meets the goals (:data:`oga.defaults.ROBUST_MEDIAN_GOAL`,
-   ``ROBUST_P90_GOAL``, ``ROBUST_WORST_GOAL``: the issue's 0.3, 0.5, 0.9); else the best
-   round is kept (goals met first, then the fewest plants where it fails: worse than the
-   baseline or breaking a check the baseline keeps, then the least worst ratio).
+   table's certificate is always the whole set's); the rounds stop at the first that breaks
+   no such limit and meets the goals (:data:`oga.defaults.ROBUST_MEDIAN_GOAL`,
+   ``ROBUST_P90_GOAL``, ``ROBUST_WORST_GOAL``: the issue's 0.3, 0.5, 0.9), or where the next
+   round would search the same plants with the same limits (it would repeat this one, bit
+   for bit: helix_r20 ran its third round three times); else the best round is kept
+   (goals met first, then the fewest plants where it fails: worse than the baseline or
+   breaking a check the baseline keeps, then the least worst ratio).
 4. **Shrink** (only when the kept schedule's certificate fails): ``K = Kb + alpha (Ks - Kb)``,
    the largest share ``alpha`` (one for Kp and Kf) whose certificate passes, by bisection
    (:func:`_shrink`): it moves continuously with the machine.
@@ -221,6 +223,8 @@ def robust_optimize(
         worst = next((i for i in order if i not in rejected and not np.isnan(ratio[i])), None)
         if worst is not None and worst not in active:  # the worst plant joins the search
             active = (active + [worst])[-(defaults.ROBUST_ACTIVE - 1):]
+        if (tuple(active), reserve) == (done.active, done.reserve):
+            break  # the same plants and limits: the next round's search would repeat this one
     while True:  # the best round (the first of the least key), certified on the whole set
         kept = min(tried, key=lambda r: r.key)
         if kept.full:
