@@ -643,7 +643,7 @@ def _fig_ratio(c: CertificateData) -> tuple[str, str]:
                f"schedule {len(sc['breaks']['schedule'])}, baseline "
                f"{len(sc['breaks']['baseline'])}, schedule only "
                f"{len(sc['breaks']['schedule-only'])}."
-               + (f" Confidence: {confidence_text(sc['confidence'])}." if "confidence" in sc
+               + (f" Confidence: {confidence_text(sc)}." if "confidence" in sc
                   else ""))
     return _svg(1100, 300, body, "certificate ratio"), caption
 

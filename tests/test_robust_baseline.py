@@ -162,6 +162,11 @@ def test_the_confidence_bound_is_in_the_summary_the_cli_and_the_report():
     pct = f"{conf['share_bound'] * 100:.2f} %"
     assert any(pct in line and "95 % confidence" in line for line in certificate_lines(cert))
     assert pct in render_report(job)
+    # a table that failed its certificate is not exported: the line says whose bound it is
+    from oga.robust.certificate import confidence_text
+    ok = {**cert, "status": "ok"}
+    assert "confidence the table fails" in confidence_text(ok)
+    assert "the searched table (not exported)" in confidence_text({**cert, "status": "failed"})
     with pytest.raises(OptionError, match="certify"):
         options_from_dict({"certify": 8, "nominal": True})
     with pytest.raises(OptionError, match="threads"):

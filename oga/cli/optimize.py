@@ -116,7 +116,7 @@ def certificate_lines(cert: dict) -> list[str]:
         f"p90 {cert['ratio_p90']:.3f}, worst {cert['ratio_worst']:.3f} ({cert['worst_plant']})",
         f"  plants where a limit breaks: schedule {len(br['schedule'])}, baseline "
         f"{len(br['baseline'])}, schedule only {len(br['schedule-only'])}",
-        f"  {confidence_text(cert['confidence'])}",
+        f"  {confidence_text(cert)}",
         f"  largest CE (um): schedule {s['max_ce_um']:.3f}, baseline {b['max_ce_um']:.3f}; "
         "largest following error (um): " + ", ".join(
             f"{a} {s['track_max_um'][a]:.1f} (baseline {b['track_max_um'][a]:.1f})" for a in axes),

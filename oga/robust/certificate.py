@@ -204,14 +204,16 @@ def share_bound(failures: int, draws: int, level: float = defaults.ROBUST_CONFID
     return float(betaincinv(failures + 1, draws - failures, level))
 
 
-def confidence_text(confidence: dict) -> str:
-    """A certificate summary's ``confidence`` in words (the CLI's line, the report's caption)."""
-    c = confidence
+def confidence_text(cert: dict) -> str:
+    """A certificate summary's (:meth:`Certificate.summary`) confidence bound in words: the
+    CLI's line, the report's caption."""
+    c = cert["confidence"]
     if c["share_bound"] is None:
         return "no Monte Carlo plant: no confidence bound"
-    return (f"at {c['level'] * 100:g} % confidence the table fails (worse than the baseline, or "
-            f"a check broken the baseline keeps) on at most {c['share_bound'] * 100:.2f} % of "
-            f"the set's machines ({c['failures']} of {c['draws']} Monte Carlo plants fail)")
+    table = "the table" if cert["status"] == "ok" else "the searched table (not exported)"
+    return (f"at {c['level'] * 100:g} % confidence {table} fails (worse than the baseline, or a "
+            f"check broken the baseline keeps) on at most {c['share_bound'] * 100:.2f} % of the "
+            f"set's machines ({c['failures']} of {c['draws']} Monte Carlo plants fail)")
 
 
 def plant_bounds(scenarios: ScenarioSet, axes, threads: int = 1
