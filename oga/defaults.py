@@ -348,8 +348,8 @@ ROBUST_FRICTION_LINEAR_BELOW_M_S = 1e-6
 #: tangent is not the friction at all (tanh saturates, the Stribeck peak falls). The
 #: scenario plants take the least of :data:`ROBUST_FRICTION_LINEAR_BELOW_M_S` and this share.
 FRICTION_LINEAR_MAX_SHARE = 0.01
-#: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
-#: to the first cut of the limit reserve (doubled at each further cut).
+#: Robust search: rounds at most (each adds plants, and cuts the searched plants' limit
+#: reserve where a table broke one); margin added to the first cut (doubled at each further cut).
 ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
 #: Robust search: bisection steps of the share of the searched schedule's departure from the
