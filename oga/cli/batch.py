@@ -238,8 +238,16 @@ def _up_to_date(out: FilePath, task: _Task, machine_sha256: str) -> bool:
     return (summary.get("status") == "ok"
             and summary.get("toolpath_sha256") == toolpath_sha256(text)
             and summary.get("machine_sha256") == machine_sha256
-            and summary.get("options") == task.options
+            and _result_options(summary.get("options")) == _result_options(task.options)
             and all((out / t).is_file() for t in tables))
+
+
+def _result_options(options) -> dict | None:
+    """The options that decide a program's result: all but ``threads`` (a program is run on one
+    thread unless told, and the result is the same bits on any number)."""
+    if not isinstance(options, dict):
+        return None
+    return {k: v for k, v in options.items() if k != "threads"}
 
 
 def _store(out: FilePath, task: _Task, outcome: dict) -> None:
