@@ -84,10 +84,11 @@ class JobRequest(_Strict):
     options: OptimizeOptions = Field(
         default_factory=OptimizeOptions,
         description="the options of `oga optimize` (np, knot, lam, anchor, adjust, gains, baseline, "
-        "kp_range, nominal, feed in mm/min, tolerance in mm; reader: auto, builtin or linuxcnc, "
-        "the G-code reader; tool_table: the text of a LinuxCNC tool table, mm), same defaults: "
-        "a machine with an uncertainty set (ucp710) gets the robust search and its certificate "
-        'unless "nominal": true')
+        "kp_range, nominal, certify, threads, feed in mm/min, tolerance in mm; reader: auto, "
+        "builtin or linuxcnc, the G-code reader; tool_table: the text of a LinuxCNC tool table, "
+        "mm), same defaults but threads (one per job unless given): a machine with an "
+        'uncertainty set (ucp710) gets the robust search and its certificate unless "nominal": '
+        "true")
 
     @model_validator(mode="after")
     def _one_input(self):

@@ -159,7 +159,8 @@ def run_claimed(store: Store, job: JobRow) -> str:
             store.succeed(job.id, job.attempts, json_safe(ident.summary()),
                           ident.toml.encode("utf-8"))
             return "succeeded"
-        options, read = stored_options(job.options)
+        # one thread per job unless its options say otherwise: jobs run side by side
+        options, read = stored_options(job.options, threads=job.options.get("threads") or 1)
         done = run_job(job.toolpath, job.toolpath_format, machine, options, source=job.source,
                        progress=progress, setpoints_options=read)
         result = done.result

@@ -368,8 +368,13 @@ EXCITE_TRAVEL_MM = 100.0
 # robust --------------------------------------------------------------------------------------
 #: Monte Carlo plants drawn from a machine's uncertainty set (the certificate's sample).
 ROBUST_MC_PLANTS = 64
+#: Most Monte Carlo plants a certificate may ask for (``certify``; a bound at 95 % of 0.06 %).
+ROBUST_MC_PLANTS_MAX = 5000
 #: Seed of that draw (a certificate is reproducible).
 ROBUST_SEED = 17
+#: Level of the certificate's upper confidence bound on the share of the set's machines where
+#: the table fails (oga.robust.certificate).
+ROBUST_CONFIDENCE = 0.95
 #: Groups of uncertain parameters whose set corners are added to the Monte Carlo plants, all
 #: axes at the same end of their own ranges (2^groups corners): the parameters that move the
 #: schedule's result (friction level, mass, Kv, Tn, dead time); the rest stay nominal.
@@ -385,18 +390,19 @@ ROBUST_FRICTION_LINEAR_BELOW_M_S = 1e-6
 #: tangent is not the friction at all (tanh saturates, the Stribeck peak falls). The
 #: scenario plants take the least of :data:`ROBUST_FRICTION_LINEAR_BELOW_M_S` and this share.
 FRICTION_LINEAR_MAX_SHARE = 0.01
-#: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
-#: to the first cut of the limit reserve (doubled at each further cut).
+#: Robust search: rounds at most (each adds plants, and cuts the searched plants' limit
+#: reserve where a table broke one); margin added to the first cut (doubled at each further cut).
 ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
-#: Robust search (prototype): shares of the searched schedule's departure from the baseline
-#: tried (Kf; Kp), and the plants (where the schedule does worst) of the small scenario set they are
-#: tried on.
-ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
-ROBUST_KP_ALPHAS = (1.0, 0.75, 0.5, 0.25)
+#: Robust search: bisection steps of the share of the searched schedule's departure from the
+#: baseline kept where its certificate fails (oga.robust.search._shrink: to 1/128).
+ROBUST_SHRINK_STEPS = 7
+#: Robust search: the typical Monte Carlo plants the first round's schedule is screened on.
 ROBUST_SUBSET = 8
-#: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
-#: be chosen by its median ratio on the typical ones.
+#: Robust search: the Monte Carlo plants (the set's first) its rounds search and judge on,
+#: with the corners; the kept table is certified on the whole set.
+ROBUST_SEARCH_PLANTS = 64
+#: Robust search: the worst ratio a round aims for (with ROBUST_MEDIAN_GOAL, ROBUST_P90_GOAL).
 ROBUST_WORST_GOAL = 0.9
 
 # robust search -------------------------------------------------------------------------------
@@ -412,6 +418,18 @@ ROBUST_P90_GOAL = 0.5
 #: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
 #: on each searched plant that its limits keep, whatever the reserve (oga.robust.multi).
 ROBUST_BASELINE_FLOOR = 0.85
+#: Robust baseline (:mod:`oga.robust.baseline`): the Monte Carlo plants whose geometric mean
+#: MSE(CE) it minimises (the first ones of the set), and those of them its grid is screened
+#: on; the refinement's steps at most, the step (in grid steps) below which it stops, and the
+#: share of each limit its models keep clear of; the confirmations on every plant at most.
+ROBUST_BASELINE_PLANTS = 32
+ROBUST_BASELINE_GRID_PLANTS = 8
+ROBUST_BASELINE_ITERATIONS = 30
+ROBUST_BASELINE_TOL = 1e-2
+ROBUST_BASELINE_GAIN = 5e-4
+ROBUST_BASELINE_MARGIN = 1e-4
+ROBUST_BASELINE_SEED = 0.9
+ROBUST_BASELINE_CONFIRMATIONS = 8
 
 # corner blending -----------------------------------------------------------------------------
 #: Share of the plan's tolerance given to corner blends (feedplan.blend; the rest is left to

@@ -73,14 +73,15 @@ class Job:
         return (*(self.path.warnings if self.path is not None else ()), *self.setpoints.warnings)
 
 
-def stored_options(stored: dict) -> tuple[OptimizeOptions, dict | None]:
-    """A stored job's options (API, batch): the search options, and the reading options of
-    recorded setpoints (stored under ``setpoints``; None for a toolpath)."""
+def stored_options(stored: dict, **overrides) -> tuple[OptimizeOptions, dict | None]:
+    """A stored job's options (API, batch): the search options (``overrides`` given over the
+    stored ones, as :func:`oga.options.options_from_dict` takes them), and the reading options
+    of recorded setpoints (stored under ``setpoints``; None for a toolpath)."""
     from oga.options import options_from_dict
 
     rest = dict(stored)
     read = rest.pop("setpoints", None)
-    return options_from_dict(rest), read
+    return options_from_dict(rest, **overrides), read
 
 
 def toolpath_sha256(text: str) -> str:

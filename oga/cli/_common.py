@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path as FilePath
 
-from oga.defaults import GCODE_READER, GCODE_READERS, NP, TOL_M
+from oga.defaults import GCODE_READER, GCODE_READERS, NP, ROBUST_MC_PLANTS, TOL_M
 from oga.errors import InputError, OgaError, OptionError
 
 __all__ = [
@@ -85,6 +85,12 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                    help="search the machine's nominal model only (default: where the machine "
                         "has an uncertainty set, as ucp710 has, the robust search and its "
                         "certificate)")
+    p.add_argument("--certify", type=int, default=None, metavar="N",
+                   help=f"robust search: Monte Carlo plants of the certificate, the set's corners "
+                        f"on top (default {ROBUST_MC_PLANTS}; more tighten its confidence bound)")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="threads for the robust search's independent replays (default: the "
+                        "available cores; the result does not depend on it)")
 
 
 def options_from_args(args: argparse.Namespace, fields: tuple[str, ...] = ()):
@@ -124,7 +130,8 @@ def flag_message(err: OptionError) -> OptionError:
 
 #: The flags of add_search_args and add_toolpath_args that are fields of OptimizeOptions.
 _SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot", "lam",
-                 "anchor", "nominal", "feed", "tolerance", "reader", "tool_table")
+                 "anchor", "nominal", "certify", "threads", "feed", "tolerance", "reader",
+                 "tool_table")
 
 
 def load_inputs(args: argparse.Namespace):

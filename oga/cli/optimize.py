@@ -174,6 +174,8 @@ def run(args: argparse.Namespace) -> int:
 
 def certificate_lines(cert: dict) -> list[str]:
     """The certificate of a summary (``summary["certificate"]``) as the lines printed."""
+    from oga.robust.certificate import confidence_text
+
     br = cert["breaks"]
     s, b = cert["schedule"], cert["baseline"]
     axes = [a for a in s["track_max_um"] if s["track_max_um"][a] or b["track_max_um"][a]]
@@ -184,6 +186,7 @@ def certificate_lines(cert: dict) -> list[str]:
         f"p90 {cert['ratio_p90']:.3f}, worst {cert['ratio_worst']:.3f} ({cert['worst_plant']})",
         f"  plants where a limit breaks: schedule {len(br['schedule'])}, baseline "
         f"{len(br['baseline'])}, schedule only {len(br['schedule-only'])}",
+        f"  {confidence_text(cert)}",
         f"  largest CE (um): schedule {s['max_ce_um']:.3f}, baseline {b['max_ce_um']:.3f}; "
         "largest following error (um): " + ", ".join(
             f"{a} {s['track_max_um'][a]:.1f} (baseline {b['track_max_um'][a]:.1f})" for a in axes),
