@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         if f.status != "ok":
             print(f"{a}: model error: residual {f.noise_ratio:.3g} times the noise, correlated "
                   f"over {f.correlation_samples:.3g} samples, {f.model_error_share:.3g} of the "
-                  "following error unexplained"
+                  "velocity loop's imprint unexplained"
                   + (f", on a physical bound: {', '.join(f.at_bounds)}" if f.at_bounds else ""))
         if a in ident.holdout:
             h = ident.holdout[a]

@@ -89,7 +89,7 @@ def _param_table(ident: Identification, base, a: str) -> str:
             f"{fit.noise_rms_m * 1e6:.3g} um ({fit.noise_ratio:.3g} times), status "
             f"<b>{fit.status}</b>. Evidence of model error: the residual's correlation time "
             f"{fit.correlation_samples:.3g} samples (1: white), the model-error share "
-            f"{fit.model_error_share:.3g} of the following error"
+            f"{fit.model_error_share:.3g} of the velocity loop's imprint on the positions"
             + (f", on a physical bound: {html.escape(', '.join(fit.at_bounds))}"
                if fit.at_bounds else "")
             + f"; dead time and lag tried (residual RMS): {html.escape(cands)}.</p>")

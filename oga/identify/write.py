@@ -11,6 +11,7 @@ from collections import Counter
 from oga.defaults import (
     IDENT_BOUNDS,
     IDENT_CONFIDENCE,
+    IDENT_MODEL_ERROR_MAX_WIDTH,
     IDENT_MODEL_ERROR_WIDTHS,
     IDENT_UNCERTAINTY_FLOOR,
     IDENT_UNCERTAINTY_WIDTHS,
@@ -59,8 +60,8 @@ def uncertainty_of(fit: AxisFit, *, widths: float = IDENT_UNCERTAINTY_WIDTHS,
     times the larger of the fit's model-error share (what the model leaves out is in no
     parameter alone: every range grows with it) and the parameter's model-error change (the
     change of that parameter alone that moves the positions by the unexplained residual: a
-    parameter the trace hardly sees gets a wide range); at most x0.1-x10 and inside the
-    physical bounds. The mass moves the loop as Kv does. Every piece grows continuously with
+    parameter the trace hardly sees gets a wide range), that part at most
+    ``IDENT_MODEL_ERROR_MAX_WIDTH``; at most x0.1-x10 and inside the physical bounds. The mass moves the loop as Kv does. Every piece grows continuously with
     its evidence. Extra dead time: ``model_widths`` times the dead time's model-error change,
     rounded, and at least 1 when one more sample fits within 1 % of the best residual or the
     fit is not ``ok``."""
@@ -69,7 +70,8 @@ def uncertainty_of(fit: AxisFit, *, widths: float = IDENT_UNCERTAINTY_WIDTHS,
     change = fit.model_error_changes
     mass = fit.values["mass_kg"]
     for name in FACTOR_FIELDS:
-        least = max(floor, model_widths * max(fit.model_error_share, change.get(name, 0.0)))
+        least = max(floor, min(IDENT_MODEL_ERROR_MAX_WIDTH, model_widths * max(
+            fit.model_error_share, change.get(name, 0.0))))
         v = fit.values[name]
         if v > 0 and math.isfinite(fit.ci_low[name]) and math.isfinite(fit.ci_high[name]):
             lo_rel = widths * grow * (v - fit.ci_low[name]) / v
@@ -188,7 +190,7 @@ def machine_toml(machine: Machine, fits: dict[str, AxisFit]) -> str:
                 lines.append(
                     f"# model error: residual {fit.noise_ratio:.3g} times the noise, correlated "
                     f"over {fit.correlation_samples:.3g} samples (1: white), "
-                    f"{fit.model_error_share:.3g} of the following error unexplained"
+                    f"{fit.model_error_share:.3g} of the velocity loop's imprint unexplained"
                     + (f"; on a physical bound: {', '.join(fit.at_bounds)}" if fit.at_bounds
                        else ""))
             for k, v in ax[kind].items():
