@@ -414,7 +414,7 @@ IDENT_POOR_FORCE_SHARE = 0.05
 IDENT_BOUNDS = {
     "velocity_loop_hz": (2.0, 300.0),  # Kv / (2 pi m), the velocity loop's bandwidth
     "tn_s": (2e-3, 1.0),  # the velocity PI's integral time
-    "force_lag_s": (2e-5, 5e-3),  # the current loop (8 kHz .. 30 Hz)
+    "force_lag_s": (2e-5, 2e-3),  # the current loop (8 kHz .. 80 Hz) and what lags with it
     "coulomb_n_per_kg": (0.0, 10.0),  # Fc / m: a friction coefficient up to 1
     "stribeck_rise_n_per_kg": (0.0, 10.0),  # (Fs - Fc) / m
     "stribeck_m_s": (2e-5, 0.02),
