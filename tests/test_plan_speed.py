@@ -21,6 +21,7 @@ from oga.defaults import TOL_M
 from oga.machine import load_machine
 
 
+@pytest.mark.portable
 @pytest.mark.parametrize("name", ref.PROGRAMS)
 def test_setpoints_as_stored(name):
     got = references.cases("plan")[name]()

@@ -176,6 +176,7 @@ def test_contour_metrics_are_numpys_to_the_bit(n):
             (want[1], want[3], want[7], want[8]))
 
 
+@pytest.mark.portable
 @pytest.mark.parametrize("i", references.VERIFY_PLANTS)
 def test_verify_is_that_of_7adc0aa(i):
     """Plant i of scenario_set(ucp710, 64, seed 17) (0: nominal; the exact kernel, as at

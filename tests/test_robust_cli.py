@@ -60,7 +60,6 @@ def _table_gains(path: Path, summary: dict):
     return kp, kf, bkp, bkf
 
 
-@pytest.mark.portable
 def test_nominal_is_the_search_before_the_robust_default():
     m = load_machine("ucp710")
     bare = _without_set(m)
