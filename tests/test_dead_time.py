@@ -36,7 +36,6 @@ def short():
     return plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), UCP, feed_m_s=None, tol_m=2e-5)
 
 
-@pytest.mark.portable
 def test_the_axis_value_overrides_the_machine_value(short):
     own = _with({"x": {"dead_time_samples": 3}})  # the machine's stays 2
     everywhere = _with({}, {"dead_time_samples": 3})

@@ -16,7 +16,6 @@ import references
 from pinned_setpoints import pinned_setpoints
 
 
-@pytest.mark.portable
 @pytest.mark.parametrize("name", references.SEARCH_PROGRAMS)
 def test_nominal_schedule_is_the_stored_one(name):
     want_n = {"reference_xz.ngc": 3004, "short_xz.ngc": 1070, "corner_steps.ngc": 783,
