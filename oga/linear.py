@@ -26,8 +26,9 @@ Without force limit and with ``F_n`` held, one sub-step is linear in
 ``z = [p, v, F, I]`` and the inputs ``[u, F_n]`` (the velocity command u held over
 Te); composing ``substeps`` of them gives the axis over one Te
 (:func:`substep_sequence`). Linearised (friction -> its viscous part B, which is
-inside the matrices, so ``F_n = 0``) this is the lifted axis (:func:`lifted_axis`). The position loop adds a dead time of
-``dead_time_samples`` samples and the gain Kp (:func:`position_open_loop`).
+inside the matrices, so ``F_n = 0``) this is the lifted axis (:func:`lifted_axis`). The position loop adds the axis's dead time
+(:func:`dead_line`: whole samples, or a fractional one as a linear interpolation between
+two) and the gain Kp (:func:`position_open_loop`).
 
 An ARX axis (:class:`oga.machine.Arx`) is already discrete over Te; its velocity
 ``v_k`` follows the difference equation of ``V(z)`` on the input
@@ -38,6 +39,7 @@ and ``p_{k+1} = p_k + Te v_k`` (:func:`arx_state_space`).
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 from scipy.linalg import expm
@@ -51,6 +53,7 @@ __all__ = [
     "substep_sequence_of",
     "arx_state_space",
     "lifted_axis",
+    "dead_line",
     "position_open_loop",
 ]
 
@@ -256,15 +259,29 @@ def lifted_axis(
     return a, b, c, np.zeros((1, 1))
 
 
+def dead_line(machine: Machine, axis: str) -> tuple[int, float]:
+    """The dead time of ``axis`` (:meth:`oga.machine.Machine.dead_time_samples_of`) as a
+    line of commands: ``(L, f)``, the line's length and the weight of its oldest command.
+
+    A whole dead time ``d`` is ``(d, 0.0)``: the axis receives ``u_{k-d}``. A fractional one
+    ``d`` is ``(floor(d) + 1, d - floor(d))``: the axis receives ``f u_{k-L} + (1 - f)
+    u_{k-L+1}``, the linear-interpolation fractional delay (over the period, the mean of the
+    command delayed by ``d Te``; continuous in ``d``, whole values included).
+    """
+    d = machine.dead_time_samples_of(axis)
+    whole = math.floor(d)
+    return (whole, 0.0) if d == whole else (whole + 1, d - whole)
+
+
 def position_open_loop(
     machine: Machine, axis: str, kp_si: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The position open loop ``L(z) = Kp z^-d G(z)`` as a discrete state-space (period Te).
 
     ``G`` is :func:`lifted_axis` (velocity command -> position, ``n`` states) and
-    ``d`` is ``machine.timing.dead_time_samples``. The state is ``[z, w]`` with
-    ``w = [u_k-1, ..., u_k-d]`` the dead-time line; negative unity feedback
-    ``u = -y`` closes the position loop.
+    ``z^-d`` the axis's dead time (:func:`dead_line`; a fractional one
+    ``z^-L (f + (1 - f) z)``). The state is ``[z, w]`` with ``w = [u_k-1, ..., u_k-L]`` the
+    dead-time line; negative unity feedback ``u = -y`` closes the position loop.
 
     Parameters
     ----------
@@ -277,15 +294,15 @@ def position_open_loop(
 
     Returns
     -------
-    a : ndarray, shape (n + d, n + d)
-    b : ndarray, shape (n + d, 1)
-    c : ndarray, shape (1, n + d)
+    a : ndarray, shape (n + L, n + L)
+    b : ndarray, shape (n + L, 1)
+    c : ndarray, shape (1, n + L)
         Output ``y = Kp p`` (m/s).
     d : ndarray, shape (1, 1)
         Zero feed-through.
     """
     a_g, b_g, c_g, _ = lifted_axis(machine, axis)
-    dead = machine.timing.dead_time_samples
+    dead, frac = dead_line(machine, axis)
     m = a_g.shape[0]
     n = m + dead
     a = np.zeros((n, n))
@@ -298,6 +315,12 @@ def position_open_loop(
         b[m, 0] = 1.0  # the newest command enters the line
         for i in range(m + 1, n):
             a[i, i - 1] = 1.0
+        if frac != 0.0:  # and the next oldest: f u_{k-L} + (1 - f) u_{k-L+1}
+            a[:m, n - 1 : n] = frac * b_g
+            if dead > 1:
+                a[:m, n - 2 : n - 1] = (1.0 - frac) * b_g
+            else:
+                b[:m] = (1.0 - frac) * b_g
     c = np.zeros((1, n))
     c[0, :m] = kp_si * c_g[0]
     return a, b, c, np.zeros((1, 1))

@@ -18,7 +18,7 @@ import json
 import tomllib
 import weakref
 from pathlib import Path as FilePath
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 from pydantic import (
@@ -174,8 +174,12 @@ class Uncertainty(_Frozen):
     """How far a cascade axis may differ from its nominal values: per parameter a
     ``(low, high)`` factor on the nominal value (``low <= 1 <= high``; +-50 % is
     ``(0.5, 1.5)``, x0.5-x2 is ``(0.5, 2.0)``), and the extra dead time, ``(low, high)``
-    whole samples added to ``timing.dead_time_samples``. Each field is named after the
-    cascade field it scales. ``oga identify`` writes it from its confidence intervals.
+    whole samples added to the axis's dead time. Each field is named after the
+    cascade field it scales. ``oga identify`` writes it from its confidence intervals and the
+    evidence of model error, and says so: ``fit_status`` (``ok``, ``model-error``: the set
+    widened by the evidence, ``poor``: the model does not cover the plant) and
+    ``model_error_share`` (:class:`oga.identify.fit.AxisFit`); both absent from an assumed
+    set (a preset's).
     """
 
     coulomb_n: tuple[Factor, Factor] = (1.0, 1.0)
@@ -189,6 +193,8 @@ class Uncertainty(_Frozen):
     dead_time_extra_samples: tuple[
         Annotated[int, Field(ge=0, le=10)], Annotated[int, Field(ge=0, le=10)]
     ] = (0, 0)
+    fit_status: Literal["ok", "model-error", "poor"] | None = None
+    model_error_share: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
 
     @model_validator(mode="after")
     def _around_nominal(self) -> "Uncertainty":
@@ -211,12 +217,22 @@ FACTOR_FIELDS: tuple[str, ...] = (
 
 class Axis(_Frozen):
     """One linear axis: its limits, exactly one model kind, ``cascade`` or ``arx``, and,
-    for a cascade, optionally its :class:`Uncertainty`."""
+    for a cascade, optionally its :class:`Uncertainty`.
+
+    ``dead_time_samples`` (optional) is the axis's own dead time, position-loop samples
+    between the velocity command and the velocity loop; unset, the axis has the machine's
+    ``timing.dead_time_samples`` (:meth:`Machine.dead_time_samples_of`). A whole number, or
+    a fraction where the command reaches the loop between two samples: ``2.4`` is two
+    samples and four tenths of one (the simulation takes the command of that period as
+    ``0.6 u[k-2] + 0.4 u[k-3]``, the linear-interpolation fractional delay; ``oga identify``
+    writes one where it fits measurably better than a whole number).
+    """
 
     limits: Limits
     cascade: Cascade | None = None
     arx: Arx | None = None
     uncertainty: Uncertainty | None = None
+    dead_time_samples: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] | None = None
 
     @model_validator(mode="after")
     def _one_kind(self) -> "Axis":
@@ -356,6 +372,13 @@ class Machine(_Frozen):
     def te(self) -> float:
         """Position-loop period in seconds."""
         return self.timing.te_s
+
+    def dead_time_samples_of(self, axis: str) -> float:
+        """Dead time of ``axis``, position-loop samples: the axis's own
+        ``dead_time_samples`` where it sets one, else ``timing.dead_time_samples``
+        (MachineError if the machine lacks the axis)."""
+        own = self.axis(axis).dead_time_samples
+        return float(self.timing.dead_time_samples if own is None else own)
 
     def axis(self, name: str) -> Axis:
         """The axis called ``name`` (MachineError if the machine lacks it)."""

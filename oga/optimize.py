@@ -165,6 +165,7 @@ class OptimizeResult:
 
     def summary(self, toolpath: str = "", toolpath_sha256: str | None = None) -> dict:
         """The summary JSON (users' units), as written by ``oga optimize --summary``."""
+        from oga.identify.coverage import model_coverage
 
         def metrics(v: Verification) -> dict:
             m = v.metrics.to_dict()
@@ -202,6 +203,7 @@ class OptimizeResult:
                        "violations": list(self.searched.violations)},
             "certificate": (self.certificate.summary() if self.robust
                             else {"status": "none", "reasons": [self.search_kind()]}),
+            "model": model_coverage(self.machine, moving),
             "limits_ok": self.optimized.limits_ok,
             "stability_ok": self.optimized.stability_ok,
             "violations": list(self.optimized.violations),

@@ -7,8 +7,12 @@ in its packed parameters, so every compiled function below takes either.
 
 1. measure ``p_k``;
 2. velocity command ``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (Kp in 1/s);
-3. ``u_k`` enters a dead-time line of ``d`` samples: during ``[k Te, (k+1) Te)``
-   the velocity loop receives ``u_{k-d}`` (zero before the start);
+3. ``u_k`` enters a dead-time line of ``d`` samples (the axis's own,
+   :meth:`oga.machine.Machine.dead_time_samples_of`): during ``[k Te, (k+1) Te)`` the
+   velocity loop receives ``u_{k-d}`` (zero before the start); a fractional dead time
+   ``d = L - 1 + f`` (``0 < f < 1``) gives it ``f u_{k-L} + (1 - f) u_{k-L+1}`` (the
+   linear-interpolation fractional delay: over the period, the mean of the command
+   delayed by ``d Te``), the line then ``L`` long;
 4. ``substeps`` sub-steps of ``h = Te / substeps``, each:
 
    - discrete velocity PI: ``e = u_{k-d} - v``, ``F_cmd = Kv (e + I / Tn)``
@@ -58,7 +62,8 @@ over Te. At sample k, with the command ``u_k`` issued:
 2. ``v_k = sum_i num[i] w_{k-i} - sum_{i>=1} den[i] v_{k-i}``;
 3. ``p_{k+1} = p_k + Te v_k``.
 
-The dead time is folded into the numerator (``d`` leading zeros); with the
+The dead time is folded into the numerator (``d`` leading zeros; a fractional one as
+``z^-(L-1) (1 - f + f z^-1)``); with the
 friction off this is exactly the linear model of :func:`oga.linear.arx_state_space`.
 
 The compiled functions (:func:`rest_state`, :func:`step`, :func:`drive`, :func:`window`,
@@ -66,7 +71,8 @@ The compiled functions (:func:`rest_state`, :func:`step`, :func:`drive`, :func:`
 :func:`state_size` entries, whose first entries are always the position p (m) and
 the velocity v (m/s):
 
-- cascade: ``[p, v, F, I, u_{k-1}, ..., u_{k-d}]`` (m, m/s, N, m, then m/s);
+- cascade: ``[p, v, F, I, u_{k-1}, ..., u_{k-L}]`` (m, m/s, N, m, then m/s; ``L`` the
+  dead time rounded up);
 - ARX: ``[p, v_{k-1}, .., v_{k-nv}, w_{k-1}, .., w_{k-nw}]`` (m, then m/s), the
   velocities of the last ``nv = max(1, len(den) - 1)`` periods and the last
   ``nw = len(num) - 1 + d`` velocity-loop inputs.
@@ -90,7 +96,7 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
-from oga.linear import substep_matrices, substep_sequence_of
+from oga.linear import dead_line, substep_matrices, substep_sequence_of
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, machine_memo
 
 __all__ = [
@@ -112,7 +118,7 @@ __all__ = [
 
 # Layout of the packed parameters (float64 vector). Header, both kinds:
 _KIND = 0  # _CASCADE or _ARX
-_DEAD = 1  # dead time, samples
+_DEAD = 1  # length of the dead-time line, samples (the dead time rounded up)
 _NSTATE = 2  # length of the state vector
 _CASCADE, _ARX = 0.0, 1.0
 # cascade:
@@ -140,7 +146,8 @@ _NA = 66  # 4x4 row-major: z = [p, v, F, I] over Te, unsaturated, F_n = c v_j (c
 _NB = 82  # 4x2 row-major: inputs [u, load] over Te, same
 _WL = 90  # 5: bound of |v_j| over the sub-steps of that map, on |[v, e, F, I, load]|
 _WF = 95  # 5: bound of |F_cmd,j| over them, same coordinates
-_N_PARAMS = 100
+_FRAC = 100  # fractional dead time: weight of the line's oldest command (0: a whole dead time)
+_N_PARAMS = 101
 # ARX (then den[1:] padded to nv, then the numerator past its first entry, nw):
 _A_TE = 3  # period, s
 _A_NV = 4  # number of past velocities in the state (nv)
@@ -185,7 +192,8 @@ def axis_params(machine: Machine, axis: str, lifted: bool = True) -> np.ndarray:
         cascade the sub-step matrices, PI, force limit, friction constants,
         sub-steps, lifted map, the bounds of its guard, the viscous friction, and the
         linear friction map with its guard (all zero where the machine leaves
-        ``timing.friction_linear_below_m_s`` unset): 100 entries; for an ARX axis Te,
+        ``timing.friction_linear_below_m_s`` unset), the dead time's fraction: 101 entries;
+        for an ARX axis Te,
         history lengths, friction, load gain and the coefficients (``11 + nv + nw``). Zero-padded to the longest over the
         machine's axes, so every axis of a machine has the same P.
     """
@@ -216,7 +224,7 @@ def _pack(machine: Machine, axis: str, lifted: bool) -> np.ndarray:
     n_params, n_state = _sizes(machine)
     out = np.zeros(n_params)
     if model.arx is not None:
-        _arx_params(model.arx, machine, out)
+        _arx_params(model.arx, machine, axis, out)
     else:
         _cascade_params(machine, axis, lifted, out)
     out[_NSTATE] = n_state
@@ -256,7 +264,7 @@ def _cascade_params(machine: Machine, axis: str, lifted: bool, out: np.ndarray) 
     out[_INV_EPS] = 1.0 / cas.friction_smoothing_m_s
     out[_R2_CUT] = r2_cut
     out[_NSUB] = machine.timing.substeps
-    out[_DEAD] = machine.timing.dead_time_samples
+    out[_DEAD], out[_FRAC] = dead_line(machine, axis)
     out[_LIFTED] = 1.0 if lifted else 0.0
     a_j, b_j = substep_sequence_of(machine, axis)
     out[_LA : _LA + 16] = a_j[-1].ravel()
@@ -273,11 +281,20 @@ def _cascade_params(machine: Machine, axis: str, lifted: bool, out: np.ndarray) 
         out[_WL : _WL + 5], out[_WF : _WF + 5] = wl, wf
 
 
-def _arx_params(arx, machine: Machine, out: np.ndarray) -> None:
+def _arx_numerator(machine: Machine, axis: str) -> np.ndarray:
+    """The ARX numerator with the axis's dead time folded in (module doc)."""
+    num = np.asarray(machine.axis(axis).arx.num, dtype=np.float64)
+    line, frac = dead_line(machine, axis)
+    if frac == 0.0:
+        return np.concatenate([np.zeros(line), num])
+    return np.concatenate([np.zeros(line - 1), np.convolve([1.0 - frac, frac], num)])
+
+
+def _arx_params(arx, machine: Machine, axis: str, out: np.ndarray) -> None:
     """Fill ``out`` with the packed parameters of an ARX axis (layout ``_A_*``), the dead
     time folded into ``num``."""
-    dead = machine.timing.dead_time_samples
-    num = np.concatenate([np.zeros(dead), arx.num])
+    num = _arx_numerator(machine, axis)
+    dead = dead_line(machine, axis)[0]
     den = np.asarray(arx.den)
     nv, nw = max(1, den.size - 1), num.size - 1
     out[_KIND] = _ARX
@@ -363,20 +380,19 @@ def _sizes(machine: Machine) -> tuple[int, int]:
     Every axis of a machine is packed to these lengths (unused entries zero), so
     the axes' parameters and states stack into arrays for compiled multi-axis loops.
     """
-    dead = machine.timing.dead_time_samples
     sizes = []
-    for model in machine.axes.values():
+    for name, model in machine.axes.items():
         if model.arx is None:
-            sizes.append((_N_PARAMS, 4 + dead))
+            sizes.append((_N_PARAMS, 4 + dead_line(machine, name)[0]))
         else:
-            nv, nw = max(1, len(model.arx.den) - 1), len(model.arx.num) - 1 + dead
+            nv, nw = max(1, len(model.arx.den) - 1), _arx_numerator(machine, name).size - 1
             sizes.append((_A_COEF + nv + nw, 1 + nv + nw))
     return max(p for p, _ in sizes), max(n for _, n in sizes)
 
 
 def state_size(machine: Machine) -> int:
     """Length of the machine's axis state vectors: the longest natural length over its
-    axes (cascade ``4 + d``, ARX ``1 + nv + nw``); a shorter axis leaves its tail zero."""
+    axes (cascade ``4 + L``, ARX ``1 + nv + nw``); a shorter axis leaves its tail zero."""
     return _sizes(machine)[1]
 
 
@@ -648,6 +664,17 @@ def _affine(params, at, p, v, f, i, ud, x):
     )
 
 
+@njit(cache=True, inline="always")
+def _delayed(params, oldest, newer):
+    """The command the velocity loop receives over a period: the dead-time line's
+    ``oldest`` (``u_{k-L}``), or for a fractional dead time ``f oldest + (1 - f) newer``
+    with ``newer`` = ``u_{k-L+1}`` (module doc)."""
+    frac = params[_FRAC]
+    if frac == 0.0:
+        return oldest
+    return frac * oldest + (1.0 - frac) * newer
+
+
 @njit(cache=True, nogil=True)
 def step(
     state: np.ndarray, params: np.ndarray, pd: float, vd: float, kp_si: float, kf: float
@@ -706,7 +733,7 @@ def drive(state: np.ndarray, params: np.ndarray, u: float, load_n: float) -> Non
     if dead == 0:
         ud = u
     else:
-        ud = state[_LINE + dead - 1]
+        ud = _delayed(params, state[_LINE + dead - 1], state[_LINE + dead - 2] if dead > 1 else u)
         for j in range(dead - 1, 0, -1):
             state[_LINE + j] = state[_LINE + j - 1]
         state[_LINE] = u
@@ -819,6 +846,12 @@ def window(
             ud = state[_LINE + dead - 1 - j]
         else:
             ud = _command(pd, vd, k0 + m, p0 if m == 0 else out_p[m - 1], kp_si, kf)
+        if params[_FRAC] != 0.0:  # and u_{k0+m+1} (m + 1 <= j: issued already)
+            if m + 1 < 0:
+                newer = state[_LINE + dead - 2 - j]
+            else:
+                newer = _command(pd, vd, k0 + m + 1, p0 if m + 1 == 0 else out_p[m], kp_si, kf)
+            ud = _delayed(params, ud, newer)
         p, v, f, i, still, ud_still = _period(params, p, v, f, i, ud, still, ud_still)
         out_p[j] = p
 
@@ -863,6 +896,8 @@ def run(
         out_u[k] = u
         m = k - dead  # the command applied now is u_m
         ud = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
+        if params[_FRAC] != 0.0:
+            ud = _delayed(params, ud, out_u[m + 1] if m + 1 >= 0 else state[_LINE + dead - 2 - k])
         p, v, f, i, still, ud_still = _period(params, p, v, f, i, ud, still, ud_still)
     _store_cascade(state, dead, out_u, n, p, v, f, i)
 
@@ -918,6 +953,9 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
             dead = int(prm[_DEAD])
             m = k - dead
             udq = out_u[m, a] if m >= 0 else states[a, _LINE + dead - 1 - k]
+            if prm[_FRAC] != 0.0:
+                udq = _delayed(prm, udq, out_u[m + 1, a] if m + 1 >= 0
+                               else states[a, _LINE + dead - 2 - k])
             if still[q] and _same(udq, ud_still[q]):
                 continue
             ud_still[q] = udq

@@ -43,7 +43,7 @@ from scipy.linalg import matrix_balance
 from scipy.optimize import brentq
 
 from oga.errors import OptionError
-from oga.linear import position_open_loop
+from oga.linear import dead_line, position_open_loop
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
 
 ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
@@ -222,7 +222,9 @@ class _Loop:
     def __init__(self, machine: Machine, axis: str):
         self.a, self.b, self.c, _ = position_open_loop(machine, axis, 1.0)
         self.te = machine.te
-        self.modal = _modal(self.a, self.b, self.c, machine.timing.dead_time_samples)
+        dead, frac = dead_line(machine, axis)
+        # a fractional dead time is no shift register's z^-d: the exact solves take it
+        self.modal = _modal(self.a, self.b, self.c, dead) if frac == 0.0 else None
         self.w = _frequency_grid(self.te)
         self.h = self.responses(self.w)
         self.log_mag = np.log(np.abs(self.h))

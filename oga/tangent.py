@@ -45,6 +45,7 @@ from oga.simulate import (
     _ARX,
     _DEAD,
     _F,
+    _FRAC,
     _I,
     _KIND,
     _LIFTED,
@@ -53,6 +54,7 @@ from oga.simulate import (
     _P,
     _V,
     _arx_drive,
+    _delayed,
     _lifted,
     _lifted_guard,
     _linear,
@@ -181,6 +183,7 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
             _arx_drive(state, params, out_u[k], 0.0)
         return
     dead = int(params[_DEAD])
+    frac = params[_FRAC]
     lifted = params[_LIFTED] != 0.0
     dp = np.zeros(nd_all)
     dv = np.zeros(nd_all)
@@ -200,6 +203,15 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
             ud = state[_LINE + dead - 1 - k]
             for d in range(nd):
                 dud[d] = 0.0
+        if frac != 0.0:  # a fractional dead time: with the next command (issued: m + 1 <= k)
+            if m + 1 >= 0:
+                ud = _delayed(params, ud, out_u[m + 1])
+                for d in range(nd):
+                    dud[d] = frac * dud[d] + (1.0 - frac) * su[m + 1, d]
+            else:
+                ud = _delayed(params, ud, state[_LINE + dead - 2 - k])
+                for d in range(nd):
+                    dud[d] = frac * dud[d]
         if _linear_guard(params, v, f, i, ud, 0.0):  # as :func:`oga.simulate._advance`
             for d in range(nd):
                 dp[d], dv[d], df[d], di[d] = _linear(params, dp[d], dv[d], df[d], di[d], dud[d],

@@ -1,14 +1,15 @@
 """Pinned planner output for the nominal-search pins: the search is tested on fixed setpoints.
 
-``tests/test_robust_search_nominal.py`` and ``tests/test_robust_cli.py`` pin the SHA-256 of
-nominal schedules computed on commit c417bb6. A schedule depends on the setpoints as well as on
-the search, so those tests take the setpoints from
+``tests/test_robust_search_nominal.py`` and ``tests/test_robust_cli.py`` compare nominal
+schedules with those computed on commit c417bb6 (kept as arrays: :mod:`references`), and
+``tests/test_replay_speed.py`` whole replays with those of 7adc0aa. A schedule depends on the
+setpoints as well as on the search, so those tests take the setpoints from
 ``tests/data/pinned/nominal_setpoints.npz`` (written at commit 7adc0aa, whose planner gives the
 same setpoints for these programs as c417bb6's): a planner change (corner blending, speed
 profile) then moves the plan pins of ``tests/test_plan_speed.py`` and leaves these alone.
 
 Written once with ``PYTHONPATH=. python tests/pinned_setpoints.py`` at that commit; running it
-with a later planner would pin other setpoints under the old schedule hashes, so do not.
+with a later planner would pin other setpoints under the old schedules, so do not.
 """
 
 from __future__ import annotations

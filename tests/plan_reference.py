@@ -1,14 +1,12 @@
-"""Pinned planner output: the setpoints of a few programs, to prove speed work changes nothing.
+"""The programs whose planned setpoints the suite keeps, and how they are planned.
 
-``tests/data/pinned/plan_reference.npz`` holds, per program of :data:`PROGRAMS`, the SHA-256 of
-the planned positions (float64 bytes), source lines and rapid flags, the sample count,
-and every :data:`STRIDE`-th position (to say by how much a changed plan differs).
-``tests/test_plan_speed.py`` plans the programs again and compares.
+``tests/references.py`` stores, per program of :data:`PROGRAMS`, the sample count, source
+lines, rapid flags and every :data:`STRIDE`-th position in ``tests/data/reference/plan.npz``;
+``tests/test_plan_speed.py`` plans the programs again and compares (positions within a
+tolerance measured across CPUs). Regenerate the arrays (one command, from the repository root)
+when the planner's output is meant to change (corner handling, acceleration shares ...)::
 
-Regenerate it (one command, from the repository root) when the planner's output is
-meant to change (corner handling, acceleration shares ...)::
-
-    PYTHONPATH=. python tests/plan_reference.py
+    PYTHONPATH=. python tests/references.py regen plan
 
 It plans at ucp710's planning limits with the default tolerance and sample period,
 as ``oga plan`` does.
@@ -16,9 +14,7 @@ as ``oga plan`` does.
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
-import sys
 from pathlib import Path as FilePath
 
 import numpy as np
@@ -30,7 +26,6 @@ from oga.machine import load_machine
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
-REFERENCE = DATA / "pinned" / "plan_reference.npz"  # not beside the programs (globbed)
 #: Programs of tests/data (lines, arcs, helices, rapids, corners, fitted micro-segments).
 FILES = ("reference_xz.ngc", "circle_r50_f3000.ngc", "helix_r20.ngc", "freeform_xz.ngc",
          "sharp_corners_xy.ngc", "corner_steps.ngc", "rapids_xy.ngc", "short_xz.ngc",
@@ -38,7 +33,7 @@ FILES = ("reference_xz.ngc", "circle_r50_f3000.ngc", "helix_r20.ngc", "freeform_
 #: Generated micro-segment program (bench/bench_plan.py's freeform), segments.
 MICRO_SEGMENTS = 2000
 PROGRAMS = (*FILES, f"micro_{MICRO_SEGMENTS}")
-#: Every STRIDE-th position is stored as well.
+#: Every STRIDE-th position is stored.
 STRIDE = 50
 
 
@@ -62,28 +57,3 @@ def plan_program(name: str) -> Setpoints:
     else:
         path = load_toolpath(DATA / name)
     return plan(path, limits)
-
-
-def digest(sp: Setpoints) -> str:
-    """SHA-256 of the planned positions, source lines and rapid flags (exact bytes)."""
-    h = hashlib.sha256()
-    for a in (sp.pos, sp.block, sp.rapid):
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
-
-
-def main() -> int:
-    out = {}
-    for name in PROGRAMS:
-        sp = plan_program(name)
-        out[f"{name}/sha256"] = np.array(digest(sp))
-        out[f"{name}/samples"] = np.array(len(sp))
-        out[f"{name}/pos"] = sp.pos[::STRIDE]
-        print(f"{name}: {len(sp)} samples, {digest(sp)[:16]}")
-    np.savez_compressed(REFERENCE, **out)
-    print(f"wrote {REFERENCE}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

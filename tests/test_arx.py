@@ -245,8 +245,8 @@ def test_mixed_machine_packs_every_axis_to_one_length():
     machine = machine_from_dict(data)
     params, states, present = axis_arrays(machine, [0.0, 0.1, 0.2])
     # ucp710's 2 samples of dead time lengthen the ARX input history: 6 + 2; the cascade packs
-    # 100 entries (its linear friction map included)
-    assert params.shape[1] == 100 and states.shape[1] == 1 + 7 + 8
+    # 101 entries (its linear friction map and its dead time's fraction included)
+    assert params.shape[1] == 101 and states.shape[1] == 1 + 7 + 8
     assert states.shape[1] == state_size(machine) and present.all()
     # each row drives its own kind: the z row equals the stand-alone ARX axis
     data = MCV.model_dump(exclude_none=True)

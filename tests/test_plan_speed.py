@@ -1,51 +1,44 @@
-"""Planning speed work changes no output: setpoints against those pinned at the base commit.
+"""Planning speed work changes no output: setpoints against the stored reference arrays.
 
-``tests/data/pinned/plan_reference.npz`` was computed by ``PYTHONPATH=. python
-tests/plan_reference.py`` (first before the speed work, commit c417bb6; last after the speed
-profile's jerk shares, issue 21); rerun that command when the planner's output is meant to
-change. A generated micro-segment program is also
-checked here against the limits (finite differences) and the tolerance (exact distance to
-its programmed polyline).
+``tests/data/reference/plan.npz`` holds, per program of :data:`plan_reference.PROGRAMS`, the
+sample count, source lines and rapid flags (compared exactly) and every
+:data:`plan_reference.STRIDE`-th position (within :data:`references.TOL`, measured across CPU
+configurations: ``tests/references.py``); regenerate it with ``PYTHONPATH=. python
+tests/references.py regen plan`` when the planner's output is meant to change. A generated
+micro-segment program is also checked here against the limits (finite differences) and the
+tolerance (exact distance to its programmed polyline).
 """
 
 from __future__ import annotations
-
-import hashlib
 
 import numpy as np
 import pytest
 
 import plan_reference as ref
+import references
 from feedplan.read import read_toolpath
 from oga.defaults import TOL_M
 from oga.machine import load_machine
 
 
-@pytest.fixture(scope="module")
-def pinned():
-    with np.load(ref.REFERENCE) as z:
-        return {k: z[k] for k in z.files}
-
-
+@pytest.mark.portable
 @pytest.mark.parametrize("name", ref.PROGRAMS)
-def test_setpoints_as_pinned(pinned, name):
-    sp = ref.plan_program(name)
-    want_n = int(pinned[f"{name}/samples"])
-    assert len(sp) == want_n, f"{name}: {len(sp)} samples, pinned {want_n}"
-    diff = float(np.max(np.abs(sp.pos[:: ref.STRIDE] - pinned[f"{name}/pos"])))
-    assert ref.digest(sp) == str(pinned[f"{name}/sha256"]), (
-        f"{name}: setpoints differ from the pinned ones (largest difference on the stored "
-        f"samples {diff:.3g} m)")
+def test_setpoints_as_stored(name):
+    got = references.cases("plan")[name]()
+    assert references.compare("plan", name, got) == []
 
 
-def test_digest_sees_one_ulp():
-    sp = ref.plan_program("short_xz.ngc")
-    pos = sp.pos.copy()
-    pos[len(pos) // 2, 0] = np.nextafter(pos[len(pos) // 2, 0], np.inf)
-    h = hashlib.sha256()
-    for a in (pos, sp.block, sp.rapid):
-        h.update(np.ascontiguousarray(a).tobytes())
-    assert h.hexdigest() != ref.digest(sp)
+def test_comparison_sees_a_change_above_the_tolerance():
+    """A position moved by ten times the tolerance, a block number changed: both named."""
+    name = "short_xz.ngc"
+    got = references.stored("plan", name)
+    assert references.compare("plan", name, got) == []
+    tol = references.TOL["plan"]["pos"][0]
+    moved = {**got, "pos": got["pos"].copy(), "block": got["block"].copy()}
+    moved["pos"][len(moved["pos"]) // 2, 0] += 10 * tol
+    moved["block"][-1] += 1
+    bad = references.compare("plan", name, moved)
+    assert len(bad) == 2 and "pos: largest difference" in bad[1] and "block" in bad[0]
 
 
 def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

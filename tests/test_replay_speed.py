@@ -6,11 +6,12 @@
   :func:`oga.contour.ce_series`;
 - :func:`oga.metrics.contour_metrics`'s compiled pass against numpy's reductions (the
   code it replaced, kept below);
-- whole :func:`oga.verify.verify` replays against SHA-256 digests computed with oga at
-  commit 7adc0aa (before these paths), on the nominal plant and perturbed ones.
+- whole :func:`oga.verify.verify` replays against those of oga at commit 7adc0aa (before these
+  paths), on the nominal plant and perturbed ones: pinned first as SHA-256 digests, kept as
+  arrays since (``tests/data/reference/verify.npz``, :mod:`references`; digests of floats pin
+  one CPU), compared within tolerances measured across CPU configurations.
 """
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +28,7 @@ from oga.metrics import contour_metrics
 from oga.pipeline import plan_toolpath
 from oga.robust.plants import scenario_set
 from oga.simulate import axis_params, rest_state, run, simulate
-from oga.verify import verify
-from pinned_setpoints import pinned_setpoints
+import references
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")
@@ -176,32 +176,14 @@ def test_contour_metrics_are_numpys_to_the_bit(n):
             (want[1], want[3], want[7], want[8]))
 
 
-#: SHA-256 (first 16 hex digits) of a whole verify on reference_xz (pos, u, ce, ratios,
-#: gain steps, metrics, violations), per plant of scenario_set(ucp710, 64, seed 17)
-#: (0: nominal, i: plants[i - 1], without their linear friction setting), computed with oga
-#: at commit 7adc0aa.
-PINNED_7ADC0AA = {0: "915ae0ca122242b2", 8: "745f6b80fdb33edd", 40: "61d6abbbef7a8b25",
-                  72: "e326a833895e33ff", 96: "4ce1b565be240e63"}
-
-
-@pytest.mark.parametrize("i", sorted(PINNED_7ADC0AA))
+@pytest.mark.portable
+@pytest.mark.parametrize("i", references.VERIFY_PLANTS)
 def test_verify_is_that_of_7adc0aa(i):
-    sp = pinned_setpoints("reference_xz.ngc")  # as planned at 7adc0aa: the planner has moved on
-    plant = UCP if i == 0 else SCEN.plants[i - 1]
-    # the exact kernel, as at 7adc0aa (the plants now set the linear friction map at rest:
-    # tests/test_friction_linear.py bounds its departure)
-    plant = plant.model_copy(update={"timing": plant.timing.model_copy(
-        update={"friction_linear_below_m_s": None})})
-    kp, kf = _gains(len(sp))
-    v = verify(sp, plant, kp, kf, {a: (1.0, 5.0) for a in "xz"})
-    h = hashlib.sha256()
-    for arr in (v.pos, v.u, v.ce, v.command_ratio, v.ferror_ratio, v.max_dkp_per_sample,
-                v.max_dkf_per_sample):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    h.update(repr(v.metrics).encode())
-    h.update(repr(v.violations).encode())
-    h.update(repr(v.ok).encode())
-    assert h.hexdigest()[:16] == PINNED_7ADC0AA[i]
+    """Plant i of scenario_set(ucp710, 64, seed 17) (0: nominal; the exact kernel, as at
+    7adc0aa: the plants now set the linear friction map at rest, tests/test_friction_linear.py
+    bounds its departure), reference_xz as planned at 7adc0aa, gains that wander."""
+    got = references.cases("verify")[f"plant {i}"]()
+    assert references.compare("verify", f"plant {i}", got) == []
 
 
 def test_largest_gain_steps_are_numpys():

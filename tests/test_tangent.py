@@ -19,9 +19,19 @@ UCP = load_machine("ucp710")
 MCV = load_machine("mcv-op")
 TE = UCP.te
 N = 400
+
+
+def _own_dead_time(machine, axis, d):
+    """``machine`` with ``axis``'s own dead time ``d`` (samples, fractional allowed)."""
+    ax = machine.axes[axis].model_copy(update={"dead_time_samples": d})
+    return machine.model_copy(update={"axes": {**machine.axes, axis: ax}})
+
+
 AXES = pytest.mark.parametrize(
-    "machine, axis", [(UCP, "x"), (UCP, "z"), (MCV, "x")], ids=["cascade-x", "cascade-z", "arx"]
-)
+    "machine, axis", [(UCP, "x"), (UCP, "z"), (MCV, "x"), (_own_dead_time(UCP, "x", 2.4), "x"),
+                      (_own_dead_time(UCP, "z", 0.7), "z"), (_own_dead_time(MCV, "x", 1.3), "x")],
+    ids=["cascade-x", "cascade-z", "arx", "cascade-x-dead-2.4", "cascade-z-dead-0.7",
+         "arx-dead-1.3"])
 
 
 def _reversal_case():

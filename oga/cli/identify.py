@@ -63,15 +63,24 @@ def run(args: argparse.Namespace) -> int:
               f"Kv {v['kv_n_s_m']:.4g} N s/m, Tn {v['tn_s'] * 1e3:.2f} ms, "
               f"lag {v['force_lag_s'] * 1e3:.3f} ms, Coulomb {v['coulomb_n']:.1f} N, "
               f"static {v['static_n']:.1f} N, Stribeck {v['stribeck_m_s'] * 1e3:.3g} mm/s, "
-              f"viscous {v['viscous_n_s_m']:.0f} N s/m, dead time {f.dead_time_samples}"
+              f"viscous {v['viscous_n_s_m']:.0f} N s/m, dead time {f.dead_time_samples:.4g}"
               f"{f' (+{f.lag_samples} logging lag)' if f.lag_samples else ''}: residual "
               f"{f.residual_rms_m * 1e6:.3f} um RMS (noise {f.noise_rms_m * 1e6:.3f} um), "
               f"{f.status}")
+        if f.status != "ok":
+            print(f"{a}: model error: residual {f.noise_ratio:.3g} times the noise, correlated "
+                  f"over {f.correlation_samples:.3g} samples, {f.model_error_share:.3g} of the "
+                  "velocity loop's imprint unexplained"
+                  + (f", on a physical bound: {', '.join(f.at_bounds)}" if f.at_bounds else ""))
         if a in ident.holdout:
             h = ident.holdout[a]
             print(f"{a}: held out last {h['fraction']:.0%}: predicted {h['rms_heldout_m'] * 1e6:.3f} um"
                   f" RMS (fitted part {h['rms_fit_m'] * 1e6:.3f} um)")
     print(f"{ident.status}, {ident.time_s:.1f} s -> {args.out}")
-    if ident.status != "ok":
-        print("warning: the model does not explain the trace (residual far above the noise)")
-    return 0 if ident.status == "ok" else 1
+    if ident.status == "model-error":
+        print("warning: the model explains the trace only in part: the uncertainty section is "
+              "widened by the evidence (robust tables hold on the wider set)")
+    elif ident.status != "ok":
+        print("warning: the model does not cover the plant (residual far above the noise): a "
+              "table certified on this file promises nothing on the machine")
+    return 1 if ident.status == "poor" else 0

@@ -160,6 +160,9 @@ def run(args: argparse.Namespace) -> int:
             print(line)
     else:
         print(f"search: {res.search_kind()}")
+    if summary["model"]["note"]:
+        print(("warning: " if not summary["model"]["covers"] else "model: ")
+              + summary["model"]["note"])
     if res.kept_baseline:
         print(f"warning: the searched schedule was not kept ({res.kept_baseline_reason}); "
               "the table holds the baseline's fixed gains")

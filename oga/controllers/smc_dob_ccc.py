@@ -219,7 +219,7 @@ def _simulate(params, states, present, pd, vd, ad, rapid, law, load, tangent, no
             e = pd[k, a] - p
             dh = 0.0
             if law[a] and use_dob:
-                u_del = u[k - dead, a] if k >= dead else 0.0
+                u_del = u[k - dead[a], a] if k >= dead[a] else 0.0
                 dh = z[a] - ell * v
                 z[a] += te_s * ell * ((u_del - v) / lag[a] - dh)
             if law[a] and not rapid[k]:
@@ -285,7 +285,9 @@ def run(
     law &= present
     lag = np.array([velocity_lag_s(machine, a) if law[c] else 1.0
                     for c, a in enumerate(("x", "y", "z"))])
-    dead = machine.timing.dead_time_samples
+    # each axis's dead time, whole samples (a fractional one rounded: the law's own model)
+    dead = np.array([round(machine.dead_time_samples_of(a)) if a in machine.axes else 0
+                     for a in ("x", "y", "z")], dtype=np.int64)
     n = len(pd)
 
     def simulate(v: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -333,9 +333,12 @@ def _design(prep: Prepared, machine: Machine, values: dict) -> _Design:
             coefs = getattr(observers[c], name)
             row[c] = 0.0
             row[c, : len(coefs)] = coefs
-    dead = machine.timing.dead_time_samples
     n = prep.vd.shape[0]
-    v_fric = prep.vd[np.minimum(np.arange(n) + dead, n - 1)]
+    v_fric = prep.vd.copy()  # per axis, the setpoint velocity its dead time (whole) ahead
+    for c, a in enumerate(("x", "y", "z")):
+        if a in machine.axes:
+            dead = round(machine.dead_time_samples_of(a))
+            v_fric[:, c] = prep.vd[np.minimum(np.arange(n) + dead, n - 1), c]
     return _Design(
         ref=ref,
         kf_plane=0.0 if values["zpetc"] else prep.kf,

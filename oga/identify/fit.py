@@ -43,10 +43,15 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from oga.defaults import (
+    IDENT_BOUNDS,
     IDENT_CONFIDENCE,
+    IDENT_CORRELATION_LAGS,
+    IDENT_FRACTION_MIN_GAIN,
     IDENT_FORCE_NOISE_SHARE,
     IDENT_FORCE_REGRESSION_V_M_S,
     IDENT_MAX_DEAD_SAMPLES,
+    IDENT_MODEL_ERROR_MAX_SHARE,
+    IDENT_MODEL_ERROR_NOISE_RATIO,
     IDENT_POOR_FORCE_SHARE,
     IDENT_POOR_NOISE_RATIO,
     IDENT_PROGRESS_EVERY_S,
@@ -72,6 +77,8 @@ _FRICTION_START = 4.0
 _PACK_STEP = 1e-6
 #: Entries of ``x`` clamped at 0 by the model (Fc, Fs - Fc, B): one-sided steps there.
 _CLAMPED = (3, 4, 6)
+#: A fractional dead time's fraction stays inside these (its whole ends are the whole fits).
+_FRAC_BOUNDS = (1e-3, 1.0 - 1e-3)
 
 
 class IdentifyError(OgaError, RuntimeError):
@@ -84,16 +91,24 @@ class AxisFit:
 
     Attributes
     ----------
-    status : {"ok", "poor"}
-        ``poor``: the residual RMS exceeds ``IDENT_POOR_NOISE_RATIO`` times the trace's noise
-        estimate, or the force residual's ``IDENT_POOR_FORCE_SHARE`` of the recorded force's
-        RMS (the model does not explain the trace; the values are then the best the model
-        gives). On high friction the position residual of a wrong fit can sit as close to the
-        noise as a right one's (bench draw 48: 3.3 times, both); the force tells them apart.
+    status : {"ok", "model-error", "poor"}
+        ``model-error``: the model explains the trace only in part: its position residual
+        exceeds ``IDENT_MODEL_ERROR_NOISE_RATIO`` times the trace's noise, or a parameter
+        ended on its physical bound (``at_bounds``); the identified uncertainty set is widened
+        by the evidence (:func:`oga.identify.write.uncertainty_of`). ``poor``: the model does
+        not cover the plant: the residual RMS exceeds ``IDENT_POOR_NOISE_RATIO`` times the
+        noise, the model-error share ``IDENT_MODEL_ERROR_MAX_SHARE``, or the force residual
+        ``IDENT_POOR_FORCE_SHARE`` of the recorded force's RMS (the values are then the best
+        the model gives). On high friction the position residual of a wrong fit can sit as
+        close to the noise as a right one's (bench draw 48: 3.3 times, both); the force tells
+        them apart.
     cascade : Cascade
         The fitted cascade (force limit and friction smoothing from the base).
-    dead_time_samples, lag_samples : int
-        Fitted dead time and measurement lag.
+    dead_time_samples : int or float
+        Fitted dead time, samples: a whole number, or a fraction where that fits measurably
+        better (``IDENT_FRACTION_MIN_GAIN``).
+    lag_samples : int
+        Fitted measurement lag.
     values, ci_low, ci_high : dict[str, float]
         Each fitted parameter (:data:`PARAMETERS`) with its confidence interval
         (``IDENT_CONFIDENCE``). Without a force channel the mass is the base's and its
@@ -107,9 +122,27 @@ class AxisFit:
         positions over sqrt(6), where the axis stands still), m.
     force_residual_rms_n : float or None
     candidates : list of (d, l, residual RMS m)
-        Every dead time and lag tried.
+        Every dead time and lag tried (fractional ones included).
     fit_time_s : float
     n_samples : int
+    correlation_samples : float
+        Correlation time of the position residual, samples (``1 + 2 sum rho_k`` over its
+        positive autocorrelations, at most ``IDENT_CORRELATION_LAGS`` lags): 1 for white
+        noise, large where the residual is what the model leaves out. The intervals are
+        widened by its square root (the independent samples are fewer by that factor).
+    model_error_share : float
+        The part of the position residual above the noise, relative to the velocity loop's
+        imprint on the positions (RMS of the measured positions minus those of the recorded
+        position loop around an ideal velocity loop with the fitted dead time,
+        :func:`oga.identify.sim.ideal_loop_positions`): how much of what the model is there
+        to predict it does not.
+    at_bounds : tuple of str
+        Parameters that ended on a physical bound (``IDENT_BOUNDS``).
+    model_error_changes : dict[str, float]
+        Per cascade parameter (the uncertainty section's names) the relative change, and for
+        ``dead_time_samples`` the samples, that alone moves the simulated positions by the
+        unexplained residual (its RMS above the noise, through the Jacobian at the optimum):
+        the model error expressed as parameter error, each parameter's own scale.
     """
 
     status: str
@@ -126,6 +159,15 @@ class AxisFit:
     candidates: list = field(default_factory=list)
     fit_time_s: float = 0.0
     n_samples: int = 0
+    correlation_samples: float = 1.0
+    model_error_share: float = 0.0
+    at_bounds: tuple = ()
+    model_error_changes: dict = field(default_factory=dict)
+
+    @property
+    def noise_ratio(self) -> float:
+        """Position residual RMS over the noise estimate."""
+        return self.residual_rms_m / max(self.noise_rms_m, 1e-12)
 
 
 def axis_inputs(tr: AxisTrace, dt: float):
@@ -141,10 +183,14 @@ def axis_inputs(tr: AxisTrace, dt: float):
     return cmd, ff, kp, kf
 
 
-def _machine(base: Machine, axis: str, cas: Cascade, dead: int) -> Machine:
-    """``base`` with only ``axis``, its cascade replaced, and dead time ``dead``."""
-    ax = base.axis(axis).model_copy(update={"cascade": cas, "uncertainty": None})
-    timing = Timing(te_s=base.te, substeps=base.timing.substeps, dead_time_samples=dead)
+def _machine(base: Machine, axis: str, cas: Cascade, dead: float) -> Machine:
+    """``base`` with only ``axis``, its cascade replaced, and dead time ``dead`` (samples,
+    whole or fractional)."""
+    whole = float(dead).is_integer()
+    ax = base.axis(axis).model_copy(update={"cascade": cas, "uncertainty": None,
+                                             "dead_time_samples": None if whole else float(dead)})
+    timing = Timing(te_s=base.te, substeps=base.timing.substeps,
+                    dead_time_samples=int(dead) if whole else 0)
     return base.model_copy(update={"axes": {axis: ax}, "timing": timing})
 
 
@@ -175,65 +221,74 @@ class _Model:
             "stribeck_m_s": math.exp(x[5]), "viscous_n_s_m": b,
         })
 
-    def params(self, x, dead: int) -> np.ndarray:
+    def params(self, x, dead: int, frac: bool = False) -> np.ndarray:
+        """Packed parameters; ``frac``: the dead time is ``dead + x[-1]`` (its fraction last
+        in ``x``, inside (0, 1))."""
         from oga.simulate import _pack
 
-        return _pack(_machine(self.base, self.axis, self.cascade(x), dead), self.axis, True)
+        total = dead + float(x[-1]) if frac else dead
+        return _pack(_machine(self.base, self.axis, self.cascade(x), total), self.axis, True)
 
-    def simulate(self, x, dead: int) -> tuple[np.ndarray, np.ndarray]:
+    def simulate(self, x, dead: int, frac: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(positions, forces) simulated, shape (N,) each."""
         from oga.identify.sim import simulate_forces
 
-        return simulate_forces(self.params(x, dead), self.p0, self.cmd, self.ff, self.kp, self.kf)
+        return simulate_forces(self.params(x, dead, frac), self.p0, self.cmd, self.ff, self.kp,
+                               self.kf)
 
-    def jacobian(self, x, dead: int, lag: int) -> np.ndarray:
-        """d :meth:`residual` / dx, um per unit of ``x``, shape (N - lag, 7): forward-mode
+    def jacobian(self, x, dead: int, lag: int, frac: bool = False) -> np.ndarray:
+        """d :meth:`residual` / dx, um per unit of ``x``, shape (N - lag, x.size): forward-mode
         derivatives through the simulation (:mod:`oga.identify.sensitivity`) in one pass, the
         packed parameters' derivatives in ``x`` by central differences (a few small matrix
-        exponentials each; one-sided where a clamped entry sits at 0)."""
+        exponentials each; one-sided where a clamped entry sits at 0); a fractional dead
+        time's is its own packed entry."""
         from oga.identify.sensitivity import forces_and_sensitivities
+        from oga.simulate import _FRAC
 
-        params = self.params(x, dead)
-        npl = 7  # plant entries of x (x[7]: the force's scale)
-        dpar = np.empty((npl, params.size))
+        params = self.params(x, dead, frac)
+        npl = 7  # plant entries of x (then x[7]: the force's scale; last: the fraction)
+        dpar = np.zeros((npl + frac, params.size))
         for j in range(npl):
             h = _PACK_STEP * max(1.0, abs(x[j]))
             up, down = x.copy(), x.copy()
             up[j] += h
             down[j] -= h
             if j in _CLAMPED and down[j] < 0.0:
-                dpar[j] = (self.params(up, dead) - params) / h
+                dpar[j] = (self.params(up, dead, frac) - params) / h
             else:
-                dpar[j] = (self.params(up, dead) - self.params(down, dead)) / (2 * h)
+                dpar[j] = (self.params(up, dead, frac) - self.params(down, dead, frac)) / (2 * h)
+        if frac:
+            dpar[npl, _FRAC] = 1.0
         _, dp, f, df = forces_and_sensitivities(params, dpar, self.p0, self.cmd, self.ff, self.kp,
                                                 self.kf)
         jac = dp[: dp.shape[0] - lag] * 1e6
         if self.force is not None:
             m = f.size - lag
             scale = math.exp(x[7]) * self.force_weight
-            jac = np.block([[jac, np.zeros((m, 1))],
-                            [df[:m] * scale, (f[:m] * scale)[:, None]]])
+            jac = np.block([[jac[:, :npl], np.zeros((m, 1)), jac[:, npl:]],
+                            [df[:m, :npl] * scale, (f[:m] * scale)[:, None],
+                             df[:m, npl:] * scale]])
         if np.all(np.isfinite(jac)):
             return jac
         # a tangent that overflowed (a trial plant at the edge of stability): forward differences
-        f0 = self.residual(x, dead, lag)
+        f0 = self.residual(x, dead, lag, frac)
         for j in range(x.size):
             h = _PACK_STEP * max(1.0, abs(x[j]))
             step = x.copy()
             step[j] += h
-            jac[:, j] = (self.residual(step, dead, lag) - f0) / h
+            jac[:, j] = (self.residual(step, dead, lag, frac) - f0) / h
         return jac
 
-    def residual(self, x, dead: int, lag: int) -> np.ndarray:
+    def residual(self, x, dead: int, lag: int, frac: bool = False) -> np.ndarray:
         """Simulated minus measured positions, um (the simulation ``lag`` samples earlier),
         shape (N - lag,); with the force channel followed by the weighted force residual."""
         from oga.simulate import simulate_axis
 
         if self.force is None:
-            p, _ = simulate_axis(self.params(x, dead), self.p0, self.cmd, self.ff, self.kp,
-                                 self.kf)
+            p, _ = simulate_axis(self.params(x, dead, frac), self.p0, self.cmd, self.ff,
+                                 self.kp, self.kf)
             return (p[: p.size - lag] - self.meas[lag:]) * 1e6
-        p, f = self.simulate(x, dead)
+        p, f = self.simulate(x, dead, frac)
         m = p.size - lag
         return np.concatenate([(p[:m] - self.meas[lag:]) * 1e6,
                                (math.exp(x[7]) * f[:m] - self.force[lag:]) * self.force_weight])
@@ -245,13 +300,95 @@ def _x0(cas: Cascade, vs_factor: float = 1.0) -> np.ndarray:
                      math.log(cas.stribeck_m_s * vs_factor), cas.viscous_n_s_m])
 
 
+#: The entries of ``x`` (module doc) and the physical bound of each (``IDENT_BOUNDS``).
+_X_NAMES = ("kv_n_s_m", "tn_s", "force_lag_s", "coulomb_n", "static_n", "stribeck_m_s",
+            "viscous_n_s_m")
+
+
 def _bounds(cas: Cascade, mass: float) -> tuple[np.ndarray, np.ndarray]:
+    """The physical bounds of ``x`` (:data:`oga.defaults.IDENT_BOUNDS`) at ``mass`` (kg)."""
+    b = IDENT_BOUNDS
     flim = cas.force_limit_n
-    lo = [math.log(mass * 2 * math.pi * 1.0), math.log(2e-4), math.log(1e-5), 0.0, 0.0,
-          math.log(1e-5), 0.0]
-    hi = [math.log(mass * 2 * math.pi * 1000.0), math.log(2.0), math.log(0.05), flim / 2,
-          flim / 2, math.log(0.1), mass * 100.0]
+    two_pi_m = 2 * math.pi * mass
+    lo = [math.log(two_pi_m * b["velocity_loop_hz"][0]), math.log(b["tn_s"][0]),
+          math.log(b["force_lag_s"][0]), mass * b["coulomb_n_per_kg"][0],
+          mass * b["stribeck_rise_n_per_kg"][0], math.log(b["stribeck_m_s"][0]),
+          mass * b["viscous_1_s"][0]]
+    hi = [math.log(two_pi_m * b["velocity_loop_hz"][1]), math.log(b["tn_s"][1]),
+          math.log(b["force_lag_s"][1]), min(flim / 2, mass * b["coulomb_n_per_kg"][1]),
+          min(flim / 2, mass * b["stribeck_rise_n_per_kg"][1]), math.log(b["stribeck_m_s"][1]),
+          mass * b["viscous_1_s"][1]]
     return np.array(lo), np.array(hi)
+
+
+def _at_bounds(x, lo, hi) -> tuple[str, ...]:
+    """The plant entries of ``x`` (and the force's scale, ``mass_kg``) that ended on a
+    physical bound; a friction force of zero is physical (no friction), not a bound."""
+    names = (*_X_NAMES, "mass_kg")
+    out = []
+    for i in range(min(len(names), x.size)):
+        span = hi[i] - lo[i]
+        low = x[i] <= lo[i] + 1e-6 * span and names[i] not in ("coulomb_n", "static_n",
+                                                              "viscous_n_s_m")
+        if low or x[i] >= hi[i] - 1e-6 * span:
+            out.append(names[i])
+    return tuple(out)
+
+
+#: The uncertainty section's fields and the entry of ``x`` each moves (the mass moves the
+#: loop as Kv does: positions depend on Kv / m).
+_X_OF_FIELD = {"kv_n_s_m": 0, "mass_kg": 0, "tn_s": 1, "force_lag_s": 2, "coulomb_n": 3,
+               "static_n": 4, "stribeck_m_s": 5, "viscous_n_s_m": 6}
+
+
+def _equivalent_changes(model, r, n: int, unexplained_m: float, dead, lag: int,
+                        frac: bool) -> dict[str, float]:
+    """:attr:`AxisFit.model_error_changes`: ``unexplained_m`` (m) over the RMS of each
+    parameter's column of the Jacobian (the positions' rows), per relative change of the
+    parameter (log entries as they are, force entries times their value; a force of zero has
+    no relative change: 0); the dead time's column by a difference of half a sample."""
+    jac = r.jac[:n]
+    col_rms = np.sqrt(np.mean(np.asarray(jac) ** 2, axis=0)) * 1e-6  # m per unit of x
+    x = r.x
+    scale = {3: x[3], 4: x[3] + x[4], 6: x[6]}  # relative change of Fc, Fs (Fc held), B
+    out = {}
+    for name, i in _X_OF_FIELD.items():
+        s = col_rms[i] * abs(scale.get(i, 1.0))
+        out[name] = float(unexplained_m / s) if s > 0 else 0.0
+    if unexplained_m > 0:
+        d0 = math.floor(dead)
+        base = model.residual(x, dead if not frac else d0, lag, frac)[:n]
+        xs = x.copy() if frac else np.append(x, 0.5)
+        if frac:
+            xs[-1] = min(xs[-1] + 0.5, 1.0 - 1e-3) if xs[-1] < 0.5 else xs[-1] - 0.5
+        step = abs(float(xs[-1]) - (float(x[-1]) if frac else 0.0))
+        moved = model.residual(xs, d0, lag, True)[:n]
+        s = float(np.sqrt(np.mean((moved - base) ** 2))) * 1e-6 / step
+        out["dead_time_samples"] = float(unexplained_m / s) if s > 0 else 0.0
+    else:
+        out["dead_time_samples"] = 0.0
+    return out
+
+
+def correlation_samples(res: np.ndarray, lags: int = IDENT_CORRELATION_LAGS) -> float:
+    """Correlation time of a residual, samples: ``1 + 2 sum_k rho_k`` over its
+    autocorrelations ``rho_k`` from lag 1 on, up to the first that is not positive or
+    ``lags`` (Geyer's initial positive sequence): 1 for white noise, about
+    ``(1 + rho) / (1 - rho)`` for a first-order colour ``rho``."""
+    r = np.asarray(res, dtype=np.float64) - float(np.mean(res))
+    n = r.size
+    var = float(r @ r)
+    if n < 3 or var == 0.0:
+        return 1.0
+    size = 1 << int(math.ceil(math.log2(2 * n)))
+    spec = np.fft.rfft(r, size)
+    acf = np.fft.irfft(spec * np.conj(spec), size)[: min(lags, n - 1) + 1] / var
+    total = 1.0
+    for k in range(1, acf.size):
+        if acf[k] <= 0.0:
+            break
+        total += 2.0 * float(acf[k])
+    return total
 
 
 def logging_lag(cmd, ff, kp_si, kf, meas, dt: float) -> int:
@@ -459,26 +596,30 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     x_base = _x0(cas0)
     reg = friction_from_force(model.meas, model.force, dt) if model.force is not None else None
     if model.force is not None:  # x[7]: the force's scale, the mass over the base's
-        lo, hi = np.append(lo, math.log(1e-3)), np.append(hi, math.log(1e3))
+        lo = np.append(lo, math.log(IDENT_BOUNDS["mass_ratio"][0]))
+        hi = np.append(hi, math.log(IDENT_BOUNDS["mass_ratio"][1]))
         x_base = np.append(x_base, math.log(reg[0] / mass0) if reg is not None else 0.0)
     x_base = np.clip(x_base, lo, hi)
-    # solves: two per dead time searched, the two best refined, the further starts
-    done = _Progress(progress, 2 * (max_dead + 1) + 2 + max(starts - 1, 0))
+    # solves: two per dead time searched, the two best refined, the further starts, the
+    # fractional dead time
+    done = _Progress(progress, 2 * (max_dead + 1) + 2 + max(starts - 1, 0) + 1)
 
-    def residual(x, dead, lag):
+    def residual(x, dead, lag, frac):
         done.tick()
-        return model.residual(x, dead, lag)
+        return model.residual(x, dead, lag, frac)
 
-    def jacobian(x, dead, lag):
+    def jacobian(x, dead, lag, frac):
         done.tick()
-        return model.jacobian(x, dead, lag)
+        return model.jacobian(x, dead, lag, frac)
 
-    def solve(x0, dead, lag, nfev):
+    def solve(x0, dead, lag, nfev, frac=False):
         done.start(2 * nfev)  # each evaluation and its Jacobian
+        lo_f, hi_f = (np.append(lo, _FRAC_BOUNDS[0]), np.append(hi, _FRAC_BOUNDS[1])) if frac \
+            else (lo, hi)
         try:
-            r = least_squares(residual, np.clip(x0, lo + 1e-9, hi - 1e-9), jac=jacobian,
-                              args=(dead, lag), bounds=(lo, hi), x_scale="jac", method="trf",
-                              max_nfev=nfev)
+            r = least_squares(residual, np.clip(x0, lo_f + 1e-9, hi_f - 1e-9), jac=jacobian,
+                              args=(dead, lag, frac), bounds=(lo_f, hi_f), x_scale="jac",
+                              method="trf", max_nfev=nfev)
         except (ValueError, np.linalg.LinAlgError) as err:
             raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
         done.solved()
@@ -535,12 +676,33 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     def pos_rms(t):  # every fit tried has the one logging lag
         return float(np.sqrt(np.mean(t.fun[:n] ** 2))) * 1e-6
 
+    # a fractional dead time, in the sample towards the better of the whole neighbours, started
+    # next to the whole one: kept where its position residual's mean square is measurably
+    # below the whole one's (not tried where the whole one is at the noise already: nothing
+    # could be measurably better)
+    frac = False
+    noise = _noise_rms(model.meas)
+
+    def cost_of(d):
+        return tried[(d, lag)].cost if (d, lag) in tried else math.inf
+
+    d0, f0 = ((dead, 0.1) if dead == 0 or cost_of(dead + 1) <= cost_of(dead - 1)
+              else (dead - 1, 0.9))
+    if d0 + 1 <= max_dead and (1.0 - IDENT_FRACTION_MIN_GAIN) * pos_rms(r) ** 2 > noise ** 2:
+        r_f = solve(np.append(r.x, f0), d0, lag, _FINAL_NFEV, frac=True)
+        tried[(d0 + float(r_f.x[-1]), lag)] = r_f
+        if pos_rms(r_f) ** 2 < (1.0 - IDENT_FRACTION_MIN_GAIN) * pos_rms(r) ** 2:
+            r, frac, dead = r_f, True, d0 + float(r_f.x[-1])
+
     candidates = [(d, lg, pos_rms(t)) for (d, lg), t in sorted(tried.items())]
     dof = max(r.fun.size - r.x.size, 1)
     s2 = 2 * r.cost / dof
     z = float(norm.ppf(0.5 + IDENT_CONFIDENCE / 2))
+    # a residual that is not white holds fewer independent samples than its length: the
+    # intervals widened by the square root of its correlation time (the variance by it)
+    tau = correlation_samples(r.fun[:n])
     try:
-        cov = np.linalg.pinv(r.jac.T @ r.jac) * s2  # x per um^2: s2 in um^2
+        cov = np.linalg.pinv(r.jac.T @ r.jac) * s2 * tau  # x per um^2: s2 in um^2
     except np.linalg.LinAlgError:
         cov = np.full((r.x.size, r.x.size), np.inf)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
@@ -591,12 +753,28 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
         "force_limit_n": cas0.force_limit_n * ratio,
     })
     rms = pos_rms(r)
-    noise = _noise_rms(model.meas)
-    status = "ok" if rms <= IDENT_POOR_NOISE_RATIO * max(noise, 1e-9) else "poor"
+    # the evidence of model error: the residual above the noise, relative to the velocity
+    # loop's imprint on the positions (what the model is there to predict); a parameter
+    # pushed to a physical bound
+    from oga.identify.sim import ideal_loop_positions
+
+    ideal = ideal_loop_positions(model.p0, model.cmd, model.ff, model.kp, model.kf, dt, dead)
+    imprint = float(np.sqrt(np.mean((ideal[: ideal.size - lag] - model.meas[lag:]) ** 2)))
+    share = math.sqrt(max(rms ** 2 - noise ** 2, 0.0)) / max(imprint, noise, 1e-12)
+    ends = _at_bounds(r.x[: r.x.size - frac], lo, hi)
+    equivalent = _equivalent_changes(model, r, n, math.sqrt(max(rms ** 2 - noise ** 2, 0.0)),
+                                     dead, lag, frac)
     f_level = float(np.sqrt(np.mean(f_meas ** 2))) if f_rms is not None else 0.0
-    if f_rms is not None and f_rms > IDENT_POOR_FORCE_SHARE * f_level:
+    if (rms > IDENT_POOR_NOISE_RATIO * max(noise, 1e-9) or share > IDENT_MODEL_ERROR_MAX_SHARE
+            or (f_rms is not None and f_rms > IDENT_POOR_FORCE_SHARE * f_level)):
         status = "poor"
+    elif rms > IDENT_MODEL_ERROR_NOISE_RATIO * max(noise, 1e-9) or ends:
+        status = "model-error"
+    else:
+        status = "ok"
     return AxisFit(status=status, cascade=cas, dead_time_samples=dead, lag_samples=lag,
                    values=vals, ci_low=los, ci_high=his, mass_identified=tr.force_n is not None,
                    residual_rms_m=rms, noise_rms_m=noise, force_residual_rms_n=f_rms,
-                   candidates=candidates, fit_time_s=time.process_time() - t_start, n_samples=n)
+                   candidates=candidates, fit_time_s=time.process_time() - t_start, n_samples=n,
+                   correlation_samples=tau, model_error_share=share, at_bounds=ends,
+                   model_error_changes=equivalent)

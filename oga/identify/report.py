@@ -27,9 +27,7 @@ def _fig_axis(ident: Identification, a: str) -> str:
     tr, fit = ident.trace.axes[a], ident.fits[a]
     dt = ident.trace.dt_s
     cmd, ff, kp, kf = axis_inputs(tr, dt)
-    machine = ident.machine.model_copy(update={"timing": ident.machine.timing.model_copy(
-        update={"dead_time_samples": fit.dead_time_samples})})
-    p, _ = simulate_axis(axis_params(machine, a), tr.act_m[0], cmd, ff, kp, kf)
+    p, _ = simulate_axis(axis_params(ident.machine, a), tr.act_m[0], cmd, ff, kp, kf)
     lag = fit.lag_samples
     n = p.size - lag
     t = np.arange(n) * dt
@@ -80,16 +78,21 @@ def _param_table(ident: Identification, base, a: str) -> str:
         rows.append(f"<tr><th>{k}</th><td>{fit.values[k]:.6g}{note}</td><td>{fit.ci_low[k]:.6g}"
                     f"</td><td>{fit.ci_high[k]:.6g}</td><td>{b:.6g}</td></tr>")
     rows.append(f"<tr><th>dead_time_samples</th><td>{fit.dead_time_samples}</td><td></td><td></td>"
-                f"<td>{base.timing.dead_time_samples}</td></tr>")
+                f"<td>{base.dead_time_samples_of(a):g}</td></tr>")
     rows.append(f"<tr><th>logging lag (samples)</th><td>{fit.lag_samples}</td><td></td><td></td>"
                 f"<td></td></tr>")
-    cands = ", ".join(f"d={d} l={lg}: {rms * 1e6:.4g} um" for d, lg, rms in fit.candidates)
+    cands = ", ".join(f"d={d:.4g} l={lg}: {rms * 1e6:.4g} um" for d, lg, rms in fit.candidates)
     pct = f"{IDENT_CONFIDENCE * 100:g} %"
     return (f'<table class="metrics"><tr><th>parameter</th><th>fitted</th><th>{pct} low</th>'
             f"<th>{pct} high</th><th>base</th></tr>{''.join(rows)}</table>"
             f"<p>Residual RMS {fit.residual_rms_m * 1e6:.4g} um, noise estimate "
-            f"{fit.noise_rms_m * 1e6:.3g} um, status <b>{fit.status}</b>; dead time and lag "
-            f"tried (residual RMS): {html.escape(cands)}.</p>")
+            f"{fit.noise_rms_m * 1e6:.3g} um ({fit.noise_ratio:.3g} times), status "
+            f"<b>{fit.status}</b>. Evidence of model error: the residual's correlation time "
+            f"{fit.correlation_samples:.3g} samples (1: white), the model-error share "
+            f"{fit.model_error_share:.3g} of the velocity loop's imprint on the positions"
+            + (f", on a physical bound: {html.escape(', '.join(fit.at_bounds))}"
+               if fit.at_bounds else "")
+            + f"; dead time and lag tried (residual RMS): {html.escape(cands)}.</p>")
 
 
 def identify_report(ident: Identification) -> str:

@@ -26,12 +26,14 @@ from oga.simulate import (
     _DEAD,
     _DFS,
     _FC,
+    _FRAC,
     _INV_EPS,
     _INV_TN,
     _INV_VS,
     _KV,
     _LIFTED,
     _NSUB,
+    _delayed,
     _lifted,
     _lifted_guard,
     _linear,
@@ -129,6 +131,7 @@ def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp, out_f, o
         k = _substep_coefs(dpar[d])
         for j in range(10):
             dc[d, j] = k[j]
+    frac = params[_FRAC]
     u_hist = np.empty(n)
     du_hist = np.empty((n, nd))
     dp, dv, df, di = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
@@ -146,6 +149,12 @@ def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp, out_f, o
         ud = u_hist[m] if m >= 0 else 0.0  # the dead-time line starts empty (at rest)
         for d in range(nd):
             dud[d] = du_hist[m, d] if m >= 0 else 0.0
+        if frac != 0.0:  # fractional: f u_m + (1 - f) u_{m+1}, f a parameter too
+            newer = u_hist[m + 1] if m + 1 >= 0 else 0.0
+            for d in range(nd):
+                dnewer = du_hist[m + 1, d] if m + 1 >= 0 else 0.0
+                dud[d] = frac * dud[d] + (1.0 - frac) * dnewer + dpar[d, _FRAC] * (ud - newer)
+            ud = _delayed(params, ud, newer)
         p, v, f, i = _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud)
 
 

@@ -15,7 +15,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.simulate import axis_params, drive, rest_state
 
-__all__ = ["simulate_forces", "synthetic_trace", "random_cascade"]
+__all__ = ["simulate_forces", "ideal_loop_positions", "synthetic_trace", "random_cascade"]
 
 _P, _F = 0, 2  # position and force in the cascade state (oga.simulate's layout)
 
@@ -26,6 +26,50 @@ def _run_forces(state, params, pd, vd, kp_si, kf, out_p, out_f):
         out_p[k] = state[_P]
         out_f[k] = state[_F]
         drive(state, params, kp_si[k] * (pd[k] - state[_P]) + kf[k] * vd[k], 0.0)
+
+
+@njit(cache=True)
+def _ideal_loop(p0, pd, vd, kp_si, kf, te, line, frac, out_p):
+    u = np.zeros(pd.shape[0])
+    p = p0
+    for k in range(pd.shape[0]):
+        out_p[k] = p
+        u[k] = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
+        m = k - line
+        ud = u[m] if m >= 0 else 0.0
+        if frac != 0.0:
+            ud = frac * ud + (1.0 - frac) * (u[m + 1] if m + 1 >= 0 else 0.0)
+        p += te * ud
+
+
+def ideal_loop_positions(p0: float, pd, vd, kp_si, kf, te: float, dead_time_samples: float):
+    """The positions of the recorded position loop around an ideal velocity loop (the axis
+    moves at the command it receives, ``dead_time_samples`` late; a fraction interpolated as
+    :mod:`oga.simulate` does): what the positions would be without the velocity loop's
+    dynamics. Their difference to the measured ones is the velocity loop's imprint, which an
+    axis model has to predict.
+
+    Parameters
+    ----------
+    p0 : float
+    pd, vd, kp_si, kf : ndarray, shape (N,)
+        Setpoints (m, m/s) and gains (1/s, factor), float64.
+    te : float
+        Period, s.
+    dead_time_samples : float
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        Positions, m.
+    """
+    d = float(dead_time_samples)
+    whole = int(np.floor(d))
+    line, frac = (whole, 0.0) if d == whole else (whole + 1, d - whole)
+    out = np.empty(np.shape(pd)[0])
+    _ideal_loop(float(p0), *(np.ascontiguousarray(a, dtype=np.float64) for a in (pd, vd, kp_si, kf)),
+                float(te), line, frac, out)
+    return out
 
 
 def simulate_forces(params: np.ndarray, p0: float, pd, vd, kp_si, kf):

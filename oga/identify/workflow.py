@@ -15,6 +15,9 @@ from oga.machine import Machine
 
 __all__ = ["Identification", "identify", "axes_to_fit", "identification_from_summary"]
 
+#: Fit statuses from best to worst.
+_STATUSES = ("ok", "model-error", "poor")
+
 
 @dataclass(frozen=True, eq=False)
 class Identification:
@@ -22,10 +25,13 @@ class Identification:
 
     Attributes
     ----------
-    status : {"ok", "poor"}
-        ``poor`` when an axis's fit does not explain its trace (:class:`AxisFit`).
+    status : {"ok", "model-error", "poor"}
+        The worst of the axes' fits (:class:`AxisFit`): ``model-error`` where a fit explains
+        its trace only in part (its set widened), ``poor`` where the model does not cover
+        the plant.
     machine : Machine
-        The identified machine (loads like any other once written).
+        The identified machine (loads like any other once written): its sets grown with the
+        evidence of model error, the held-out check's included.
     toml : str
         Its machine file, intervals and residuals beside the values.
     fits : dict[str, AxisFit]
@@ -53,6 +59,8 @@ class Identification:
             "status": self.status,
             "machine": self.machine.name,
             "dead_time_samples": self.machine.timing.dead_time_samples,
+            "dead_time_samples_per_axis": {a: self.machine.dead_time_samples_of(a)
+                                           for a in self.machine.axes},
             "time_s": self.time_s,
             "axes": {a: {
                 "status": f.status, "dead_time_samples": f.dead_time_samples,
@@ -61,6 +69,8 @@ class Identification:
                 "force_residual_rms_n": f.force_residual_rms_n,
                 "values": f.values, "ci_low": f.ci_low, "ci_high": f.ci_high,
                 "candidates": [list(c) for c in f.candidates], "fit_time_s": f.fit_time_s,
+                "noise_ratio": f.noise_ratio, "correlation_samples": f.correlation_samples,
+                "model_error_share": f.model_error_share, "at_bounds": list(f.at_bounds),
                 **({"holdout": self.holdout[a]} if a in self.holdout else {}),
             } for a, f in self.fits.items()},
         }
@@ -91,13 +101,16 @@ def identification_from_summary(summary: dict, trace: Trace, base: Machine,
         for a, s in summary["axes"].items():
             fits[a] = AxisFit(
                 status=s["status"], cascade=machine.axis(a).cascade,
-                dead_time_samples=int(s["dead_time_samples"]), lag_samples=int(s["lag_samples"]),
+                dead_time_samples=s["dead_time_samples"], lag_samples=int(s["lag_samples"]),
                 values=numbers(s["values"]), ci_low=numbers(s["ci_low"]),
                 ci_high=numbers(s["ci_high"]),
                 mass_identified=bool(s["mass_identified"]), residual_rms_m=s["residual_rms_m"],
                 noise_rms_m=s["noise_rms_m"], force_residual_rms_n=s["force_residual_rms_n"],
                 candidates=[tuple(c) for c in s["candidates"]], fit_time_s=s["fit_time_s"],
-                n_samples=trace.n - int(s["lag_samples"]))
+                n_samples=trace.n - int(s["lag_samples"]),
+                correlation_samples=float(s.get("correlation_samples", 1.0)),
+                model_error_share=float(s.get("model_error_share", 0.0)),
+                at_bounds=tuple(s.get("at_bounds", ())))
         holdout = {a: s["holdout"] for a, s in summary["axes"].items() if "holdout" in s}
         return Identification(status=summary["status"], machine=machine, toml=toml, fits=fits,
                               holdout=holdout, trace=trace, base=base, time_s=summary["time_s"])
@@ -190,7 +203,7 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
             holdout[a] = {"fraction": holdout_fraction,
                           "rms_fit_m": float(np.sqrt(np.mean(res[:cut] ** 2))),
                           "rms_heldout_m": float(np.sqrt(np.mean(res[cut:] ** 2)))}
-    ident = identified_machine(machine, fits, name)
-    status = "ok" if all(f.status == "ok" for f in fits.values()) else "poor"
+    ident = identified_machine(machine, fits, name, holdout)
+    status = max((f.status for f in fits.values()), key=_STATUSES.index)
     return Identification(status=status, machine=ident, toml=machine_toml(ident, fits), fits=fits,
                           holdout=holdout, trace=trace, base=machine, time_s=time.process_time() - t0)

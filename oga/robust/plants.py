@@ -11,8 +11,10 @@ module turns that set into concrete machines (no uncertainty of their own):
   +-x % range it puts slightly more weight below nominal than above (the median of
   ``(0.5, 1.5)`` is 0.87), which errs towards the low-friction, fast-loop side where the
   identification issue measured the schedules failing. The extra dead time is uniform
-  over its whole samples. The machine's dead time is one value for all axes, so it is
-  drawn once per plant over the union of the axes' ranges.
+  over its whole samples, drawn once per plant over the union of the axes' ranges and
+  given to each axis within its own range (:func:`perturbed_machine`): an axis whose
+  range is ``(0, 0)`` (e.g. one identified with no doubt about its dead time) never gets
+  a sample it was not measured with, whatever another axis's range.
 - **Corners**: the groups of :data:`oga.defaults.ROBUST_CORNER_GROUPS` (friction level,
   mass, Kv, Tn, dead time: what moves the result, per the identification issue's
   measurements) each at its low or high end, every uncertain axis at the same end of its
@@ -104,6 +106,15 @@ def _dead_range(machine: Machine, axes) -> tuple[int, int]:
     return min(r[0] for r in ranges), max(r[1] for r in ranges)
 
 
+def _own_extra(axis, extra: int) -> int:
+    """``extra`` samples of dead time within ``axis``'s own range (none for an axis without
+    an uncertainty section: it is taken as it is)."""
+    if axis.uncertainty is None:
+        return 0
+    lo, hi = axis.uncertainty.dead_time_extra_samples
+    return min(max(extra, lo), hi)
+
+
 def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
                       dead_extra: int = 0, name: str | None = None,
                       friction_linear_below_m_s: float | None
@@ -118,7 +129,9 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
         ``{axis: {field: factor}}``, fields of :data:`oga.machine.FACTOR_FIELDS`; axes or
         fields left out stay nominal.
     dead_extra : int
-        Samples added to ``timing.dead_time_samples``.
+        Samples added to each axis's dead time, within the axis's own
+        ``dead_time_extra_samples`` range (clipped to it; none on an axis without an
+        uncertainty section).
     name : str, optional
         Name of the plant (default ``"<machine>-perturbed"``).
     friction_linear_below_m_s : float or None
@@ -139,6 +152,8 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
         An unknown axis or field, an ARX axis, or a plant that does not validate.
     """
     data = machine.model_dump(mode="json", exclude_none=True)
+    dead = {a: machine.dead_time_samples_of(a) + _own_extra(ax, int(dead_extra))
+            for a, ax in machine.axes.items()}
     for ax in data["axes"].values():
         ax.pop("uncertainty", None)
     for a, fs in factors.items():
@@ -150,7 +165,13 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
                 raise MachineError(f"perturbed plant: unknown parameter {f!r} of axis {a}")
             cas[f] = cas[f] * float(x)
         cas["static_n"] = max(cas["static_n"], cas["coulomb_n"])
-    data["timing"]["dead_time_samples"] = machine.timing.dead_time_samples + int(dead_extra)
+    if len(set(dead.values())) == 1 and float(next(iter(dead.values()))).is_integer():
+        data["timing"]["dead_time_samples"] = int(next(iter(dead.values())))  # one for all
+        for ax in data["axes"].values():
+            ax.pop("dead_time_samples", None)
+    else:
+        for a, d in dead.items():
+            data["axes"][a]["dead_time_samples"] = d
     if friction_linear_below_m_s is not None and "friction_linear_below_m_s" not in data["timing"]:
         data["timing"]["friction_linear_below_m_s"] = min(
             [friction_linear_below_m_s] + [defaults.FRICTION_LINEAR_MAX_SHARE * ax["cascade"][f]
