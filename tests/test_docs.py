@@ -239,3 +239,17 @@ def test_runnable_comparison_catches_a_changed_figure_and_ignores_layout():
     assert runnable.line_differs("x 1.3 s", "x 2.5 s", 0.01, None)
     assert not runnable.line_differs("x 1.3 s", "x 2.5 s", 0.01, r"[\d.]+ s")
     assert not runnable.line_differs("1e-05", "0.00001", 0.0, None)
+
+
+def test_figure_script_draws_with_names_the_report_code_has():
+    """``docs/scripts/figures.py`` draws with the report's own functions: each name it imports
+    exists (drawing the figures takes a minute and a browser: the script, not the suite)."""
+    import ast
+    import importlib
+
+    tree = ast.parse((ROOT / "docs" / "scripts" / "figures.py").read_text())
+    imports = [(n.module, a.name) for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+               and n.module and n.module.split(".")[0] in ("oga", "feedplan") for a in n.names]
+    assert ("oga.report", "_fig_ratio") in imports
+    missing = [f"{m}.{a}" for m, a in imports if not hasattr(importlib.import_module(m), a)]
+    assert not missing, f"docs/scripts/figures.py imports names that no longer exist: {missing}"

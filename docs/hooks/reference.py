@@ -96,7 +96,31 @@ def _cell(text) -> str:
 
 
 def _code(text) -> str:
-    return f"`{text}`".replace("|", "\\|")
+    """A code span for a table cell (Markdown tables leave pipes inside backticks alone)."""
+    return f"`{text}`"
+
+
+def _numpydoc_summary(doc: str) -> str:
+    """A docstring up to its first numpydoc section (``Attributes``, ``Parameters``, ...):
+    the sections are the tables of these pages."""
+    return re.split(r"\n[ \t]*\w[\w ]*\n[ \t]*-{3,}[ \t]*\n", "\n" + doc, maxsplit=1)[0].strip()
+
+
+def _prose(doc: str) -> str:
+    """A docstring as Markdown: its paragraphs, a ``::`` block as a code block, reST roles
+    and double backquotes made plain."""
+    out, literal = [], False
+    for para in re.split(r"\n\s*\n", textwrap.dedent(doc).strip("\n")):
+        if literal:
+            out.append("```text\n" + textwrap.dedent(para) + "\n```")
+            literal = False
+            continue
+        text = " ".join(para.split()).replace("``", "`")
+        text = re.sub(r":(?:class|func|meth|data|mod|attr):`~?([^`]+)`", r"`\1`", text)
+        if text.endswith("::"):
+            text, literal = text[:-1], True
+        out.append(text)
+    return "\n\n".join(out)
 
 
 # --- CLI ----------------------------------------------------------------------------------------
@@ -121,7 +145,7 @@ def cli_markdown() -> str:
     lines += [f"| [`oga {n}`](#oga-{n}) | {_cell(helps.get(n, ''))} |" for n in sub.choices]
     lines += ["", "`oga --version` prints the version.", ""]
     for name, sp in sub.choices.items():
-        sp.formatter_class = lambda prog: argparse.HelpFormatter(prog, width=96)
+        sp.formatter_class = lambda prog: argparse.HelpFormatter(prog, width=80)
         formatter = sp._get_formatter()
         what = helps.get(name, "")
         lines += [f"## oga {name}", "", what[:1].upper() + what[1:] + ".", ""]
@@ -214,7 +238,7 @@ def rest_markdown() -> str:
     for m, p, op in ops:
         lines += ["", f"## {m} {p} {{#{anchor[m, p]}}}", "", f"**{op.get('summary', '')}**", ""]
         if op.get("description"):
-            lines += [op["description"].replace("``", "`"), ""]
+            lines += [_prose(_numpydoc_summary(op["description"])), ""]
         params = op.get("parameters", [])
         if params:
             lines += ["| parameter | in | type | required | default | meaning |",
@@ -242,7 +266,7 @@ def rest_markdown() -> str:
     for name, schema in defs.items():
         lines += [f"### {name} {{#{name.lower()}}}", ""]
         if schema.get("description"):
-            lines += [schema["description"].replace("``", "`"), ""]
+            lines += [_prose(_numpydoc_summary(schema["description"])), ""]
         props = schema.get("properties", {})
         if props:
             required = set(schema.get("required", ()))
@@ -344,23 +368,6 @@ def machine_fields():
 
     walk(Machine, "")
     return out
-
-
-def _prose(doc: str) -> str:
-    """A docstring as Markdown: its paragraphs, a ``::`` block as a code block, reST roles
-    and double backquotes made plain."""
-    out, literal = [], False
-    for para in re.split(r"\n\s*\n", textwrap.dedent(doc).strip("\n")):
-        if literal:
-            out.append("```text\n" + textwrap.dedent(para) + "\n```")
-            literal = False
-            continue
-        text = " ".join(para.split()).replace("``", "`")
-        text = re.sub(r":(?:class|func|meth|data|mod|attr):`~?([^`]+)`", r"`\1`", text)
-        if text.endswith("::"):
-            text, literal = text[:-1], True
-        out.append(text)
-    return "\n\n".join(out)
 
 
 def machine_markdown() -> str:

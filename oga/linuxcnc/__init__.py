@@ -1,7 +1,7 @@
 """LinuxCNC: a verified gain table as a ``streamer`` file and HAL files for the ``pid`` loops.
 
-See :mod:`oga.linuxcnc.export`; the README section "Running a table on LinuxCNC" says how a
-machine or a bench runs them.
+See :mod:`oga.linuxcnc.export`; ``docs/tutorials/linuxcnc.md`` says how a machine or a bench
+runs them.
 """
 
 from __future__ import annotations
