@@ -94,7 +94,7 @@ class Limits(_Frozen):
 
 
 class Cascade(_Frozen):
-    """Velocity PI / force-loop / mechanics of one axis (paper Fig. 3; README "Machines").
+    """Velocity PI / force-loop / mechanics of one axis (paper Fig. 3; docs/howto/machine-files.md).
 
     Friction ``Ffr(v) = Fc*s + (Fs - Fc)*exp(-(v/vs)^2)*s + B*v`` with
     ``s = tanh(v / friction_smoothing_m_s)``.

@@ -134,14 +134,16 @@ def test_c_header_compiles_and_holds_the_exact_values(job, tmp_path):
     assert np.array_equal(got, data)
 
 
-def test_readme_library_example_runs_after_import_oga_alone(tmp_path, job):
-    """The README's library section, run as written in a fresh interpreter: ``import oga``
-    is enough for ``oga.export.table_csv(result)``, and no plotting or web module loads."""
+def test_docs_library_example_runs_after_import_oga_alone(tmp_path, job):
+    """The library example of the docs (Your first table, "From Python"), run as written in a
+    fresh interpreter: ``import oga`` is enough for ``oga.export.table_csv(result)``, and no
+    plotting or web module loads."""
     from pathlib import Path
     import sys
 
     root = Path(__file__).parents[1]
-    section = (root / "README.md").read_text().split("## The library", 1)[1]
+    page = root / "docs" / "tutorials" / "first-table.md"
+    section = page.read_text().split("## From Python", 1)[1]
     code = section.split("```python\n", 1)[1].split("```", 1)[0]
     program = tmp_path / "part.ngc"
     program.write_text(PROGRAM)

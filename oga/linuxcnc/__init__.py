@@ -8,7 +8,7 @@
   setpoints recorded (``oga lcnc-record``), in a :mod:`oga.linuxcnc.session`;
 - :mod:`oga.linuxcnc.halfile`: writing HAL commands (``.hal`` or Tcl HALFILEs).
 
-The documentation page "Running a table on LinuxCNC" says how a machine or a bench runs them.
+``docs/tutorials/linuxcnc.md`` says how a machine or a bench runs them.
 """
 
 from __future__ import annotations
