@@ -43,7 +43,11 @@ from oga.robust.search import robust_optimize  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
-EXTERNAL = ROOT.parent / "shared" / "toolpaths" / "external"
+#: The real programs (GPL: read in place): beside the repository, as in /work/main, or in the
+#: shared folder of a worktree's host.
+EXTERNAL = next((d for d in (ROOT.parent / "shared" / "toolpaths" / "external",
+                             Path("/work/shared/toolpaths/external")) if d.exists()),
+                ROOT.parent / "shared" / "toolpaths" / "external")
 #: (name, file, lines kept or None for all): bench_robust.py's programs and two real ones.
 PROGRAMS = (
     ("reference_xz", DATA / "reference_xz.ngc", None),

@@ -419,7 +419,7 @@ LAW_OVERRIDES = (0.5, 0.8, 1.0, 1.2)
 #: Override range accepted (LinuxCNC's default MAX_FEED_OVERRIDE is 1.2; a shop uses 0.5-1.2).
 LAW_OVERRIDE_RANGE = (0.1, 2.0)
 #: Rounds of the law search at most (the nominal plant, then the worst plants join).
-LAW_ROUNDS = 4
+LAW_ROUNDS = 5
 #: Gauss-Newton iterations per round at most, and the relative cost decrease that stops them.
 LAW_ITERATIONS = 25
 LAW_STOP = 1e-3

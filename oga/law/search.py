@@ -73,6 +73,12 @@ __all__ = ["Program", "LawResult", "search_law"]
 #: peak already at its limit (the baseline's own, in a rapid), the linear model's error
 #: alone broke the exact check by 0.3-1.6 % (reference_xz, mac law).
 _LIN_MARGIN = 0.97
+#: The linearised MSE ratio of a searched plant and case stays this far below 1.
+_RATIO_MARGIN = 0.01
+#: QP solves per step at most (rows the last solution's prediction breaks join each next one).
+_QP_PASSES = 6
+#: Coefficients of the k-th backward difference (commands before the start are zero).
+_DIFF = ((1.0,), (1.0, -1.0), (1.0, -2.0, 1.0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,8 +321,10 @@ def search_law(
         moving_all.update(moving)
     report(0.1)
     law_axes = tuple(AXES[i] for i in sorted(moving_all))
-    kp_lo, kp_hi = common_kp_range(machine, scenarios, tuple(b for p in programs
-                                                             for b in bounds_of[p.name]), law_axes)
+    ranges = [common_kp_range(machine, scenarios, bounds_of[p.name],
+                              tuple(AXES[i] for i in p.setpoints[1.0].moving_axes))
+              for p in programs]
+    kp_lo, kp_hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
     kf_lo, kf_hi = machine.gains.kf_range
     first = baselines[programs[0].name]
     fixed_kp = {a: first.kp_m_min_per_mm for a in AXES if a not in law_axes}
@@ -360,26 +368,33 @@ def search_law(
                  key=lambda th: ctx.start_key(th))
     reserve = min(b.reserve for b in baselines.values())
     active: list[int] = []
-    tried = []
     iterations = 0
     search_s = certify_s = 0.0
     t_phase = time.process_time()
     search_s += t_phase - t_start
+    info = [(c.program, c.override, c.sp, c.base, c.base_replays, bounds_of[c.program])
+            for c in cases]
+    certified = []  # (mean median, round, alpha, law, cert, reserve, active)
+    first_failed = None
     for rounds in range(1, defaults.LAW_ROUNDS + 1):
         t0 = time.process_time()
-        keys = (-1, *active)
-        theta, its = ctx.search(theta0, keys, reserve)
+        theta, its = ctx.search(theta0, (-1, *active), reserve)
         iterations += its
         t1 = time.process_time()
-        law = quantized(layout.law(theta, fixed_kp, fixed_kf))
-        cert = certify_law(law, [(c.program, c.override, c.sp, c.base, c.base_replays,
-                                  bounds_of[c.program]) for c in cases], machine, scenarios)
-        t2 = time.process_time()
         search_s += t1 - t0
-        certify_s += t2 - t1
-        tried.append((cert.key, rounds, theta, law, cert, reserve, tuple(active)))
+        cert = None
+        for a in (1.0, *defaults.LAW_ALPHAS):  # the round's law, else its shrinks
+            law = quantized(layout.law(theta0 + a * (theta - theta0), fixed_kp, fixed_kf))
+            c = certify_law(law, info, machine, scenarios)
+            cert = cert or c
+            if c.status == "ok":
+                certified.append((float(np.mean([x.median for x in c.cases.values()])), rounds,
+                                  a, law, c, reserve, tuple(active)))
+                break
+        certify_s += time.process_time() - t1
+        first_failed = first_failed or (cert if cert.status != "ok" else None)
         report(0.1 + 0.8 * rounds / defaults.LAW_ROUNDS)
-        if cert.status == "ok":
+        if cert.status == "ok":  # the round's own law certified: more plants only cost
             break
         only = cert.schedule_only_excess()
         if only > 1.0:  # more limit reserve
@@ -388,28 +403,20 @@ def search_law(
         new = next((i for i in worst if i not in active), None)
         if new is not None:
             active = (active + [new])[-(defaults.ROBUST_ACTIVE - 1):]
-    key, rounds_kept, theta, law, cert, reserve_kept, active_kept = min(tried, key=lambda t: t[0])
-    alpha, status, reason = 1.0, "ok", ""
-    if cert.status != "ok":
-        t1 = time.process_time()
-        for a in defaults.LAW_ALPHAS:
-            shrunk = quantized(layout.law(theta0 + a * (theta - theta0), fixed_kp, fixed_kf))
-            c = certify_law(shrunk, [(cs.program, cs.override, cs.sp, cs.base, cs.base_replays,
-                                      bounds_of[cs.program]) for cs in cases], machine, scenarios)
-            if c.status == "ok":
-                alpha, law, cert = a, shrunk, c
-                break
-        certify_s += time.process_time() - t1
-        if cert.status != "ok":
-            status, reason = "failed", "; ".join(cert.reasons)
-            law = quantized(layout.law(theta0, fixed_kp, fixed_kf))
+    status, reason = "ok", ""
+    if certified:  # of the certified laws, the least mean median ratio over the cases
+        _m, _r, alpha, law, cert, reserve_kept, active_kept = min(certified, key=lambda t: t[0])
+    else:
+        status, reason = "failed", "; ".join(first_failed.reasons)
+        alpha, cert, reserve_kept, active_kept = 0.0, first_failed, reserve, tuple(active)
+        law = quantized(layout.law(theta0, fixed_kp, fixed_kf))
     report(1.0)
     nominal_ratio = {}
     for c in cases:
         kp, kf = law_gains(law, c.sp)
         nominal_ratio[(c.program, c.override)] = ctx.exact(c, -1, kp, kf)[0] / ctx.base_mse(c, -1)
     return LawResult(status=status, law=law, certificate=cert, baselines=baselines,
-                     rounds=len(tried), reserve=reserve_kept,
+                     rounds=rounds, reserve=reserve_kept,
                      active=tuple(plants.label(i) for i in active_kept), alpha=alpha,
                      nominal_ratio=nominal_ratio, search_s=search_s, certify_s=certify_s,
                      iterations=iterations, reason=reason)
@@ -466,8 +473,9 @@ class _Context:
 
     def evaluate(self, theta, keys, reserve, stop_above=np.inf):
         """(cost, violation): the weighted mean ratio and the largest excess over the
-        allowed ratios (0: feasible), over the cases and the plants ``keys``; stops early
-        once the violation exceeds ``stop_above``."""
+        allowed ratios (0: feasible), over the cases and the plants ``keys``; a law worse than
+        the baseline on a searched plant and case (ratio above 1) is infeasible too. Stops
+        early once the violation exceeds ``stop_above``."""
         law = self.layout.law(theta, self.fixed_kp, self.fixed_kf)
         w = self.weights(keys)
         cost, viol = 0.0, 0.0
@@ -476,8 +484,10 @@ class _Context:
             for key in keys:
                 mse, cr, fr = self.exact(c, key, kp, kf)
                 acr, afr = self.allowed(c, key, reserve)
-                cost += w[key] * mse / self.base_mse(c, key) / len(self.cases)
-                viol = max(viol, float(np.max(cr / acr)) - 1.0, float(np.max(fr / afr)) - 1.0)
+                ratio = mse / self.base_mse(c, key)
+                cost += w[key] * ratio / len(self.cases)
+                viol = max(viol, float(np.max(cr / acr)) - 1.0, float(np.max(fr / afr)) - 1.0,
+                           ratio - 1.0)
                 if viol > stop_above:
                     return cost, viol
         return cost, max(viol, 0.0) if viol > 1e-9 else 0.0
@@ -487,14 +497,14 @@ class _Context:
         return (viol > 0.0, viol, cost)
 
     # --- one Gauss-Newton step ------------------------------------------------------------
-    def linearise(self, theta, keys, reserve, trust):
-        """The QP of a step: Hessian, gradient, rows (A, lo, hi) and the model's cost; the
-        rows of the samples whose limit ratio may reach 1 within the trust region."""
+    def linearise(self, theta, keys, reserve):
+        """The QP of a step: Hessian, gradient, the linearised limits (:class:`_Check`) and
+        the model's cost."""
         nv = self.layout.n
         law = self.layout.law(theta, self.fixed_kp, self.fixed_kf)
         w = self.weights(keys)
         h, g = np.zeros((nv, nv)), np.zeros(nv)
-        rows, rlo, rhi = [], [], []
+        checks, ratio_rows = [], []
         cost = 0.0
         for c in self.cases:
             kp, kf = law_gains(law, c.sp)
@@ -521,26 +531,22 @@ class _Context:
                 h += 2.0 * scale * hh
                 g += 2.0 * scale * gg
                 cost += scale * ss
+                # this plant and case's ratio may not rise above 1 (first order)
+                unit = w[key] / len(self.cases) / scale
+                ratio_rows.append((2.0 * unit * scale * gg, unit * scale * ss))
                 acr, afr = self.allowed(c, key, reserve)
                 lim = plant.axis_limits()
                 flim = plant.ferror_limits()
                 for i, u in us.items():
                     cols = self.layout.cols[i]
-                    su = sens_u[i]
                     limits = (float(lim.vmax_m_s[i]), float(lim.amax_m_s2[i]) * te,
                               float(lim.jmax_m_s3[i]) * te * te)
-                    val = u
-                    mat = su
-                    for kind in range(3):
-                        if kind:
-                            val = np.diff(val, prepend=0.0)
-                            mat = np.diff(mat, axis=0, prepend=0.0)
-                        _rows(val, mat, limits[kind] * acr[i, kind], cols, trust, rows, rlo,
-                              rhi)
+                    checks.append(_Check(u, sens_u[i].astype(np.float32), cols,
+                                         tuple(limits[k] * acr[i, k] for k in range(3)), nv))
                     if np.isfinite(flim[i]):
-                        _rows(pd[:, i] - pos[:, i], -sens[i], flim[i] * afr[i], cols, trust,
-                              rows, rlo, rhi)
-        return h, g, rows, rlo, rhi, cost
+                        checks.append(_Check(pd[:, i] - pos[:, i], (-sens[i]).astype(np.float32),
+                                             cols, (flim[i] * afr[i],), nv))
+        return h, g, checks, ratio_rows, cost
 
     def search(self, theta0, keys, reserve) -> tuple[np.ndarray, int]:
         """The Gauss-Newton SQP from ``theta0`` on the plants ``keys`` (module doc)."""
@@ -553,10 +559,10 @@ class _Context:
         its = 0
         qp = None
         for _ in range(defaults.LAW_ITERATIONS):
-            if qp is None:  # a rejected step keeps its linearisation: its rows cover less trust
-                qp = self.linearise(theta, keys, reserve, trust)
-            h, g, rows, rlo, rhi, _model = qp
-            d = _qp_step(h, g, rows, rlo, rhi, np.maximum(self.lo - theta, -trust),
+            if qp is None:  # a rejected step keeps its linearisation
+                qp = self.linearise(theta, keys, reserve)
+            h, g, checks, ratio_rows, _model = qp
+            d = _qp_step(h, g, checks, ratio_rows, np.maximum(self.lo - theta, -trust),
                          np.minimum(self.hi - theta, trust))
             taken = None
             for s in (1.0, 0.5, 0.25):
@@ -592,38 +598,82 @@ class _Context:
         return out
 
 
-def _rows(val, mat, limit, cols, trust, rows, rlo, rhi) -> None:
-    """The linearised rows ``|val + mat d| <= limit`` (``d`` the step of the columns ``cols``)
-    of the samples whose ratio may reach :data:`oga.defaults.LAW_ROW_SHARE` within the trust
-    region (``|val| + |mat| trust``: a law's kinks, where its support points or ``|a| = 0``
-    are crossed, make jerk spikes of the command where the constant start had none; and in a
-    jerk-limited phase every sample is near the peak, so no sample is left out for being
-    next to a larger one), :data:`oga.defaults.LAW_ROWS` at most, largest first; scaled to unit
-    bounds, within :data:`_LIN_MARGIN`."""
-    r = (np.abs(val) + np.abs(mat) @ trust[cols]) / limit
-    cand = np.flatnonzero(r >= defaults.LAW_ROW_SHARE)
-    if cand.size == 0:
-        return
-    cand = cand[np.argsort(-r[cand], kind="stable")[:defaults.LAW_ROWS]]
-    nv = len(trust)
-    for k in cand:
-        row = np.zeros(nv)
-        row[cols] = mat[k] / limit
-        rows.append(row)
-        rlo.append(min(-_LIN_MARGIN - val[k] / limit, 0.0))
-        rhi.append(max(_LIN_MARGIN - val[k] / limit, 0.0))
+@dataclass(eq=False)
+class _Check:
+    """One linearised limit of one case, plant and axis: ``|D^k (val + mat d)| <= limits[k]``
+    for ``k`` = 0, 1, 2 (the value, its first and second differences from rest: eq. 2's
+    velocity, acceleration and jerk of the command, times Te^k), or the following error
+    (one limit, ``k`` = 0 only). ``mat`` (N, D) float32 (rows are picked with it, the exact
+    replay decides), ``cols`` the columns of ``d`` it acts on."""
+
+    val: np.ndarray
+    mat: np.ndarray
+    cols: slice
+    limits: tuple
+    nv: int
+    seen: set = field(default_factory=set)  # (limit, sample) rows already taken
+
+    def rows(self, d: np.ndarray | None, rows, rlo, rhi) -> int:
+        """Add the rows of the samples whose ratio, predicted at step ``d`` (None: now), is at
+        least :data:`oga.defaults.LAW_ROW_SHARE` (:data:`oga.defaults.LAW_ROWS` per limit at
+        most, largest first; in a jerk-limited phase every sample is near the peak, so none
+        is left out for being next to a larger one), scaled to unit bounds within
+        :data:`_LIN_MARGIN`. Returns how many rows were added."""
+        val = self.val
+        pred = val if d is None else val + self.mat @ d[self.cols].astype(np.float32)
+        mat = None
+        added = 0
+        for k, limit in enumerate(self.limits):
+            if k:
+                val, pred = np.diff(val, prepend=0.0), np.diff(pred, prepend=0.0)
+            r = np.abs(pred) / limit
+            cand = np.flatnonzero(r >= (defaults.LAW_ROW_SHARE if d is None else _LIN_MARGIN))
+            if cand.size == 0:
+                continue
+            cand = cand[np.argsort(-r[cand], kind="stable")[:defaults.LAW_ROWS]]
+            for j in cand:
+                if (k, j) in self.seen:
+                    continue
+                self.seen.add((k, j))
+                if mat is None:
+                    mat = self.mat.astype(np.float64)
+                row = sum(c * mat[j - i] for i, c in enumerate(_DIFF[k]) if j - i >= 0)
+                full = np.zeros(self.nv)
+                full[self.cols] = row / limit
+                rows.append(full)
+                rlo.append(min(-_LIN_MARGIN - val[j] / limit, 0.0))
+                rhi.append(max(_LIN_MARGIN - val[j] / limit, 0.0))
+                added += 1
+        return added
 
 
-def _qp_step(h, g, rows, rlo, rhi, dlo, dhi) -> np.ndarray:
-    """The step ``d`` minimising ``d'Hd/2 + g'd`` within ``dlo <= d <= dhi`` and the rows."""
+def _qp_step(h, g, checks, ratio_rows, dlo, dhi) -> np.ndarray:
+    """The step ``d`` minimising ``d'Hd/2 + g'd`` within ``dlo <= d <= dhi`` and the
+    linearised limits: the rows near a limit now, then, solved again (a few times at most),
+    those the last solution's prediction takes past :data:`_LIN_MARGIN` (a law's kinks,
+    where its support points or ``|a| = 0`` are crossed, make jerk spikes of the command
+    where the constant start had none); and per searched plant and case, its MSE ratio to
+    the baseline linearised, ``r + grad d <= 1 - _RATIO_MARGIN`` (or no rise where ``r`` is
+    above): not above 1."""
     nv = len(g)
     ridge = 1e-9 * max(float(np.trace(h)) / nv, 1e-30)
     p = h + np.diag(ridge + 1e-6 * np.diag(h))
-    a = np.vstack([np.eye(nv)] + ([np.array(rows)] if rows else []))
-    lo = np.concatenate([dlo, np.array(rlo)])
-    hi = np.concatenate([dhi, np.array(rhi)])
-    m = a.shape[0]
+    rows = [grad for grad, _r in ratio_rows]
+    rlo = [-1e30] * len(rows)
+    rhi = [max(1.0 - _RATIO_MARGIN - r, 0.0) for _grad, r in ratio_rows]
+    for c in checks:
+        c.seen.clear()
+        c.rows(None, rows, rlo, rhi)
     x = np.zeros(nv)
-    _qp_active_set(p, g.copy(), np.ascontiguousarray(a), lo, hi, m, np.zeros(m, dtype=np.int64),
-                   np.full(m, nv, dtype=np.int64), x)
-    return np.clip(x, dlo, dhi)
+    for _ in range(_QP_PASSES):
+        a = np.vstack([np.eye(nv)] + ([np.array(rows)] if rows else []))
+        lo = np.concatenate([dlo, np.array(rlo)])
+        hi = np.concatenate([dhi, np.array(rhi)])
+        m = a.shape[0]
+        x = np.zeros(nv)
+        _qp_active_set(p, g.copy(), np.ascontiguousarray(a), lo, hi, m,
+                       np.zeros(m, dtype=np.int64), np.full(m, nv, dtype=np.int64), x)
+        x = np.clip(x, dlo, dhi)
+        if sum(c.rows(x, rows, rlo, rhi) for c in checks) == 0:
+            break
+    return x
