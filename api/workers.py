@@ -160,6 +160,14 @@ def run_claimed(store: Store, job: JobRow) -> str:
             store.succeed(job.id, job.attempts, json_safe(ident.summary()),
                           ident.toml.encode("utf-8"))
             return "succeeded"
+        from api.law import is_law
+
+        if is_law(job):
+            from api.law import run_law
+
+            summary, files = run_law(job.toolpath, machine, job.options, progress=progress)
+            store.succeed(job.id, job.attempts, json_safe(summary), files)
+            return "succeeded"
         options = options_from_dict(job.options)
         done = run_job(job.toolpath, job.toolpath_format, machine, options, source=job.source,
                        progress=progress)
