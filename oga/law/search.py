@@ -28,13 +28,14 @@ most, so the search is a Gauss-Newton sequential QP over the whole programs:
 **Rounds** (:data:`oga.defaults.LAW_ROUNDS` at most), as the robust table's: the first
 searches the nominal plant, each next one adds the plant of the set where the last law did
 worst (the nominal plant and :data:`oga.defaults.ROBUST_ACTIVE` - 1 others at most), and
-cuts the reserve where the law breaks a limit that the baseline keeps. Each round's law,
-rounded to its controller's resolution, is certified (:mod:`oga.law.certificate`) on every
-case: first on a screen of the set (its 32 corners and 8 Monte Carlo plants: a screen that
-fails proves the whole set fails), then on the whole set; the first law certified at every
-override wins. If none is, the best round's law is shrunk towards the baseline
-(:data:`oga.defaults.LAW_ALPHAS`), and if none of those certifies, the law is the baseline
-itself (a constant law: status ``"failed"``, with the reason).
+cuts the reserve where the law breaks a limit that the baseline keeps. Each round's law, rounded to its controller's resolution,
+is certified (:mod:`oga.law.certificate`) on every case: first on a screen of the set (its
+32 corners and 8 Monte Carlo plants: a screen that fails proves the whole set fails), then
+on the whole set; where it fails, its shrinks towards the baseline
+(:data:`oga.defaults.LAW_ALPHAS`) are. The rounds stop at the first whose own law is
+certified; of every certified law the one of least mean median ratio over the cases is
+kept. If none is, the law is the baseline itself (a constant law: status ``"failed"``, with
+the reason).
 
 Why whole programs and not windows: a law's support values act on every sample at once, so
 a receding window cannot commit them. Why derivatives: one tangent pass per case and plant
@@ -73,8 +74,6 @@ __all__ = ["Program", "LawResult", "search_law"]
 #: peak already at its limit (the baseline's own, in a rapid), the linear model's error
 #: alone broke the exact check by 0.3-1.6 % (reference_xz, mac law).
 _LIN_MARGIN = 0.97
-#: The linearised MSE ratio of a searched plant and case stays this far below 1.
-_RATIO_MARGIN = 0.01
 #: QP solves per step at most (rows the last solution's prediction breaks join each next one).
 _QP_PASSES = 6
 #: Coefficients of the k-th backward difference (commands before the start are zero).
@@ -117,7 +116,8 @@ class LawResult:
     active : tuple of str
         The plants the kept round searched on besides the nominal one.
     alpha : float
-        Share of the searched law's departure from the baseline kept (1: no shrink).
+        Share of the searched law's departure from the baseline kept (1: no shrink; 0: the
+        baseline kept).
     nominal_ratio : dict of (str, float) to float
         Per program and override, MSE(CE) of the law over the baseline's on the nominal plant.
     search_s, certify_s : float
@@ -203,12 +203,11 @@ class _Layout:
                               kf=theta[self.kf_cols[i]].reshape(ax.kf.shape).copy())
         return Law(kind=self.kind, axes=axes, fixed_kp=dict(fixed_kp), fixed_kf=dict(fixed_kf))
 
-    def theta(self, law: Law) -> np.ndarray:
+    def constant(self, kp: float, kf: float) -> np.ndarray:
+        """The parameters of the constant law ``(kp, kf)`` on every axis."""
         out = np.empty(self.n)
-        for a, ax in law.axes.items():
-            i = AXES.index(a)
-            out[self.kp_cols[i]] = ax.kp_m_min_per_mm.ravel()
-            out[self.kf_cols[i]] = ax.kf.ravel()
+        for i in self.cols:
+            out[self.kp_cols[i]], out[self.kf_cols[i]] = kp, kf
         return out
 
 
@@ -329,8 +328,8 @@ def search_law(
     first = baselines[programs[0].name]
     fixed_kp = {a: first.kp_m_min_per_mm for a in AXES if a not in law_axes}
     fixed_kf = {a: first.kf for a in AXES if a not in law_axes}
-    # the start: the baseline (of the programs' baselines, the one whose constant law keeps
-    # the limits on the most cases, then of least cost); support points over every case
+    # support points over every case; the start: of the programs' baselines, the constant
+    # law that keeps the limits (then of least cost) on the nominal plant
     start_law = _start_law(kind, n_pts, programs, law_axes, first.kp_m_min_per_mm, first.kf,
                            fixed_kp, fixed_kf)
     layout = _Layout(kind, start_law.axes)
@@ -353,19 +352,10 @@ def search_law(
             if o == 1.0:
                 case.base_replays.update(enumerate(base.replays))
             cases.append(case)
-    lo = np.empty(layout.n)
-    hi = np.empty(layout.n)
-    for i in layout.cols:
-        lo[layout.kp_cols[i]], hi[layout.kp_cols[i]] = kp_lo, kp_hi
-        lo[layout.kf_cols[i]], hi[layout.kf_cols[i]] = kf_lo, kf_hi
-    starts = sorted({(b.kp_m_min_per_mm, b.kf) for b in baselines.values()})
+    lo, hi = layout.constant(kp_lo, kf_lo), layout.constant(kp_hi, kf_hi)
     ctx = _Context(cases, plants, layout, lo, hi, fixed_kp, fixed_kf, bounds_of)
-    theta0 = min((np.concatenate([np.concatenate([np.full(layout.kp_cols[i].stop
-                                                          - layout.kp_cols[i].start, kp),
-                                                  np.full(layout.kf_cols[i].stop
-                                                          - layout.kf_cols[i].start, kf)])
-                                  for i in layout.cols]) for kp, kf in starts),
-                 key=lambda th: ctx.start_key(th))
+    theta0 = min((layout.constant(b.kp_m_min_per_mm, b.kf) for b in baselines.values()),
+                 key=ctx.start_key)
     reserve = min(b.reserve for b in baselines.values())
     active: list[int] = []
     iterations = 0
@@ -473,9 +463,8 @@ class _Context:
 
     def evaluate(self, theta, keys, reserve, stop_above=np.inf):
         """(cost, violation): the weighted mean ratio and the largest excess over the
-        allowed ratios (0: feasible), over the cases and the plants ``keys``; a law worse than
-        the baseline on a searched plant and case (ratio above 1) is infeasible too. Stops
-        early once the violation exceeds ``stop_above``."""
+        allowed ratios (0: feasible), over the cases and the plants ``keys``. Stops early
+        once the violation exceeds ``stop_above``."""
         law = self.layout.law(theta, self.fixed_kp, self.fixed_kf)
         w = self.weights(keys)
         cost, viol = 0.0, 0.0
@@ -484,10 +473,8 @@ class _Context:
             for key in keys:
                 mse, cr, fr = self.exact(c, key, kp, kf)
                 acr, afr = self.allowed(c, key, reserve)
-                ratio = mse / self.base_mse(c, key)
-                cost += w[key] * ratio / len(self.cases)
-                viol = max(viol, float(np.max(cr / acr)) - 1.0, float(np.max(fr / afr)) - 1.0,
-                           ratio - 1.0)
+                cost += w[key] * mse / self.base_mse(c, key) / len(self.cases)
+                viol = max(viol, float(np.max(cr / acr)) - 1.0, float(np.max(fr / afr)) - 1.0)
                 if viol > stop_above:
                     return cost, viol
         return cost, max(viol, 0.0) if viol > 1e-9 else 0.0
@@ -504,7 +491,7 @@ class _Context:
         law = self.layout.law(theta, self.fixed_kp, self.fixed_kf)
         w = self.weights(keys)
         h, g = np.zeros((nv, nv)), np.zeros(nv)
-        checks, ratio_rows = [], []
+        checks = []
         cost = 0.0
         for c in self.cases:
             kp, kf = law_gains(law, c.sp)
@@ -531,9 +518,6 @@ class _Context:
                 h += 2.0 * scale * hh
                 g += 2.0 * scale * gg
                 cost += scale * ss
-                # this plant and case's ratio may not rise above 1 (first order)
-                unit = w[key] / len(self.cases) / scale
-                ratio_rows.append((2.0 * unit * scale * gg, unit * scale * ss))
                 acr, afr = self.allowed(c, key, reserve)
                 lim = plant.axis_limits()
                 flim = plant.ferror_limits()
@@ -546,23 +530,20 @@ class _Context:
                     if np.isfinite(flim[i]):
                         checks.append(_Check(pd[:, i] - pos[:, i], (-sens[i]).astype(np.float32),
                                              cols, (flim[i] * afr[i],), nv))
-        return h, g, checks, ratio_rows, cost
+        return h, g, checks, cost
 
     def search(self, theta0, keys, reserve) -> tuple[np.ndarray, int]:
         """The Gauss-Newton SQP from ``theta0`` on the plants ``keys`` (module doc)."""
         theta = theta0.copy()
         cost, viol = self.evaluate(theta, keys, reserve)
-        trust = np.empty(self.layout.n)
-        for i in self.layout.cols:
-            trust[self.layout.kp_cols[i]] = defaults.LAW_TRUST[0]
-            trust[self.layout.kf_cols[i]] = defaults.LAW_TRUST[1]
+        trust = self.layout.constant(*defaults.LAW_TRUST)
         its = 0
         qp = None
         for _ in range(defaults.LAW_ITERATIONS):
             if qp is None:  # a rejected step keeps its linearisation
                 qp = self.linearise(theta, keys, reserve)
-            h, g, checks, ratio_rows, _model = qp
-            d = _qp_step(h, g, checks, ratio_rows, np.maximum(self.lo - theta, -trust),
+            h, g, checks, _model = qp
+            d = _qp_step(h, g, checks, np.maximum(self.lo - theta, -trust),
                          np.minimum(self.hi - theta, trust))
             taken = None
             for s in (1.0, 0.5, 0.25):
@@ -582,20 +563,11 @@ class _Context:
             gain = (cost - c2) / cost if viol == 0.0 else np.inf
             theta, cost, viol = trial, c2, v2
             trust *= 2.0 if s == 1.0 else 0.5
-            trust = np.minimum(trust, 4.0 * np.array(
-                [defaults.LAW_TRUST[0] if k < 0 else defaults.LAW_TRUST[1]
-                 for k in self._gain_kind()]))
+            trust = np.minimum(trust, 4.0 * self.layout.constant(*defaults.LAW_TRUST))
             if gain < defaults.LAW_STOP:
                 break
         return theta, its
 
-    def _gain_kind(self) -> np.ndarray:
-        """-1 for a Kp column, +1 for a Kf column."""
-        out = np.empty(self.layout.n)
-        for i in self.layout.cols:
-            out[self.layout.kp_cols[i]] = -1
-            out[self.layout.kf_cols[i]] = 1
-        return out
 
 
 @dataclass(eq=False)
@@ -647,20 +619,16 @@ class _Check:
         return added
 
 
-def _qp_step(h, g, checks, ratio_rows, dlo, dhi) -> np.ndarray:
+def _qp_step(h, g, checks, dlo, dhi) -> np.ndarray:
     """The step ``d`` minimising ``d'Hd/2 + g'd`` within ``dlo <= d <= dhi`` and the
     linearised limits: the rows near a limit now, then, solved again (a few times at most),
     those the last solution's prediction takes past :data:`_LIN_MARGIN` (a law's kinks,
     where its support points or ``|a| = 0`` are crossed, make jerk spikes of the command
-    where the constant start had none); and per searched plant and case, its MSE ratio to
-    the baseline linearised, ``r + grad d <= 1 - _RATIO_MARGIN`` (or no rise where ``r`` is
-    above): not above 1."""
+    where the constant start had none)."""
     nv = len(g)
     ridge = 1e-9 * max(float(np.trace(h)) / nv, 1e-30)
     p = h + np.diag(ridge + 1e-6 * np.diag(h))
-    rows = [grad for grad, _r in ratio_rows]
-    rlo = [-1e30] * len(rows)
-    rhi = [max(1.0 - _RATIO_MARGIN - r, 0.0) for _grad, r in ratio_rows]
+    rows, rlo, rhi = [], [], []
     for c in checks:
         c.seen.clear()
         c.rows(None, rows, rlo, rhi)
