@@ -32,7 +32,7 @@ from pathlib import Path
 for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-from feedplan.read import load_toolpath, read_toolpath  # noqa: E402
+from bench_robust import PROGRAMS as ROBUST_PROGRAMS, _path  # noqa: E402
 from oga import defaults  # noqa: E402
 from oga.errors import OgaError  # noqa: E402
 from oga.law.override import plan_override  # noqa: E402
@@ -42,30 +42,16 @@ from oga.robust.plants import scenario_set  # noqa: E402
 from oga.robust.search import robust_optimize  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "tests" / "data"
 #: The real programs (GPL: read in place): beside the repository, as in /work/main, or in the
 #: shared folder of a worktree's host.
 EXTERNAL = next((d for d in (ROOT.parent / "shared" / "toolpaths" / "external",
                              Path("/work/shared/toolpaths/external")) if d.exists()),
                 ROOT.parent / "shared" / "toolpaths" / "external")
 #: (name, file, lines kept or None for all): bench_robust.py's programs and two real ones.
-PROGRAMS = (
-    ("reference_xz", DATA / "reference_xz.ngc", None),
-    ("freeform_xz", DATA / "freeform_xz.ngc", None),
-    ("helix_r20", DATA / "helix_r20.ngc", None),
-    ("circle_r50_f3000", DATA / "circle_r50_f3000.ngc", None),
-    ("cncjs_toolpath", DATA / "cncjs_toolpath.nc", None),
-    ("arcspiral[:40]", EXTERNAL / "lcnc_arcspiral.ngc", 40),
+PROGRAMS = tuple((n, f if f.exists() else EXTERNAL / f.name, k) for n, f, k in ROBUST_PROGRAMS) + (
     ("line-contouring-xz", EXTERNAL / "lcnc_line-contouring-xz.ngc", None),
     ("short_segments", EXTERNAL / "lcnc_short_segments_0.001.ngc", None),
 )
-
-
-def _path(file: Path, lines: int | None):
-    if lines is None:
-        return load_toolpath(file)
-    text = "\n".join(file.read_text().splitlines()[:lines])
-    return read_toolpath(text, "gcode", source=f"{file.name}[:{lines}]")
 
 
 def _rows(label, res, table_median=None) -> None:
