@@ -12,7 +12,9 @@ def certificate_lines(result: LawResult, machine_name: str, plants: int) -> list
     cert = result.certificate
     lines = [
         f"oga gain law ({result.law.kind}), machine {machine_name!r}",
-        f"status: {result.status}" + (f" (baseline kept: {result.reason})" if result.reason else ""),
+        f"status: {result.status}" + (
+            f" (no law certified: these are the baseline's fixed gains; the figures below are "
+            f"the searched law's, which failed: {result.reason})" if result.status != "ok" else ""),
         "What the certificate covers: the law and each program's robust baseline (fixed "
         "gains below) were replayed from rest",
         f"on {plants if cert.full else len(cert.plants)} plants of the machine's uncertainty "
