@@ -420,6 +420,8 @@ LAW_OVERRIDES = (0.5, 0.8, 1.0, 1.2)
 LAW_OVERRIDE_RANGE = (0.1, 2.0)
 #: Rounds of the law search at most (the nominal plant, then the worst plants join).
 LAW_ROUNDS = 5
+#: Monte Carlo plants of the set the first round searches on besides the nominal one.
+LAW_TYPICAL_PLANTS = 0
 #: Gauss-Newton iterations per round at most, and the relative cost decrease that stops them.
 LAW_ITERATIONS = 25
 LAW_STOP = 1e-3

@@ -357,7 +357,9 @@ def search_law(
     theta0 = min((layout.constant(b.kp_m_min_per_mm, b.kf) for b in baselines.values()),
                  key=ctx.start_key)
     reserve = min(b.reserve for b in baselines.values())
-    active: list[int] = []
+    # the first round searches the nominal plant and the first Monte Carlo plants (typical
+    # ones: the nominal plant alone is not the set's median plant)
+    active: list[int] = list(range(min(defaults.LAW_TYPICAL_PLANTS, scenarios.n_monte_carlo)))
     iterations = 0
     search_s = certify_s = 0.0
     t_phase = time.process_time()
