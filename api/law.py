@@ -76,7 +76,8 @@ def run_law(text: str, machine: Machine, options: dict, progress=None) -> tuple[
     paths = check_law(text, machine, options)
     tol_m = defaults.TOL_M if options["tolerance"] is None else options["tolerance"] * 1e-3
     res = law_optimize(paths, machine, options["kind"], options["points"],
-                       overrides=options["overrides"], tol_m=tol_m, progress=progress)
+                       overrides=options["overrides"], tol_m=tol_m, progress=progress,
+                       threads=1)  # one thread per job: jobs run side by side
     files = law_files(res, machine.name, len(scenario_set(machine)), units=options["units"])
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:

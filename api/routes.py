@@ -114,11 +114,13 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
     its job. A synchronous job has its own, shorter motion-time limit and goes ahead of the
     queue.
     """
-    from feedplan.read import read_toolpath
+    from oga.pipeline import read_program
 
     machine = _machine(body.machine)
+    if body.setpoints is not None:
+        return _accept_setpoints(request, body, machine, sync)
     tp = body.toolpath
-    path = read_toolpath(tp.content, tp.format, source=tp.name)
+    path = read_program(tp.content, tp.format, machine, body.options, source=tp.name)
     if not path.segments:
         raise ToolpathError("toolpath: the program has no moves")
     settings = request.app.state.settings
@@ -132,6 +134,33 @@ def _accept(request: Request, body: JobRequest, sync: bool) -> JobRow:
     return _store(request).submit(
         source=tp.name, toolpath_format=tp.format, toolpath=tp.content,
         machine=machine.model_dump(mode="json", exclude_none=True), options=body.options.as_dict(),
+        priority=1 if sync else 0)
+
+
+def _accept_setpoints(request: Request, body: JobRequest, machine: Machine, sync: bool) -> JobRow:
+    """:func:`_accept` of recorded setpoints: read and checked now (422 naming the column and
+    the row), their duration bounded as a toolpath's motion."""
+    from oga.errors import OptionError
+    from oga.pipeline import SETPOINTS_PREFIX
+    from oga.recorded import read_setpoints
+
+    sp_in = body.setpoints
+    if body.options.feed_m_s is not None:
+        raise OptionError("feed: recorded setpoints are optimised as recorded (their "
+                          "interpolator applied its feeds)")
+    rec = read_setpoints(sp_in.content, machine, sp_in.format, source=sp_in.name,
+                         **sp_in.read_options())
+    settings = request.app.state.settings
+    limit = settings.sync_max_motion_s if sync else settings.job_max_motion_s
+    seconds = rec.setpoints.duration
+    if seconds > limit:
+        raise HTTPException(413, f"setpoints too long: {_duration(seconds)} of motion; the "
+                            f"limit is {limit:g} s" + (
+                                "; submit them with POST /v1/jobs instead" if sync else ""))
+    return _store(request).submit(
+        source=sp_in.name, toolpath_format=SETPOINTS_PREFIX + sp_in.format,
+        toolpath=sp_in.content, machine=machine.model_dump(mode="json", exclude_none=True),
+        options={**body.options.as_dict(), "setpoints": sp_in.read_options()},
         priority=1 if sync else 0)
 
 
@@ -152,7 +181,21 @@ def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Respo
     blob = _store(request).table(row.id)
     if row.status != "succeeded" or blob is None:
         raise HTTPException(409, f"job {row.id} is {row.status}: no table")
-    if fmt == "linuxcnc":  # a zip of the LinuxCNC files (oga export --format linuxcnc)
+    if fmt == "linuxcnc" and row.toolpath_format == "setpoints-halsampler":
+        # a table computed on a LinuxCNC recording: the production files (oga export
+        # --recording), the recording read again from the job
+        from oga.linuxcnc import baseline_gains, motion_export
+        from oga.pipeline import stored_options
+        from oga.recorded import read_setpoints
+
+        table = table_from_npz(blob)
+        _, read = stored_options(row.options)
+        text = _store(request).get(row.id, with_toolpath=True).toolpath
+        rec = read_setpoints(text, None, "halsampler", source=row.source,
+                             te_s=table.meta["sample_period_s"], **(read or {}))
+        data = motion_export(table, *baseline_gains(table, row.summary), rec).zip_bytes()
+        suffix, media = ".zip", "application/zip"
+    elif fmt == "linuxcnc":  # a zip of the LinuxCNC files (oga export --format linuxcnc)
         from oga.linuxcnc import export_table
 
         # no simulated feedback: that is a replay, which no handler runs (oga export
@@ -230,7 +273,9 @@ async def get_table(job_id: str, request: Request, format: TableFormat = "csv",
     """``csv`` is byte-identical to ``oga optimize --out``; ``json`` holds the columns and
     the metadata; ``npz`` one float64 array per column; ``c`` a C header for firmware;
     ``linuxcnc`` a zip of the streamer and HAL files (mm, error-previous-target TRUE, no
-    simulated feedback; ``oga export`` on the npz table for other settings)."""
+    simulated feedback; ``oga export`` on the npz table for other settings); for a job on a
+    LinuxCNC recording (``setpoints`` in ``halsampler`` format) the production files of
+    ``oga export --recording``."""
     row = await run_in_threadpool(_job, request, job_id)
     return await _cpu(request, "render", _table_response, request, row, format, name)
 
@@ -259,9 +304,7 @@ async def get_report(job_id: str, request: Request) -> Response:
 
 
 def _report(request: Request, job_id: str) -> Response:
-    from feedplan.read import read_toolpath
-    from oga.options import options_from_dict
-    from oga.pipeline import plan_toolpath
+    from oga.pipeline import SETPOINTS_PREFIX, plan_toolpath, read_program, stored_options
     from oga.report import render_report, replay_report_data
 
     store = _store(request)
@@ -280,9 +323,16 @@ def _report(request: Request, job_id: str) -> Response:
     _no_table(row)  # a law job has no report: its summary holds the certificates
     table = table_from_npz(blob)
     machine = machine_from_dict(row.machine)
-    options = options_from_dict(row.options)
-    path = read_toolpath(row.toolpath, row.toolpath_format, source=row.source)
-    sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m)
+    options, read = stored_options(row.options)
+    if row.toolpath_format.startswith(SETPOINTS_PREFIX):
+        from oga.recorded import read_setpoints
+
+        sp = read_setpoints(row.toolpath, machine, row.toolpath_format.removeprefix(
+            SETPOINTS_PREFIX), source=row.source, **(read or {})).setpoints
+    else:
+        path = read_program(row.toolpath, row.toolpath_format, machine, options,
+                            source=row.source)
+        sp = plan_toolpath(path, machine, feed_m_s=options.feed_m_s, tol_m=options.tol_m)
     column = {name: table.data[:, i] for i, name in enumerate(table.header)}
     kp = np.column_stack([column[f"{a}_kp_m_min_per_mm"] for a in AXES])
     kf = np.column_stack([column[f"{a}_kf"] for a in AXES])

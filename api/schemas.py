@@ -5,13 +5,14 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from api.storage import JobRow, is_identification
 from oga.options import OptimizeOptions
 
 __all__ = [
     "ToolpathIn",
+    "SetpointsIn",
     "JobRequest",
     "TraceIn",
     "IdentifyRequest",
@@ -46,19 +47,54 @@ class ToolpathIn(_Strict):
     name: str = Field("", max_length=255, description="program name, for messages and the summary")
 
 
-class JobRequest(_Strict):
-    """Body of ``POST /v1/jobs`` and ``POST /v1/gain-table``."""
+class SetpointsIn(_Strict):
+    """Setpoints another interpolator produced, to optimise on instead of a planned toolpath
+    (``oga optimize --setpoints``: :mod:`oga.recorded`)."""
 
-    toolpath: ToolpathIn
+    format: Literal["csv", "halsampler", "twincat"] = Field(
+        description="csv (t_s, <a>_cmd_m, optional <a>_ff_vel_m_s, line, rapid), halsampler "
+        "(LinuxCNC's joint.N.motor-pos-cmd per servo period, read with pid's law: an oga "
+        "lcnc-record recording, or columns named by `columns`) or twincat (Scope View export)")
+    content: str = Field(min_length=1, description="the file's text (UTF-8)")
+    name: str = Field("", max_length=255, description="file name, for messages and the summary")
+    columns: list[Annotated[str, Field(max_length=64)]] | None = Field(
+        None, max_length=64, description="halsampler/twincat: column names in order")
+    units: Literal["m", "mm", "inch"] | None = Field(
+        None, description="length unit of the file (default: an lcnc-record header's, else m)")
+    error_previous_target: bool | None = Field(
+        None, description="halsampler without header: pid.N.error-previous-target (default "
+        "true)")
+
+    def read_options(self) -> dict:
+        """The reading options of :func:`oga.recorded.read_setpoints`."""
+        return {"columns": self.columns, "units": self.units,
+                "error_previous_target": self.error_previous_target}
+
+
+class JobRequest(_Strict):
+    """Body of ``POST /v1/jobs`` and ``POST /v1/gain-table``: a ``toolpath`` to plan, or
+    ``setpoints`` recorded from another interpolator (exactly one)."""
+
+    toolpath: ToolpathIn | None = Field(None, description="the program to plan and optimise")
+    setpoints: SetpointsIn | None = Field(
+        None, description="instead of a toolpath: setpoints to optimise on as they are")
     machine: str | dict[str, Any] = Field(
         "ucp710", description="a preset name (GET /v1/machines) or a machine object "
         "(the fields of GET /v1/machines/{name})")
     options: OptimizeOptions = Field(
         default_factory=OptimizeOptions,
         description="the options of `oga optimize` (np, knot, lam, anchor, adjust, gains, baseline, "
-        "kp_range, nominal, feed in mm/min, tolerance in mm), same defaults: a machine with an "
-        "uncertainty set (ucp710) gets the robust search and its certificate unless "
-        '"nominal": true')
+        "kp_range, nominal, certify, threads, feed in mm/min, tolerance in mm; reader: auto, "
+        "builtin or linuxcnc, the G-code reader; tool_table: the text of a LinuxCNC tool table, "
+        "mm), same defaults but threads (one per job unless given): a machine with an "
+        'uncertainty set (ucp710) gets the robust search and its certificate unless "nominal": '
+        "true")
+
+    @model_validator(mode="after")
+    def _one_input(self):
+        if (self.toolpath is None) == (self.setpoints is None):
+            raise ValueError("give a toolpath or setpoints, one of them")
+        return self
 
 
 class TraceIn(_Strict):
@@ -123,8 +159,10 @@ class JobOut(BaseModel):
     started_at: str | None
     finished_at: str | None
     source: str = Field(description="program name")
-    toolpath_format: str = Field(description="gcode, csv or json for an optimisation; trace-csv, "
-                                 "trace-halsampler or trace-twincat for an identification")
+    toolpath_format: str = Field(description="gcode, csv or json for an optimisation "
+                                 "(setpoints-csv, setpoints-halsampler or setpoints-twincat on "
+                                 "recorded setpoints); trace-csv, trace-halsampler or "
+                                 "trace-twincat for an identification")
     machine: str = Field(description="machine name")
     options: dict[str, Any]
     attempts: int = Field(description="times a worker started this job")

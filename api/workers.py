@@ -134,8 +134,7 @@ def run_claimed(store: Store, job: JobRow) -> str:
     from oga.errors import OgaError
     from oga.export import table_npz
     from oga.machine import machine_from_dict
-    from oga.options import options_from_dict
-    from oga.pipeline import run_job
+    from oga.pipeline import run_job, stored_options
 
     parent = os.getppid()
     last = time.monotonic()
@@ -168,9 +167,10 @@ def run_claimed(store: Store, job: JobRow) -> str:
             summary, files = run_law(job.toolpath, machine, job.options, progress=progress)
             store.succeed(job.id, job.attempts, json_safe(summary), files)
             return "succeeded"
-        options = options_from_dict(job.options)
+        # one thread per job unless its options say otherwise: jobs run side by side
+        options, read = stored_options(job.options, threads=job.options.get("threads") or 1)
         done = run_job(job.toolpath, job.toolpath_format, machine, options, source=job.source,
-                       progress=progress)
+                       progress=progress, setpoints_options=read)
         result = done.result
         summary = json_safe(done.summary())
         if result.status != "ok":
@@ -181,7 +181,9 @@ def run_claimed(store: Store, job: JobRow) -> str:
             store.fail(job.id, job.attempts, error, summary)
             return "failed"
         store.succeed(job.id, job.attempts, summary,
-                      table_npz(result, toolpath_sha256=done.toolpath_sha256))
+                      table_npz(result, toolpath_sha256=done.toolpath_sha256,
+                                setpoints_source=None if done.recorded is None
+                                else done.recorded.source))
         return "succeeded"
     except _Abandoned:
         log.info("job %s: abandoned (cancelled or requeued)", job.id)

@@ -1,22 +1,32 @@
-"""Benchmark: the best jerk-limited time along the planner's own blocks (issue 21's reference).
+"""Benchmark: the best jerk-limited time along the planner's own blocks, at the planner's shares
+and at the full axis limits.
 
-Run: ``python bench/bench_jerk_reference.py [--only NAME,...] [--top N] [--joints free|sampled]
-[--spacing-mm D] [--max-nodes N] [--max-iter N] [--time-limit S] [--refine N] [--shared DIR]``
-from the repository root (CasADi and toppra are dev dependencies: ``pip install -e '.[dev]'``). A
-benchmark, not a test: it prints figures and asserts nothing.
+Run: ``python bench/bench_jerk_reference.py [--only NAME,...] [--threshold R] [--top N]
+[--joints free|sampled] [--spacing-mm D] [--max-nodes N] [--max-iter N] [--time-limit S]
+[--refine N] [--shared DIR]`` from the repository root (CasADi and toppra are dev dependencies:
+``pip install -e '.[dev]'``). A benchmark, not a test: it prints figures and asserts nothing.
+``bench/bench_plan.py`` uses the same functions for its ``jerk`` columns.
 
-For a program (default: short_segments, plasmatest, 51MeanderAve, line-contouring-xz of
-``shared/toolpaths/external``, GPL: read there, never copied here) it plans with
-:func:`feedplan.plan.plan` at ucp710's planning limits, captures the blocks the planner moved
-along (``blocks_of``, as ``bench_plan._Stages`` does) and the planned time of each block, and
-per block, from rest to rest as the planner stops there:
+For a program (default: short_segments, plasmatest, 51MeanderAve, line-contouring-xz; any of
+``bench_plan``'s by ``--only``; the GPL programs of ``shared/toolpaths/external`` are read
+there, never copied here) it plans with :func:`feedplan.plan.plan` at ucp710's planning limits
+(its ``[planner]`` shares of the axis acceleration and jerk: the position loop's reserve),
+captures the blocks the planner moved along (``blocks_of``, as ``bench_plan._Stages`` does) and
+the planned time of each block, and per block, from rest to rest as the planner stops there,
+twice: at those shares (what the planner may use: planned / this is the planner's own loss)
+and at the full axis limits (planned / this adds what the reserve costs; the quotient of the
+two references is the reserve's price):
 
 - ``toppra``: toppra's time along the block, per-axis v and a, path speed at most
   ``F (1 + SPEED_MARGIN)``, no jerk (:func:`bench_plan.toppra_bound_s`): a lower bound;
-- ``jerk``: a time-optimal parameterisation with the full per-axis jerk limits as well (not
-  the planner's 0.9). A block of one line is exact: ruckig's 1-D rest-to-rest optimum with
-  the limits projected on the line. Any other block is solved by IPOPT (CasADi), multiple
-  shooting pinned to a grid of the curve parameter ``u``: nodes ``u_k`` (every piece
+- ``jerk``: a time-optimal parameterisation with the per-axis jerk limits as well (the whole
+  jerk of the limit set, not the planner's internal shares of it). A block the planner plans
+  as one line (a rapid, a lone feed line, a straight run of micro-segments) is exact: ruckig's
+  1-D rest-to-rest optimum with the limits projected on the line. A curved block is solved by
+  IPOPT (CasADi) when the planner runs it more than ``1 + --threshold`` times its toppra time
+  at the shares (elsewhere toppra's time stands in: a lower bound of the optimum, so the
+  program's planned / jerk is then an upper bound of the planner's loss; marked ``*``):
+  multiple shooting pinned to a grid of the curve parameter ``u``: nodes ``u_k`` (every piece
   boundary, every knot of a fitted spline, a spacing of ``--spacing-mm``, at least 8 per
   piece), states ``udot_k``, ``uddot_k``, a constant ``udddot`` and a free duration ``h_k``
   per interval; the interval's motion is integrated exactly (a cubic in time reaching
@@ -42,15 +52,10 @@ no difference spans a joint, and the worst jerk ratio of the differences that sp
 is solved again with every interval halved (``--refine`` times at most; a failed re-solve
 keeps the last solved grid). Solves are bounded by ``--max-iter`` and ``--time-limit``
 (IPOPT CPU seconds) per solve; a block that does not solve is reported with IPOPT's status,
-and the program's total then uses its toppra time.
+and toppra's time then stands in for it.
 
-Programs of many blocks: ``--top N`` solves only the N curved blocks where the planner loses
-most time to toppra (planned minus toppra time of the block); the other curved blocks count
-with their toppra time, so the program's ``jerk`` total is then a mix (marked ``*``), not an
-upper estimate. Straight blocks are always exact (ruckig).
-
-The second table lists, per program, the blocks where planned / jerk is largest: their
-planned, toppra and jerk times.
+The second table lists, per program, the blocks where planned / jerk (at the shares) is
+largest: their planned, toppra and jerk times.
 """
 
 from __future__ import annotations
@@ -66,8 +71,8 @@ from pathlib import Path as FilePath
 import numpy as np
 
 sys.path.insert(0, str(FilePath(__file__).resolve().parent))
-from bench_plan import (MACHINE, ROOT, _projected, _Stages, planner,  # noqa: E402
-                        rest_to_rest_s, toppra_bound_s)
+from bench_plan import (MACHINE, ROOT, _PerBlock, _projected, _Stages,  # noqa: E402
+                        programs, rest_to_rest_s, toppra_bound_s)
 
 from feedplan.check import SPEED_MARGIN  # noqa: E402
 from feedplan.gcode import parse_gcode  # noqa: E402
@@ -75,38 +80,14 @@ from feedplan.limits import AxisLimits  # noqa: E402
 from feedplan.path import Line  # noqa: E402
 from feedplan.plan import plan  # noqa: E402
 
-#: Programs of shared/toolpaths/external benchmarked by default (issue 21's "<= 1.6" row).
-PROGRAMS = ("lcnc_short_segments_0.001.ngc", "lcnc_plasmatest.ngc", "lcnc_51MeanderAve.ngc",
-            "lcnc_line-contouring-xz.ngc")
+#: Programs benchmarked by default (``--only`` names any of bench_plan's): those where the jerk
+#: limit binds most.
+PROGRAMS = ("short_segments_0.001", "plasmatest", "51MeanderAve", "line-contouring-xz")
 DT = 1e-3  # sample period of the re-check and of the joints' jerk, s
 BIG = 1e6  # no limit (a rapid's speed)
 
 
 # --------------------------------------------------------------------------- capture
-
-
-class _PerBlock:
-    """Planned time (s) of each block: wraps the planner's two block planners."""
-
-    def __init__(self) -> None:
-        self.times: list[float] = []
-
-    def __enter__(self):
-        self._straight, self._feed = planner._straight, planner._plan_feed
-
-        def wrap(fn, dt_arg):
-            def inner(*a, **k):
-                p, ln = fn(*a, **k)
-                self.times.append((len(p) - 1) * a[dt_arg])
-                return p, ln
-            return inner
-
-        planner._straight = wrap(self._straight, 2)  # (seg, limits, dt, ...)
-        planner._plan_feed = wrap(self._feed, 5)  # (block, path, limits, seg_feed, tol, dt, ...)
-        return self
-
-    def __exit__(self, *exc):
-        planner._straight, planner._plan_feed = self._straight, self._feed
 
 
 # --------------------------------------------------------------------------- one block
@@ -351,70 +332,105 @@ def straight_block(seg: Line, limits: AxisLimits) -> JerkResult:
                                      _projected(d, limits.jmax_m_s3)), "ruckig")
 
 
-def _chord_ruckig_s(blk, segs, limits: AxisLimits) -> float:
-    """ruckig's rest-to-rest time along the chord of a block whose curve is straight (within
-    1 um of its chord, a cross-check of the IPOPT solution), else nan."""
-    p = blk.curve.evaluate(np.linspace(0.0, blk.curve.length, 2001), order=2)[0]
-    chord = p[-1] - p[0]
-    length = float(np.linalg.norm(chord))
-    d = chord / length
-    rel = p - p[0]
-    if np.max(np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)) > 1e-6:
-        return math.nan
-    feed = float(np.min(_feed_at(blk, segs, blk.seg_u0[:-1])))
-    return rest_to_rest_s(length, min(feed, _projected(d, limits.vmax_m_s)),
-                          _projected(d, limits.amax_m_s2), _projected(d, limits.jmax_m_s3))
-
-
 # --------------------------------------------------------------------------- program
 
 
-def measure(name: str, text: str, limits: AxisLimits, args) -> dict:
-    """Plan one program; per block its planned, toppra and jerk-limited times."""
-    path = parse_gcode(text, source=name)
+def straight_of(blk, segs) -> Line | None:
+    """The line a block runs along when the planner plans it as one line (ruckig): a rapid, a
+    lone feed line or a straight run of micro-segments at one feed (``bench_plan``'s rule), else
+    None."""
+    if not blk.curve.is_line or len({segs[i].feed_m_s for i in blk.segments}) > 1:
+        return None
+    first, last = segs[blk.segments[0]], segs[blk.segments[-1]]
+    return Line(first.start, last.end, first.feed_m_s, rapid=first.rapid, line=first.line)
+
+
+def capture(path, limits: AxisLimits):
+    """Plan ``path`` at ``limits``: the setpoints, the blocks the planner moved along and the
+    planned time of each (s)."""
     with _Stages() as st, _PerBlock() as pb:
         sp = plan(path, limits)
-    blocks, segs = st.blocks, path.segments
-    if len(pb.times) != len(blocks):  # the planner's block functions changed
-        raise RuntimeError(f"{name}: {len(pb.times)} planned blocks for {len(blocks)} blocks")
+    if len(pb.times) != len(st.blocks):  # the planner's block functions changed
+        raise RuntimeError(f"{len(pb.times)} planned blocks for {len(st.blocks)} blocks")
+    return sp, st.blocks, pb.times
+
+
+def chosen_blocks(blocks, segs, planned, toppra, threshold: float, top: int) -> set[int]:
+    """The curved blocks IPOPT solves: those the planner runs more than ``1 + threshold`` times
+    their toppra time (elsewhere toppra's time stands in, a lower bound of the jerk-limited
+    optimum: the program's ratio is then an upper bound of the planner's loss), the ``top`` of
+    them where the planner loses most (0: all)."""
+    curved = [b for b, blk in enumerate(blocks)
+              if straight_of(blk, segs) is None and planned[b] > (1.0 + threshold) * toppra[b]]
+    curved.sort(key=lambda b: -(planned[b] - toppra[b]))
+    return set(curved[:top] if top else curved)
+
+
+def block_references(path, blocks, planned, limits: AxisLimits, chosen: set[int], args,
+                     log=None, toppra=None) -> list[dict]:
+    """Per block at ``limits``: its toppra time (``toppra``, or computed) and its jerk-limited
+    reference (ruckig for a straight block, IPOPT for the ``chosen`` curved ones, else toppra's
+    time, status "toppra"); ``log(text)`` gets a line per IPOPT solve."""
+    segs = path.segments
     rows = []
     for b, blk in enumerate(blocks):
+        tp, note = (toppra[b], "") if toppra is not None else toppra_bound_s(path, limits, [blk])
+        line = straight_of(blk, segs)
         first = segs[blk.segments[0]]
-        straight = len(blk.segments) == 1 and isinstance(first, Line)
-        tp, note = toppra_bound_s(path, limits, [blk])
-        rows.append(dict(i=b, line=first.line, planned=pb.times[b], toppra=tp, note=note,
-                         straight=straight, pieces=len(blk.curve.kind),
-                         length=blk.curve.length))
-    curved = [r for r in rows if not r["straight"]]
-    curved.sort(key=lambda r: -(r["planned"] - r["toppra"]))
-    chosen = {r["i"] for r in curved[:args.top]} if args.top else {r["i"] for r in curved}
-    for r in rows:
-        blk = blocks[r["i"]]
-        if r["straight"]:
-            r["jerk"] = straight_block(segs[blk.segments[0]], limits)
-        elif r["i"] in chosen:
-            r["jerk"] = solve_block(blk, segs, limits, args.spacing_mm * 1e-3, args.max_nodes,
-                                    args.max_iter, args.time_limit, args.joints, args.refine)
-            j = r["jerk"]
-            chord = _chord_ruckig_s(blk, segs, limits)
-            if math.isfinite(chord):
-                print(f"    block {r['i']:3d} is straight: ruckig along its chord {chord:.4f} s")
-            print(f"    block {r['i']:3d} (line {r['line']}, {r['pieces']} pieces, "
-                  f"{r['length'] * 1e3:.1f} mm, {j.nodes} nodes, {j.joints} joints): "
-                  f"planned {r['planned']:.3f} toppra {r['toppra']:.3f} jerk {j.time_s:.3f} s; "
-                  f"{j.status}; recheck v/a/j/F/j@joints "
-                  f"{'/'.join(f'{x:.3f}' for x in j.recheck)}; "
-                  f"{j.cpu_s:.1f} cpu s", flush=True)
+        r = dict(i=b, line=first.line, planned=planned[b], toppra=tp, note=note,
+                 straight=line is not None, pieces=len(blk.curve.kind), length=blk.curve.length)
+        if line is not None:
+            r["jerk"] = straight_block(line, limits)
+        elif b in chosen:
+            j = solve_block(blk, segs, limits, args.spacing_mm * 1e-3, args.max_nodes,
+                            args.max_iter, args.time_limit, args.joints, args.refine)
+            if not math.isfinite(j.time_s):  # not solved: toppra's time stands in
+                j = JerkResult(tp, f"toppra ({j.status})", j.recheck, j.nodes, j.cpu_s, j.joints)
+            r["jerk"] = j
+            if log is not None:
+                log(f"    block {b:3d} (line {r['line']}, {r['pieces']} pieces, "
+                    f"{r['length'] * 1e3:.1f} mm, {j.nodes} nodes, {j.joints} joints): "
+                    f"planned {r['planned']:.3f} toppra {tp:.3f} jerk {j.time_s:.3f} s; "
+                    f"{j.status}; recheck v/a/j/F/j@joints "
+                    f"{'/'.join(f'{x:.3f}' for x in j.recheck)}; {j.cpu_s:.1f} cpu s")
         else:
-            r["jerk"] = JerkResult(math.nan, "not chosen")
-    return dict(name=name, plan_s=sp.duration, rows=rows)
+            r["jerk"] = JerkResult(tp, "toppra")
+        rows.append(r)
+    return rows
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", help="comma-separated program names (as bench_plan names them)")
+def totals(rows) -> dict:
+    """A program's sums over its blocks: planned, toppra, jerk (s), and whether toppra stands in
+    for a curved block (``mixed``)."""
+    return dict(planned=sum(r["planned"] for r in rows), toppra=sum(r["toppra"] for r in rows),
+                jerk=sum(r["jerk"].time_s for r in rows),
+                mixed=any(r["jerk"].status.startswith("toppra") for r in rows))
+
+
+def measure(name: str, text: str, machine, args) -> dict:
+    """Plan one program at ``machine``'s planning limits (its ``[planner]`` shares); per block
+    its planned time and, at those shares and at the full axis limits, its toppra and
+    jerk-limited times."""
+    path = parse_gcode(text, source=name)
+    shares, full = machine.planning_limits(), machine.axis_limits()
+    sp, blocks, planned = capture(path, shares)
+    tp = [toppra_bound_s(path, shares, [blk])[0] for blk in blocks]
+    chosen = chosen_blocks(blocks, path.segments, planned, tp, args.threshold, args.top)
+    out = dict(name=name, plan_s=sp.duration)
+    for label, limits, known in (("shares", shares, tp), ("full", full, None)):
+        print(f"  {name} at the {label} limits:", flush=True)
+        out[label] = block_references(path, blocks, planned, limits, chosen, args,
+                                      lambda t: print(t, flush=True), known)
+    return out
+
+
+def add_reference_args(ap) -> None:
+    """The options of the IPOPT reference (shared with bench_plan)."""
+    ap.add_argument("--threshold", type=float, default=0.02,
+                    help="IPOPT solves the curved blocks planned above 1 + this times their "
+                         "toppra time (elsewhere toppra's time stands in)")
     ap.add_argument("--top", type=int, default=0,
-                    help="solve only the N curved blocks where the planner loses most (0: all)")
+                    help="of those, only the N where the planner loses most (0: all)")
     ap.add_argument("--spacing-mm", type=float, default=0.2, help="grid spacing along u, mm")
     ap.add_argument("--max-nodes", type=int, default=6000, help="most nodes of one block")
     ap.add_argument("--max-iter", type=int, default=3000, help="IPOPT iterations per block")
@@ -423,55 +439,56 @@ def main(argv: list[str] | None = None) -> int:
                     help="most re-solves on a grid twice as fine while the re-check fails")
     ap.add_argument("--joints", choices=("free", "sampled"), default="free",
                     help="steps of r' and r'' at piece boundaries: free, or as seen at 1 ms")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", help="comma-separated program names (as bench_plan names them)")
+    add_reference_args(ap)
     ap.add_argument("--shared", type=FilePath, default=ROOT.parent / "shared",
                     help="the shared folder holding toolpaths/external (default ../shared)")
     args = ap.parse_args(argv)
-    limits = MACHINE.planning_limits()
-    ext = args.shared / "toolpaths" / "external"
-    only = set(args.only.split(",")) if args.only else None
-    print(f"ucp710 planning limits (full jerk), dt {DT * 1e3:g} ms, joints {args.joints}, "
-          f"grid {args.spacing_mm:g} mm; load average "
+    only = set(args.only.split(",")) if args.only else set(PROGRAMS)
+    print(f"{MACHINE.name}: planned at its [planner] shares (acceleration "
+          f"{MACHINE.planner.accel_fraction:g}, jerk {MACHINE.planner.jerk_fraction:g}); "
+          f"dt {DT * 1e3:g} ms, joints {args.joints}, grid {args.spacing_mm:g} mm; load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     results = []
-    for f in PROGRAMS:
-        name = FilePath(f).stem.removeprefix("lcnc_")
-        if (only and name not in only) or not (ext / f).is_file():
-            continue
+    for name, text in programs(args.shared, only):
         c0, w0 = time.process_time(), time.perf_counter()
         print(f"{name}:", flush=True)
-        res = measure(name, (ext / f).read_text(), limits, args)
+        res = measure(name, text, MACHINE, args)
         res["cpu"], res["wall"] = time.process_time() - c0, time.perf_counter() - w0
         results.append(res)
     print()
-    head = (f"{'program':20s} {'blocks':>6s} {'solved':>9s} {'plan_s':>8s} {'toppra_s':>8s} "
-            f"{'jerk_s':>9s} {'plan/toppra':>11s} {'plan/jerk':>9s} {'jerk/toppra':>11s} "
+    head = (f"{'program':20s} {'limits':>6s} {'blocks':>6s} {'ipopt':>5s} {'plan_s':>8s} "
+            f"{'toppra_s':>8s} {'jerk_s':>9s} {'plan/jerk':>9s} {'jerk/toppra':>11s} "
             f"{'recheck v/a/j/F/j@joints':>29s} {'>1.01':>5s} {'faster':>6s} {'cpu_s':>7s}")
     print(head)
     print("-" * len(head))
     for res in results:
-        rows = res["rows"]
-        tp = sum(r["toppra"] for r in rows)
-        solved = [r for r in rows if math.isfinite(r["jerk"].time_s)]
-        jerk = sum(r["jerk"].time_s if math.isfinite(r["jerk"].time_s) else r["toppra"]
-                   for r in rows)
-        mixed = "*" if len(solved) < len(rows) else " "
-        ipopt = [r["jerk"].recheck for r in solved if r["jerk"].status != "ruckig"]
-        worst = np.fmax.reduce(np.array(ipopt or [(math.nan,) * 5]), axis=0)  # nan: none
-        over = sum(max(c[:4]) > 1.01 for c in ipopt)
-        faster = sum(r["planned"] < r["jerk"].time_s for r in solved)
-        print(f"{res['name']:20s} {len(rows):6d} {len(solved):4d}/{len(rows):<4d} "
-              f"{res['plan_s']:8.3f} {tp:8.3f} {jerk:8.3f}{mixed} {res['plan_s'] / tp:11.3f} "
-              f"{res['plan_s'] / jerk:9.3f} {jerk / tp:11.3f} "
-              f"{'/'.join(f'{x:.3f}' for x in worst):>29s} {over:5d} {faster:6d} "
-              f"{res['cpu']:7.1f}")
-    print("(* a mix: blocks not solved count with their toppra time; recheck: worst over the "
-          "solved blocks; >1.01: solved blocks whose re-check away from the joints exceeds "
-          "1.01; faster: blocks the planner runs faster than the jerk reference)")
+        for label in ("shares", "full"):
+            rows = res[label]
+            tot = totals(rows)
+            ipopt = [r["jerk"] for r in rows if r["jerk"].status not in ("ruckig", "toppra")]
+            checks = [j.recheck for j in ipopt if math.isfinite(j.time_s)]
+            worst = np.fmax.reduce(np.array(checks or [(math.nan,) * 5]), axis=0)  # nan: none
+            over = sum(max(c[:4]) > 1.01 for c in checks)
+            faster = sum(r["planned"] < r["jerk"].time_s for r in rows)
+            print(f"{res['name']:20s} {label:>6s} {len(rows):6d} {len(ipopt):5d} "
+                  f"{res['plan_s']:8.3f} {tot['toppra']:8.3f} {tot['jerk']:8.3f}"
+                  f"{'*' if tot['mixed'] else ' '} {res['plan_s'] / tot['jerk']:9.3f} "
+                  f"{tot['jerk'] / tot['toppra']:11.3f} "
+                  f"{'/'.join(f'{x:.3f}' for x in worst):>29s} {over:5d} {faster:6d} "
+                  f"{res['cpu']:7.1f}")
+    print("(* toppra's time stands in for curved blocks planned within 1 + threshold of it, or "
+          "not solved: a lower bound there; recheck: worst over the IPOPT blocks; >1.01: IPOPT "
+          "blocks whose re-check away from the joints exceeds 1.01; faster: blocks the planner "
+          "runs faster than the reference)")
     print()
-    print("blocks where planned / jerk is largest (solved ones):")
+    print("blocks where planned / jerk (at the shares) is largest:")
     for res in results:
-        rows = [r for r in res["rows"] if math.isfinite(r["jerk"].time_s)]
-        rows.sort(key=lambda r: -r["planned"] / r["jerk"].time_s)
+        rows = sorted(res["shares"], key=lambda r: -r["planned"] / r["jerk"].time_s)
         for r in rows[:5]:
             kind = "line" if r["straight"] else f"{r['pieces']} pieces"
             print(f"  {res['name']:20s} block {r['i']:3d} line {r['line']:5d} ({kind}, "

@@ -37,6 +37,12 @@ Columns of the first table, per program:
   ``v/a/j``: worst finite-difference ratio to the limits over the axes;
 - ``wall_s``, ``cpu_s``: wall-clock and process CPU time of parsing plus planning.
 
+With ``--jerk`` (about an hour: IPOPT), the first table also gives the jerk-limited reference of
+``bench/bench_jerk_reference.py`` along the same blocks, at the planning limits (``jerk_s``, the
+machine's ``[planner]`` shares: ``p/jerk`` is the planner's own loss) and at the full axis limits
+(``jfull_s``, ``p/jfull``), and ``reserve`` = ``jerk_s / jfull_s``, what the shares cost; then
+the blocks where ``p/jerk`` is largest.
+
 The second table splits the CPU time (one core; numba compiled before timing) into the
 stages: ``read`` (G-code to Path), ``fit`` (blocks and micro-segment splines,
 ``blocks_of``), ``plan`` (speed profiles, filtering, check-and-slow-down rounds), ``setpoints``
@@ -238,12 +244,39 @@ class _Stages:
         planner.blocks_of, planner._derivatives = self._blocks, self._deriv
 
 
-def measure(name: str, text: str, limits: AxisLimits, toppra: bool) -> dict:
-    """Plan one program, check it, time it, compare it with toppra and ruckig."""
+class _PerBlock:
+    """Planned time (s) of each block: wraps the planner's two block planners."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+
+    def __enter__(self):
+        self._straight, self._feed = planner._straight, planner._plan_feed
+
+        def wrap(fn, dt_arg):
+            def inner(*a, **k):
+                p, ln = fn(*a, **k)
+                self.times.append((len(p) - 1) * a[dt_arg])
+                return p, ln
+            return inner
+
+        planner._straight = wrap(self._straight, 2)  # (seg, limits, dt, ...)
+        planner._plan_feed = wrap(self._feed, 5)  # (block, path, limits, seg_feed, tol, dt, ...)
+        return self
+
+    def __exit__(self, *exc):
+        planner._straight, planner._plan_feed = self._straight, self._feed
+
+
+def measure(name: str, text: str, limits: AxisLimits, toppra: bool, jerk=None) -> dict:
+    """Plan one program, check it, time it, compare it with toppra and ruckig; with ``jerk``
+    (the reference options of :func:`bench_jerk_reference.add_reference_args`), with the
+    jerk-limited reference at ``limits`` (the planner's shares) and at the machine's full axis
+    limits too."""
     c0, w0 = time.process_time(), time.perf_counter()
     path = parse_gcode(text, source=name)
     c1 = time.process_time()
-    with _Stages() as st:
+    with _Stages() as st, _PerBlock() as pb:
         sp = plan(path, limits)
         c2, w2 = time.process_time(), time.perf_counter()
     c_check = time.process_time()
@@ -256,11 +289,25 @@ def measure(name: str, text: str, limits: AxisLimits, toppra: bool) -> dict:
     row["stage_plan"] = row["cpu"] - row["read"] - row["fit"] - row["setpoints"]
     row["straight"] = straight_blocks(path, limits, st.blocks)
     row["toppra_s"], row["toppra_note"] = (math.nan, "not run")
-    if toppra:
+    row["jerk"] = None
+    if toppra or jerk is not None:
         try:
-            row["toppra_s"], row["toppra_note"] = toppra_bound_s(path, limits, st.blocks)
+            per_block = [toppra_bound_s(path, limits, [blk]) for blk in st.blocks]
+            failed = [note for _, note in per_block if note]
+            row["toppra_s"] = sum(t for t, _ in per_block)
+            row["toppra_note"] = failed[0] if failed else ""
         except Exception as err:  # a failed solve is a row's remark, not a crash
             row["toppra_s"], row["toppra_note"] = math.nan, f"toppra failed: {err}"
+    if jerk is not None and math.isfinite(row["toppra_s"]):
+        import bench_jerk_reference as jr
+
+        chosen = jr.chosen_blocks(st.blocks, path.segments, pb.times,
+                                  [t for t, _ in per_block], jerk.threshold, jerk.top)
+        row["jerk"] = {
+            "shares": jr.block_references(path, st.blocks, pb.times, limits, chosen, jerk,
+                                          toppra=[t for t, _ in per_block]),
+            "full": jr.block_references(path, st.blocks, pb.times, MACHINE.axis_limits(), chosen,
+                                        jerk)}
     return row
 
 
@@ -278,8 +325,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", help="comma-separated program names")
     ap.add_argument("--no-toppra", action="store_true", help="skip the toppra bound")
+    ap.add_argument("--jerk", action="store_true",
+                    help="the jerk-limited reference (IPOPT) at the shares and at the full "
+                         "limits (minutes per program)")
     ap.add_argument("--shared", type=FilePath, default=ROOT.parent / "shared",
                     help="the shared folder holding toolpaths/external (default ../shared)")
+    import bench_jerk_reference as jr  # here: it imports this module
+
+    jr.add_reference_args(ap)
     args = ap.parse_args(argv)
     only = set(args.only.split(",")) if args.only else None
     limits = MACHINE.planning_limits()
@@ -287,26 +340,53 @@ def main(argv: list[str] | None = None) -> int:
     check_setpoints(plan(parse_gcode((DATA / DATA_PROGRAMS[0]).read_text()), limits),
                     parse_gcode((DATA / DATA_PROGRAMS[0]).read_text()), limits)
     rows = []
-    head = (f"{'program':22s} {'samples':>7s} {'plan_s':>8s} {'toppra_s':>8s} {'ratio':>6s}  "
+    head = (f"{'program':22s} {'samples':>7s} {'plan_s':>8s} {'toppra_s':>8s} {'ratio':>6s} "
+            f"{'jerk_s':>9s} {'p/jerk':>6s} {'jfull_s':>9s} {'p/jfull':>7s} {'reserve':>7s}  "
             f"{'straight n: plan_s / ruckig_s':>31s} {'dev_um':>6s} {'v/a/j ratio':>17s} "
             f"{'wall_s':>7s} {'cpu_s':>7s} ok")
-    print("ucp710 planning limits (as `oga plan`), tolerance "
-          f"{TOL_M * 1e3:g} mm; load average {' '.join(f'{x:.1f}' for x in _load())}")
+    print(f"{MACHINE.name} planning limits (as `oga plan`: [planner] acceleration "
+          f"{MACHINE.planner.accel_fraction:g}, jerk {MACHINE.planner.jerk_fraction:g} of the "
+          f"axis limits), tolerance {TOL_M * 1e3:g} mm; load average "
+          f"{' '.join(f'{x:.1f}' for x in _load())}")
     print(head)
     print("-" * len(head))
     for name, text in programs(args.shared, only):
-        r = measure(name, text, limits, not args.no_toppra)
+        r = measure(name, text, limits, not args.no_toppra, args if args.jerk else None)
         rows.append(r)
         n, sp_s, rk_s = r["straight"]
         straight = f"{n:4d}: {sp_s:9.3f} / {rk_s:9.3f}" if n else "-"
         ratio = r["plan_s"] / r["toppra_s"] if r["toppra_s"] > 0 else math.nan
-        print(f"{name:22s} {r['samples']:7d} {r['plan_s']:8.3f} {r['toppra_s']:8.3f} {ratio:6.3f}  "
-              f"{straight:>31s} {r['dev_um']:6.2f} {'/'.join(f'{x:.3f}' for x in r['vaj']):>17s} "
+        ref = "-"
+        if r["jerk"] is not None:
+            sh, fu = jr.totals(r["jerk"]["shares"]), jr.totals(r["jerk"]["full"])
+            ref = (f"{sh['jerk']:8.3f}{'*' if sh['mixed'] else ' '} {r['plan_s'] / sh['jerk']:6.3f} "
+                   f"{fu['jerk']:8.3f}{'*' if fu['mixed'] else ' '} "
+                   f"{r['plan_s'] / fu['jerk']:7.3f} {sh['jerk'] / fu['jerk']:7.3f}")
+        print(f"{name:22s} {r['samples']:7d} {r['plan_s']:8.3f} {r['toppra_s']:8.3f} {ratio:6.3f} "
+              f"{ref:>42s}  {straight:>31s} {r['dev_um']:6.2f} "
+              f"{'/'.join(f'{x:.3f}' for x in r['vaj']):>17s} "
               f"{r['wall']:7.2f} {r['cpu']:7.2f} {r['ok']}", flush=True)
         for msg in r["violations"]:
             print("    violation:", msg)
         if r["toppra_note"] and not args.no_toppra:
             print("    toppra:", r["toppra_note"])
+    if args.jerk:
+        print("(jerk_s, jfull_s: the jerk-limited reference at the shares and at the full axis "
+              "limits; * toppra's time stands in for the curved blocks planned within "
+              f"{1 + args.threshold:g} of it: the ratio is then an upper bound; reserve = "
+              "jerk_s / jfull_s, what the shares cost)")
+        print()
+        print("blocks where planned / jerk at the shares is largest:")
+        for r in rows:
+            if r["jerk"] is None:
+                continue
+            worst = sorted(r["jerk"]["shares"], key=lambda b: -b["planned"] / b["jerk"].time_s)
+            for b in worst[:3]:
+                kind = "line" if b["straight"] else f"{b['pieces']} pieces"
+                print(f"  {r['name']:22s} block {b['i']:3d} line {b['line']:5d} ({kind}, "
+                      f"{b['length'] * 1e3:7.2f} mm): planned {b['planned']:7.3f} toppra "
+                      f"{b['toppra']:7.3f} jerk {b['jerk'].time_s:7.3f} ({b['jerk'].status}) "
+                      f"planned/jerk {b['planned'] / b['jerk'].time_s:5.2f}")
     print()
     print("CPU seconds per stage (one core):")
     head = (f"{'program':22s} {'read':>7s} {'fit':>7s} {'plan':>7s} {'setpoints':>9s} "

@@ -1,35 +1,40 @@
-"""Robustness of the schedules: the certificate of each benchmark program's table.
+"""Robust tables: their certificate, its confidence bound, and the real-time factor on 1 and 2
+threads.
 
-Run:  python bench/bench_robust.py [--machine ucp710] [--plants 64] [--only NAME,..]
+Run:  python bench/bench_robust.py [--only NAME,..] [--threads 1,2] [--certify N] [--nominal]
 
-Per program, on the machine (default ``ucp710``: ucp710 with its documented default
-uncertainty set): today's schedule searched on the nominal model (``optimize``, ``nominal``:
-it ignores the set), its nominal MSE ratio against the best fixed gains, then its certificate
-(:func:`oga.robust.certificate.certify_result`): the schedule and those fixed gains
-replayed on the seeded Monte Carlo plants of the set plus its 32 corners, the ratio's
-median / p90 / worst, the plants where the schedule, the baseline, and the schedule alone
-break a check (eq. 2, the following-error limit, the plant's stable Kp range), and the
-largest contour error of both over the set. RT = motion time / CPU time (one thread,
-after a warm-up) of the nominal ``optimize``, and of the certificate (the set's stable
-ranges and the 192 replays: work every robust optimize does besides its search, since it
-certifies its table on the same set, so about the bound of its RT). Every program
-starts cold, as a fresh ``oga optimize`` process does: the memos of stable ranges and
-packed axis parameters are emptied first (a server that sees the set again is faster).
-Then the robust search (:func:`oga.robust.search.robust_optimize`: rounds of the
-multi-scenario window search on the nominal plant and the plants where the last schedule did
-worst): its certificate against the robust baseline, and the price on the nominal plant:
-MSE(CE) of the robust table over that of the nominal best fixed gains (the "nominal"
-column's denominator; the nominal schedule's own figure is that column), with its RT (the
-set's stable ranges, the baseline, every round's search and certificate, the shrink
-included: the whole robust optimize). The tail gives the rounds, the shares kept
-(``alpha``, 1: no shrink), the baseline, the limit reserve and the plants searched on
-besides the nominal one.
+Per program, on the machine (default ``ucp710``, with its documented default uncertainty set),
+the robust ``oga optimize`` (:func:`oga.robust.search.robust_optimize`: the set's stable
+ranges, the robust baseline, the rounds of the multi-scenario search and their certificates,
+the shrink) is run once per thread count, every run from cold memos as a fresh ``oga
+optimize`` process starts (the stable ranges, packed parameters and sub-step matrices
+emptied; numba's compiled kernels are warm). It prints:
+
+- the certificate of the exported schedule against the robust baseline on the set's Monte
+  Carlo plants and corners: the MSE ratio's median, p90 and worst, the plants where the
+  schedule alone breaks a check, the status, and the confidence bound (the one-sided exact
+  binomial upper bound at 95 % on the share of the set's machines where the table is worse
+  than the baseline or breaks a check the baseline keeps);
+- the price: MSE(CE) of the exported table on the nominal machine over that of the nominal
+  best fixed gains (:func:`oga.ranges.best_fixed_gains`);
+- RT = motion time / time taken: ``RT cpu`` over the process's CPU time on one thread, ``par``
+  the share of that CPU time spent in the independent replays that run on threads (the
+  rest, the multi-plant window search above all, runs on one), ``RT 2*`` the RT on two
+  threads that share would give at best (Amdahl: the serial CPU time plus half the
+  parallel one); ``RT 1``, ``RT 2``.. over the wall time on that many threads (on a shared
+  host, only as good as its load); ``same``: every thread count gave the first one's
+  schedule and certificate, bit for bit;
+- the robust baseline (Kp, Kf), the rounds, the shrink's shares (1: none) and the plants
+  searched on besides the nominal one.
+
+``--nominal`` adds the nominal table (the search on the nominal model only) and its
+certificate against the nominal best fixed gains on the same set. A benchmark prints
+figures; it asserts nothing. Wall times on a shared host are only as good as its load.
 
 Programs: reference_xz, freeform_xz, helix_r20, circle_r50_f3000 and cncjs_toolpath (MIT,
 tests/data), and LinuxCNC's arcspiral (GPL: read from ../shared/toolpaths/external, never
 copied; its first 40 lines, 20 s of arcs at 24 in/min, with an axis reversal at every
-quadrant; the whole program is 254 s of motion). A benchmark prints figures; it asserts
-nothing.
+quadrant; the whole program is 254 s of motion).
 """
 
 from __future__ import annotations
@@ -41,13 +46,16 @@ import time
 from pathlib import Path
 
 for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # one thread, as the real-time target says
+    os.environ.setdefault(_var, "1")  # the threads are the robust search's own
+
+import numpy as np  # noqa: E402
 
 from feedplan.read import load_toolpath, read_toolpath  # noqa: E402
 from oga.errors import OgaError  # noqa: E402
 from oga.machine import load_machine  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
+from oga.ranges import best_fixed_gains  # noqa: E402
 from oga.robust.certificate import certify_result  # noqa: E402
 from oga.robust.plants import scenario_set  # noqa: E402
 from oga.robust.search import robust_optimize  # noqa: E402
@@ -55,7 +63,10 @@ from oga.verify import verify  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
-EXTERNAL = ROOT.parent / "shared" / "toolpaths" / "external"
+#: ../shared beside the checkout (/work/main), or beside the worktrees' folder (/work/wt/NAME)
+EXTERNAL = next((p / "shared" / "toolpaths" / "external" for p in ROOT.parents[:2]
+                 if (p / "shared" / "toolpaths" / "external").is_dir()),
+                ROOT.parent / "shared" / "toolpaths" / "external")
 #: (name, file, lines kept or None for all)
 PROGRAMS = (
     ("reference_xz", DATA / "reference_xz.ngc", None),
@@ -89,32 +100,61 @@ def _cold() -> None:
         cached.cache_clear()
 
 
-def _row(name, motion, nominal, cert, rt, rt_cert, tail) -> None:
-    s = cert.summary()
-    print(f"{name:18s} {motion} {nominal:8.3f} {cert.median:7.3f} {cert.p90:7.3f} "
-          f"{cert.worst:7.3f} {len(cert.breaks('schedule')):7d} {len(cert.breaks('baseline')):8d} "
-          f"{len(cert.breaks('schedule-only')):8d} {s['schedule']['max_ce_um']:9.2f} "
-          f"{s['baseline']['max_ce_um']:10.2f} {rt:7.2f} {rt_cert}  {tail}", flush=True)
+class _Timed:
+    """``thread_map`` of the robust modules, timed: the wall time spent inside it."""
+
+    modules = ("oga.robust.certificate", "oga.robust.baseline")
+
+    def __init__(self):
+        self.inside = 0.0
+        self._orig = {m: importlib.import_module(m).thread_map for m in self.modules}
+        for m, f in self._orig.items():
+            importlib.import_module(m).thread_map = self._wrap(f)
+
+    def _wrap(self, f):
+        def timed(*args, **kw):
+            t0 = time.perf_counter()
+            try:
+                return f(*args, **kw)
+            finally:
+                self.inside += time.perf_counter() - t0
+        return timed
+
+
+def _same(a, b) -> bool:
+    """The two robust results give the same schedule and certificate, bit for bit."""
+    return (np.array_equal(a.schedule.kp_m_min_per_mm, b.schedule.kp_m_min_per_mm)
+            and np.array_equal(a.schedule.kf, b.schedule.kf)
+            and np.array_equal(a.certificate.ratio, b.certificate.ratio))
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--machine", default="ucp710")
-    ap.add_argument("--plants", type=int, default=64, help="Monte Carlo plants (+ corners)")
+    ap.add_argument("--certify", type=int, default=None,
+                    help="Monte Carlo plants (+ corners; default the search's)")
     ap.add_argument("--seed", type=int, default=17)
+    ap.add_argument("--threads", default="1,2", help="thread counts, comma-separated")
     ap.add_argument("--only", default="", help="comma-separated program names")
+    ap.add_argument("--nominal", action="store_true", help="also the nominal table's certificate")
     args = ap.parse_args(argv)
     machine = load_machine(args.machine)
-    scen = scenario_set(machine, n=args.plants, seed=args.seed)
+    threads = [int(t) for t in args.threads.split(",")]
+    options = {} if args.certify is None else {"certify": args.certify}
+    scen = scenario_set(machine, **({} if args.certify is None else {"n": args.certify}),
+                        seed=args.seed)
     only = {s for s in args.only.split(",") if s}
+    timed = _Timed()
     warm = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), machine, feed_m_s=None, tol_m=2e-5)
-    certify_result(optimize(warm, machine, {"nominal": True}),
-                   scenario_set(machine, n=1, corners=False))
+    for t in threads:  # compile (or load) every kernel first
+        robust_optimize(warm, machine, scenarios=scenario_set(machine, n=2), threads=t)
     print(f"machine {machine.name}: {len(scen)} plants ({scen.n_monte_carlo} Monte Carlo, seed "
-          f"{scen.seed}, {scen.n_corners} corners)")
-    print(f"{'program':18s} {'motion s':>8s} {'nominal':>8s} {'median':>7s} {'p90':>7s} "
-          f"{'worst':>7s} {'brk sch':>7s} {'brk base':>8s} {'sch only':>8s} {'maxCE sch':>9s} "
-          f"{'maxCE base':>10s} {'RT opt':>7s} {'RT cert':>7s}  worst plant")
+          f"{scen.seed}, {scen.n_corners} corners); {os.cpu_count()} cores, load "
+          f"{os.getloadavg()[0]:.1f}")
+    print(f"{'program':18s} {'motion s':>8s} {'median':>7s} {'p90':>7s} {'worst':>7s} "
+          f"{'sch only':>8s} {'bound':>7s} {'price':>7s} {'RT cpu':>7s} {'par':>5s} {'RT 2*':>6s} "
+          + " ".join(f"{'RT ' + str(t):>6s}" for t in threads)
+          + f" {'same':>5s}  status, baseline, rounds, shares, searched on")
     for name, file, lines in PROGRAMS:
         if only and name not in only:
             continue
@@ -122,29 +162,44 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:18s} (missing: {file})")
             continue
         sp = plan_toolpath(_path(file, lines), machine, feed_m_s=None, tol_m=2e-5)
-        _cold()
-        t0 = time.process_time()
-        res = optimize(sp, machine, {"nominal": True})
-        t1 = time.process_time()
-        cert = certify_result(res, scen)
-        t2 = time.process_time()
-        _row(name, f"{sp.duration:8.1f}", res.search_ratio_mse, cert, sp.duration / (t1 - t0),
-             f"{sp.duration / (t2 - t1):7.2f}", cert.worst_plant.label)
-        _cold()
-        t0 = time.process_time()
+        runs, walls, cpu, par = [], [], None, None
         try:
-            rob = robust_optimize(sp, machine, scenarios=scen)
+            for t in threads:
+                _cold()
+                timed.inside = 0.0
+                w0, c0 = time.perf_counter(), time.process_time()
+                runs.append(robust_optimize(sp, machine, options, scenarios=scen, threads=t))
+                walls.append(time.perf_counter() - w0)
+                if t == 1:  # on one thread the time inside thread_map is its CPU time, roughly
+                    cpu = time.process_time() - c0
+                    par = min(timed.inside / walls[-1], 1.0)
         except OgaError as err:
-            print(f"{'  robust':18s} failed: {err}", flush=True)
+            print(f"{name:18s} {sp.duration:8.1f} failed: {err}", flush=True)
             continue
-        t1 = time.process_time()
-        price = verify(sp, machine, rob.schedule.kp_m_min_per_mm, rob.schedule.kf,
-                       res.kp_bounds).metrics.mse_m2 / res.baseline.metrics.mse_m2
+        rob = runs[0]
+        cert = rob.certificate
+        fixed = best_fixed_gains(sp, machine)
         a = "xyz"[sp.moving_axes[0]]
-        _row("  robust", f"{'':8s}", price, rob.certificate, sp.duration / (t1 - t0), f"{'':7s}",
-             f"{rob.status} rounds {rob.rounds} alpha {rob.alpha} base Kp "
-             f"{rob.result.baseline_kp[a]} Kf {rob.result.baseline_kf[a]} reserve "
-             f"{rob.reserve:.3f} on {', '.join(x.removeprefix('corner ') for x in rob.active)}")
+        price = verify(sp, machine, rob.schedule.kp_m_min_per_mm, rob.schedule.kf,
+                       rob.result.kp_bounds).metrics.mse_m2 / fixed.mse_ce_m2
+        bound = cert.confidence()["share_bound"]
+        print(f"{name:18s} {sp.duration:8.1f} {cert.median:7.3f} {cert.p90:7.3f} "
+              f"{cert.worst:7.3f} {len(cert.breaks('schedule-only')):8d} "
+              f"{bound * 100:6.2f}% {price:7.3f} "
+              f"{sp.duration / cpu if cpu else float('nan'):7.2f} "
+              f"{par if par is not None else float('nan'):5.2f} "
+              f"{sp.duration / (cpu * (1 - par / 2)) if cpu else float('nan'):6.2f} "
+              + " ".join(f"{sp.duration / w:6.2f}" for w in walls)
+              + f" {'yes' if all(_same(rob, r) for r in runs[1:]) else 'NO':>5s}  {rob.status}, "
+              f"Kp {rob.result.baseline_kp[a]:.4f} Kf {rob.result.baseline_kf[a]:.4f}, "
+              f"{rob.rounds} rounds, {rob.alpha}, on "
+              f"{', '.join(x.removeprefix('corner ') for x in rob.active) or '-'}", flush=True)
+        if args.nominal:
+            res = optimize(sp, machine, {"nominal": True})
+            c = certify_result(res, scen, threads=max(threads))
+            print(f"{'  nominal table':18s} {'':8s} {c.median:7.3f} {c.p90:7.3f} {c.worst:7.3f} "
+                  f"{len(c.breaks('schedule-only')):8d} against the nominal best fixed gains "
+                  f"(its ratio there {res.search_ratio_mse:.3f})", flush=True)
     return 0
 
 

@@ -4,9 +4,10 @@
 acceleration and jerk as backward finite differences of the float64 positions
 (``v_k = (p_k - p_{k-1}) / dt``, then ``a`` and ``j`` by further backward
 differences; the machine is taken at rest before the first and after the last
-sample), the path speed against the programmed feed, and the distance of every
-feed sample to the programmed lines and arcs (exact: distance to the circle or
-helix, not to a chord). :func:`deviation_m` is the geometric part, shared with
+sample), the path speed against the programmed feed of the move each sample belongs to
+(its own source line's, where it lies on it: :func:`move_hint`, :func:`_sample_feeds`), and
+the distance of every feed sample to the programmed lines and arcs (exact: distance to the
+circle or helix, not to a chord). :func:`deviation_m` is the geometric part, shared with
 the planner's check-and-slow-down loop.
 """
 
@@ -28,6 +29,7 @@ __all__ = [
     "check_setpoints",
     "deviation_m",
     "finite_differences",
+    "move_hint",
     "point_segment_distance",
     "segment_table",
 ]
@@ -209,7 +211,7 @@ def _far(pos, k, balls, i, best):
 
 
 @njit(cache=True)
-def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind, window):
+def _track(pos, skip, hint, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind, window):
     n_pts, n_seg = pos.shape[0], kind.shape[0]
     # no arcs: the distance of lines alone (with the arc's code beside it, the compiled loop
     # computes parts of it for every line too: 15x slower)
@@ -220,6 +222,8 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind
     while not use[cur]:
         cur += 1
     for k in range(n_pts):
+        if hint[k] >= 0 and (k == 0 or hint[k] != hint[k - 1]):
+            cur = hint[k]  # the sample's own move (its source line): the tracker starts there
         if skip[k]:
             near[k] = cur
             continue
@@ -267,7 +271,18 @@ def _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind
     return dist, near
 
 
-def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
+@njit(cache=True)
+def _dist_to(pos, move, kind, a, b, c, ax, geo):
+    """Distance of each point pos[k] to its own move ``move[k]`` (inf where -1)."""
+    out = np.full(pos.shape[0], np.inf)
+    for k in range(pos.shape[0]):
+        if move[k] >= 0:
+            out[k] = _seg_dist(pos, k, move[k], kind, a, b, c, ax, geo)
+    return out
+
+
+def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None,
+                hint: np.ndarray | None = None):
     """Distance of each point to the programmed feed geometry, following the path.
 
     Parameters
@@ -278,6 +293,10 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
         :func:`segment_table` of the programmed moves (rapids are not distance targets).
     skip : ndarray of bool, shape (N,), optional
         Points not measured (distance 0), e.g. rapid samples.
+    hint : ndarray of int, shape (N,), optional
+        The move each point belongs to, where known (-1 where not): where it changes, the
+        tracking restarts there (:func:`move_hint`), so that a stretch retraced many times
+        (back-and-forth passes) cannot leave the tracking behind.
 
     Returns
     -------
@@ -292,12 +311,63 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None):
     """
     kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind = table
     skip = np.zeros(len(pos), np.bool_) if skip is None else np.asarray(skip, np.bool_)
+    hint = (np.full(len(pos), -1, np.int64) if hint is None
+            else np.ascontiguousarray(hint, dtype=np.int64))
     use = ~rapid
     if not use.any():
         return np.zeros(len(pos)), np.zeros(len(pos), np.int64)
     pos = np.ascontiguousarray(pos, dtype=np.float64)
-    return _track(pos, skip, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind,
+    return _track(pos, skip, hint, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind,
                   _SEARCH_WINDOW)
+
+
+def move_hint(block: np.ndarray, rapid: np.ndarray, segments) -> np.ndarray:
+    """Per sample, the feed move it belongs to by its source line (-1 where unknown).
+
+    Samples and moves are both in program order: each run of feed samples with one source
+    line (``block``) gets the first feed move of that line at or after the previous run's
+    (a line's moves repeat in program order only through subroutines and loops). Rapid
+    samples get -1.
+
+    Parameters
+    ----------
+    block : ndarray of int, shape (N,)
+        :attr:`Setpoints.block`.
+    rapid : ndarray of bool, shape (N,)
+        :attr:`Setpoints.rapid`.
+    segments : sequence of Line or Arc
+        The moves of the table the hint indexes.
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+    """
+    hint = np.full(len(block), -1, np.int64)
+    lines = np.fromiter((-1 if s.rapid else s.line for s in segments), np.int64, len(segments))
+    feed = np.flatnonzero(~np.asarray(rapid, np.bool_))
+    if not len(feed) or not len(lines):
+        return hint
+    runs = np.flatnonzero(np.diff(block[feed]) != 0) + 1
+    starts = np.concatenate([[0], runs])
+    ends = np.concatenate([runs, [len(feed)]])
+    where: dict[int, np.ndarray] = {}  # line -> its feed moves, in order
+    order = np.argsort(lines, kind="stable")
+    keys, first = np.unique(lines[order], return_index=True)
+    bounds = dict(zip(keys.tolist(), zip(first.tolist(), [*first[1:].tolist(), len(order)])))
+    at = 0
+    for lo, hi in zip(starts, ends):
+        line = int(block[feed[lo]])
+        if line not in bounds or line < 0:
+            continue
+        if line not in where:
+            where[line] = order[slice(*bounds[line])]
+        moves = where[line]
+        k = int(np.searchsorted(moves, at))
+        if k == len(moves):  # none ahead: the line's first move
+            k = 0
+        at = int(moves[k])
+        hint[feed[lo:hi]] = at
+    return hint
 
 
 def finite_differences(pos: np.ndarray, dt: float):
@@ -380,6 +450,33 @@ class PlanCheck:
         }
 
 
+def _sample_feeds(pos, table, dist, near, hint, feed) -> np.ndarray:
+    """The programmed feed (m/s) of each sample: that of the move it belongs to.
+
+    That is its own move (``hint``: its source line's, :func:`move_hint`) where the sample
+    lies on it as nearly as on any move (within 1 nm of ``dist``): so a stretch retraced at
+    another feed (back-and-forth passes) cannot lend its feed. Elsewhere (the plan's corner
+    blends and the boundary between two moves, smeared over the plan's averaging window) the
+    sample follows the moves nearest to it: the fastest of the tracked move (``near``) and its
+    own move's neighbours in the program, among those as near as ``dist``.
+    """
+    kind, a, b, c, ax, geo, rapid = table[:7]
+    pc = np.ascontiguousarray(pos)
+    allowed = feed[near]
+    known = hint >= 0
+    if not known.any():
+        return allowed
+    n = len(feed)
+    for step in (-1, 1):
+        move = np.where(known, hint + step, -1)
+        move[(move < 0) | (move >= n)] = -1
+        move[move >= 0] = np.where(rapid[move[move >= 0]], -1, move[move >= 0])
+        on = _dist_to(pc, move, kind, a, b, c, ax, geo) <= dist + 1e-9
+        allowed = np.where(on, np.maximum(allowed, feed[np.maximum(move, 0)]), allowed)
+    own = _dist_to(pc, hint, kind, a, b, c, ax, geo) <= dist + 1e-9
+    return np.where(own, feed[np.maximum(hint, 0)], allowed)
+
+
 def _ratio(value: np.ndarray, limit: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         moving_absent = np.where(value > 0, np.inf, 0.0)
@@ -420,11 +517,14 @@ def check_setpoints(
     ra = _ratio(ma, limits.amax_m_s2)
     rj = _ratio(mj, limits.jmax_m_s3)
     segs = [s for s in path.segments if s.length > 1e-12]
-    dist, near = deviation_m(pos, segment_table(segs), skip=sp.rapid)
+    table = segment_table(segs)
+    hint = move_hint(sp.block, sp.rapid, segs)
+    dist, near = deviation_m(pos, table, skip=sp.rapid, hint=hint)
     feed = np.array([np.inf if s.rapid else (feed_m_s or s.feed_m_s) for s in segs] or [np.inf])
     speed = np.linalg.norm(vel[: len(pos)], axis=1)
     fs = ~sp.rapid
-    speed_ratio = float((speed[fs] / feed[near[fs]]).max()) if fs.any() else 0.0
+    allowed = _sample_feeds(pos, table, dist, near, hint, feed)
+    speed_ratio = float((speed[fs] / allowed[fs]).max()) if fs.any() else 0.0
     max_dev = float(dist[fs].max()) if fs.any() else 0.0
     end = segs[-1].end if segs else path.start
     start_err = float(np.linalg.norm(pos[0] - path.start))

@@ -90,8 +90,8 @@ from oga.defaults import (
 )
 from oga.errors import OptionError, PlanError, ToolpathError
 
-__all__ = ["plan", "least_motion_s", "move_times_s", "program_tolerance_m", "GRID_M",
-           "FIT_TOL_FRACTION"]
+__all__ = ["plan", "least_motion_s", "move_times_s", "program_tolerance_m", "plane_of",
+           "derivatives", "GRID_M", "FIT_TOL_FRACTION"]
 
 #: Spacing of the speed-profile grid along the path, metres.
 GRID_M = 0.25e-3
@@ -928,7 +928,9 @@ def _validate(path: Path, limits: AxisLimits, feed_m_s, tol_m: float, dt: float)
         raise ToolpathError(f"no motion in {path.source or 'the toolpath'}")
 
 
-def _plane_of(pos: np.ndarray, rapid: np.ndarray, preferred: str):
+def plane_of(pos: np.ndarray, rapid: np.ndarray, preferred: str):
+    """The coordinate plane (``preferred`` first) holding every feed sample of ``pos``
+    (its normal coordinate within 1 nm), or None."""
     feed = pos[~rapid]
     if len(feed) == 0:
         return None
@@ -939,7 +941,7 @@ def _plane_of(pos: np.ndarray, rapid: np.ndarray, preferred: str):
     return None
 
 
-def _derivatives(pos: np.ndarray, dt: float):
+def derivatives(pos: np.ndarray, dt: float):
     """Centred differences of positions at rest before and after: v, a at sample k, j at k + 1/2.
 
     Each is a backward difference shifted by at most two samples, so it obeys
@@ -1035,7 +1037,7 @@ def plan(
     if blocks:  # the first sample belongs to the first move
         line[0][0], rapid[0][0] = line[1][0], rapid[1][0]
     pos, line, rapid = np.concatenate(pos), np.concatenate(line), np.concatenate(rapid)
-    vel, acc, jerk = _derivatives(pos, dt)
+    vel, acc, jerk = derivatives(pos, dt)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     return Setpoints(
         dt=dt,
@@ -1046,7 +1048,7 @@ def plan(
         jerk=jerk,
         block=line,
         rapid=rapid,
-        plane=_plane_of(pos, rapid, path.plane),
+        plane=plane_of(pos, rapid, path.plane),
         source=path.source,
         warnings=tuple(warnings),
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path as FilePath
 
-from feedplan.gcode import parse_gcode
+from feedplan.gcode import Setup, parse_gcode
 from feedplan.path import Path
 from feedplan.polyline import parse_csv, parse_json
 from oga.defaults import MAX_TOOLPATH_BYTES, MAX_TOOLPATH_LINES
@@ -22,7 +22,8 @@ SUFFIXES = {**dict.fromkeys((".ngc", ".nc", ".gcode", ".gc", ".tap", ".cnc"), "g
             ".csv": "csv", ".json": "json"}
 
 
-def read_toolpath(text: str, fmt: str, source: str = "") -> Path:
+def read_toolpath(text: str, fmt: str, source: str = "", *, reader: str = "auto",
+                  setup: Setup | None = None) -> Path:
     """Parse toolpath text of a given format.
 
     Parameters
@@ -33,6 +34,10 @@ def read_toolpath(text: str, fmt: str, source: str = "") -> Path:
         Its format.
     source : str, optional
         Its name, for messages and ``Path.source``.
+    reader : {"auto", "builtin", "linuxcnc"}, optional
+        G-code only: the reader (:func:`feedplan.gcode.parse_gcode`).
+    setup : Setup, optional
+        G-code only: home positions, work offsets, tool table.
 
     Returns
     -------
@@ -47,18 +52,18 @@ def read_toolpath(text: str, fmt: str, source: str = "") -> Path:
         The text is invalid (line/column or field named), or has more lines (JSON: arrays)
         than :data:`~oga.defaults.MAX_TOOLPATH_LINES`.
     """
-    try:
-        reader = FORMATS[fmt]
-    except KeyError:
+    if fmt not in FORMATS:
         raise OptionError(f"unknown toolpath format {fmt!r} (expected one of "
-                          f"{', '.join(FORMATS)})") from None
+                          f"{', '.join(FORMATS)})")
     # bounded before the readers split or decode it (a line list or a JSON tree of the whole
     # text costs far more memory than the text): lines, or JSON's arrays (one per point)
     unit, count = ("arrays", text.count("[")) if fmt == "json" else ("lines", text.count("\n"))
     if count > MAX_TOOLPATH_LINES:
         raise ToolpathError(f"{source or 'toolpath'}: {count} {unit}, more than the "
                             f"{MAX_TOOLPATH_LINES} a toolpath may have")
-    return reader(text, source=source)
+    if fmt == "gcode":
+        return parse_gcode(text, source=source, reader=reader, setup=setup)
+    return FORMATS[fmt](text, source=source)
 
 
 def read_file(path: str | os.PathLike) -> tuple[str, str]:
@@ -94,10 +99,12 @@ def read_file(path: str | os.PathLike) -> tuple[str, str]:
     return text, SUFFIXES[suffix]
 
 
-def load_toolpath(path: str | os.PathLike) -> Path:
+def load_toolpath(path: str | os.PathLike, *, reader: str = "auto",
+                  setup: Setup | None = None) -> Path:
     """Read and parse a toolpath file (:func:`read_file`, then :func:`read_toolpath`).
 
-    The file name as given becomes ``Path.source``.
+    The file name as given becomes ``Path.source``; ``reader`` and ``setup`` are those of
+    :func:`read_toolpath`.
 
     Raises
     ------
@@ -105,4 +112,4 @@ def load_toolpath(path: str | os.PathLike) -> Path:
         Unreadable file or invalid content (line/column or field named).
     """
     text, fmt = read_file(path)
-    return read_toolpath(text, fmt, source=os.fspath(path))
+    return read_toolpath(text, fmt, source=os.fspath(path), reader=reader, setup=setup)

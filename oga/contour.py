@@ -64,7 +64,7 @@ __all__ = [
 _MIN_SEG2_M2 = 1e-30
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _travel_dir(pd, j, stop, step):
     """Unit travel direction of the first moving segment next to vertex ``j``.
 
@@ -86,7 +86,7 @@ def _travel_dir(pd, j, stop, step):
     return 0.0, 0.0, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def nearest_segment(pd, lo, hi, x, y, z):
     """Nearest moving segment of the polyline ``pd[lo..hi]`` to the point (x, y, z).
 
@@ -141,7 +141,7 @@ def nearest_segment(pd, lo, hi, x, y, z):
     return bi, bt, best
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ce_point(pd, lo, hi, x, y, z, e1, e2, signed):
     """Contour error of one point against the polyline ``pd[lo..hi]``.
 
@@ -181,7 +181,7 @@ def _point_d2(pd, i, x, y, z):
     return rx * rx + ry * ry + rz * rz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best):
     """:func:`ce_point` from the nearest segment ``(bi, bt, best)`` of the window ``lo..hi``."""
     if bi < 0:  # standing still over the whole window
@@ -214,7 +214,7 @@ def _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best):
     return -dist if side < 0.0 else dist
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def moving_count(pd):
     """Prefix count of moving (non-zero-length) segments: ``c[i]`` = those before vertex ``i``.
 
@@ -238,7 +238,7 @@ def moving_count(pd):
     return c
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def window_bounds(count, k, window):
     """Vertex window ``(lo, hi)`` around sample ``k`` holding ``window`` moving segments each side.
 
@@ -265,7 +265,7 @@ def window_bounds(count, k, window):
     return lo, hi
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _windows(count, window):
     """:func:`window_bounds` of every sample, ``(lo, hi)`` int arrays of shape (N,), in one
     merge-like pass (``count`` and so both bounds are non-decreasing in ``k``)."""
@@ -284,7 +284,7 @@ def _windows(count, window):
     return lo, hi
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ce_series(pd, pa, window, e1, e2, signed):
     """Contour error of every sample ``pa[k]`` against ``pd`` near ``k``.
 
@@ -308,7 +308,7 @@ def ce_series(pd, pa, window, e1, e2, signed):
     return ce_indexed(pd, pa, tree, lo, hi, e1, e2, signed)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def ce_indexed(pd, pa, tree, lo, hi, e1, e2, signed):
     """:func:`ce_series` with the path's index given: ``(tree, lo, hi)`` of
     :func:`path_index` (built once per path, used by every run on it)."""
@@ -321,7 +321,7 @@ def ce_indexed(pd, pa, tree, lo, hi, e1, e2, signed):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def path_index(pd, window):
     """What :func:`ce_at` needs besides the path: ``(tree, lo, hi)``.
 
@@ -428,7 +428,7 @@ _REL = 1e-9
 _ABS = 1e-12
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _spheres(pd, size):
     """A sphere around each run of ``size`` consecutive segments (their vertices).
 
@@ -458,7 +458,7 @@ def _spheres(pd, size):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _clearance(nodes, parent, reach):
     """Fill ``nodes[:, 4]`` with each node's clearance, metres.
 
@@ -525,7 +525,7 @@ def _scan_leaves(pd, segs, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best)
     return bound, bi, bt, best
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _scan_blocks(pd, segs, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
     """:func:`_scan_leaves` over the blocks ``b0 .. b1`` whose sphere lies within
     ``sqrt(bound)`` of the point; returns ``(bound, bi, bt, best)``."""

@@ -214,6 +214,30 @@ AFSMC_TUNE_KP_COMP_PER_KP = (0.05, 0.1, 0.25, 0.5, 1.0)
 LINUXCNC = {"units": "mm", "error_previous_target": True, "thread": "servo-thread",
             "max_rows": 4_000_000}
 __all__ += ["LINUXCNC"]
+#: LinuxCNC production tables (``oga export --recording``): the gains leave the table for the
+#: fixed baseline once the motion controller's commanded joint position differs from the
+#: recorded row by more than ``pos_tol_m`` (m; LinuxCNC repeats a program's commands to about
+#: 1e-14 mm from the same start), or its trajectory speed ``motion.current-vel`` by more than
+#: ``vel_tol_m_s`` (m/s; a feed override, feed hold or pause changes it in the first servo
+#: period by about acceleration x period, 1 mm/s at 1 m/s^2 and 1 ms), or the feed or rapid
+#: override leaves 1 by more than ``override_tol``. The feeder refills the stream every
+#: ``feeder_poll_s`` seconds at most once the program is idle after a run.
+LINUXCNC_MOTION = {"pos_tol_m": 1e-6, "vel_tol_m_s": 1e-6, "override_tol": 1e-6,
+                   "feeder_poll_s": 0.02}
+#: ``oga lcnc-record``: longest LinuxCNC start (s, until the machine is on and idle), longest
+#: run of the program (s), servo periods recorded before the sampler's FIFO must be read
+#: (the display reads it every few ms), and the runs of the program that must give the same
+#: commands (LinuxCNC's planner starts a program differently when its task queues the next
+#: moves late: measured on a loaded 2-core host, about one start in 15; a table follows one
+#: motion only).
+LINUXCNC_RECORD = {"start_timeout_s": 60.0, "run_timeout_s": 3600.0, "fifo_rows": 1_000_000,
+                   "repeats": 2}
+__all__ += ["LINUXCNC_MOTION", "LINUXCNC_RECORD"]
+#: ``--setpoints``: relative slack on the axis limits a recorded setpoint's finite differences
+#: (velocity, acceleration, jerk) may reach before the file is refused (float64 rounding of
+#: the positions, not a tolerance on the limits).
+SETPOINTS_LIMIT_SLACK = 1e-6
+__all__ += ["SETPOINTS_LIMIT_SLACK"]
 
 # --- service bounds (oga serve: what one job may use) -----------------------------------------
 #: CPU time one attempt of a job may use (RLIMIT_CPU of its worker), s; the job fails beyond.
@@ -223,6 +247,22 @@ API_JOB_CPU_S = 1800.0
 API_JOB_MEMORY_BYTES = 4 * 1024**3
 #: A running job whose progress has not moved for this long marks /healthz "degraded", s.
 API_STALL_S = 120.0
+
+
+# --- G-code readers ------------------------------------------------------------------------
+#: The G-code readers (``--reader``): the built-in one, LinuxCNC's interpreter (package
+#: linuxcnc-uspace), or the built-in one and LinuxCNC's for the programs it does not read.
+GCODE_READERS = ("auto", "builtin", "linuxcnc")
+#: The default reader.
+GCODE_READER = "auto"
+#: Folder holding LinuxCNC's Python module ``gcode`` (Debian's linuxcnc-uspace).
+LINUXCNC_PYTHON_PATH = "/usr/lib/python3/dist-packages"
+#: Bounds of one run of LinuxCNC's interpreter on a program: wall time (an endless O-word loop
+#: ends there), address space of its process, bytes.
+LINUXCNC_READ_TIMEOUT_S = 120.0
+LINUXCNC_READ_MEMORY_BYTES = 2 * 1024**3
+__all__ += ["GCODE_READERS", "GCODE_READER", "LINUXCNC_PYTHON_PATH", "LINUXCNC_READ_TIMEOUT_S",
+            "LINUXCNC_READ_MEMORY_BYTES"]
 
 
 # --- input bounds ------------------------------------------------------------------------------
@@ -282,6 +322,8 @@ MACHINE_FIELD_RANGES = {
     "coulomb_m_s": (0.0, 10.0),
     "viscous_ratio": (0.0, 100.0),
     "load_m_s_per_n": (0.0, 1.0),
+    # G-code home positions and work offsets (oga.machine.Home), mm
+    "position_mm": (-1e6, 1e6),
     # gains
     "kp_m_min_per_mm": (1e-3, 50.0),
     "kp_step_m_min_per_mm": (1e-2, 10.0),
@@ -326,8 +368,13 @@ EXCITE_TRAVEL_MM = 100.0
 # robust --------------------------------------------------------------------------------------
 #: Monte Carlo plants drawn from a machine's uncertainty set (the certificate's sample).
 ROBUST_MC_PLANTS = 64
+#: Most Monte Carlo plants a certificate may ask for (``certify``; a bound at 95 % of 0.06 %).
+ROBUST_MC_PLANTS_MAX = 5000
 #: Seed of that draw (a certificate is reproducible).
 ROBUST_SEED = 17
+#: Level of the certificate's upper confidence bound on the share of the set's machines where
+#: the table fails (oga.robust.certificate).
+ROBUST_CONFIDENCE = 0.95
 #: Groups of uncertain parameters whose set corners are added to the Monte Carlo plants, all
 #: axes at the same end of their own ranges (2^groups corners): the parameters that move the
 #: schedule's result (friction level, mass, Kv, Tn, dead time); the rest stay nominal.
@@ -343,18 +390,19 @@ ROBUST_FRICTION_LINEAR_BELOW_M_S = 1e-6
 #: tangent is not the friction at all (tanh saturates, the Stribeck peak falls). The
 #: scenario plants take the least of :data:`ROBUST_FRICTION_LINEAR_BELOW_M_S` and this share.
 FRICTION_LINEAR_MAX_SHARE = 0.01
-#: Robust search (prototype): rounds at most (limit reserve, scenario refresh); margin added
-#: to the first cut of the limit reserve (doubled at each further cut).
+#: Robust search: rounds at most (each adds plants, and cuts the searched plants' limit
+#: reserve where a table broke one); margin added to the first cut (doubled at each further cut).
 ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
-#: Robust search (prototype): shares of the searched schedule's departure from the baseline
-#: tried (Kf; Kp), and the plants (where the schedule does worst) of the small scenario set they are
-#: tried on.
-ROBUST_ALPHAS = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25)
-ROBUST_KP_ALPHAS = (1.0, 0.75, 0.5, 0.25)
+#: Robust search: bisection steps of the share of the searched schedule's departure from the
+#: baseline kept where its certificate fails (oga.robust.search._shrink: to 1/128).
+ROBUST_SHRINK_STEPS = 7
+#: Robust search: the typical Monte Carlo plants the first round's schedule is screened on.
 ROBUST_SUBSET = 8
-#: Robust search (prototype): the worst ratio a shrink share must keep on the worst plants to
-#: be chosen by its median ratio on the typical ones.
+#: Robust search: the Monte Carlo plants (the set's first) its rounds search and judge on,
+#: with the corners; the kept table is certified on the whole set.
+ROBUST_SEARCH_PLANTS = 64
+#: Robust search: the worst ratio a round aims for (with ROBUST_MEDIAN_GOAL, ROBUST_P90_GOAL).
 ROBUST_WORST_GOAL = 0.9
 
 # robust search -------------------------------------------------------------------------------
@@ -370,6 +418,18 @@ ROBUST_P90_GOAL = 0.5
 #: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
 #: on each searched plant that its limits keep, whatever the reserve (oga.robust.multi).
 ROBUST_BASELINE_FLOOR = 0.85
+#: Robust baseline (:mod:`oga.robust.baseline`): the Monte Carlo plants whose geometric mean
+#: MSE(CE) it minimises (the first ones of the set), and those of them its grid is screened
+#: on; the refinement's steps at most, the step (in grid steps) below which it stops, and the
+#: share of each limit its models keep clear of; the confirmations on every plant at most.
+ROBUST_BASELINE_PLANTS = 32
+ROBUST_BASELINE_GRID_PLANTS = 8
+ROBUST_BASELINE_ITERATIONS = 30
+ROBUST_BASELINE_TOL = 1e-2
+ROBUST_BASELINE_GAIN = 5e-4
+ROBUST_BASELINE_MARGIN = 1e-4
+ROBUST_BASELINE_SEED = 0.9
+ROBUST_BASELINE_CONFIRMATIONS = 8
 
 # corner blending -----------------------------------------------------------------------------
 #: Share of the plan's tolerance given to corner blends (feedplan.blend; the rest is left to

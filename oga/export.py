@@ -125,7 +125,8 @@ class GainTable:
     meta: dict
 
 
-def gain_table(result, *, toolpath_sha256: str | None = None) -> GainTable:
+def gain_table(result, *, toolpath_sha256: str | None = None,
+               setpoints_source: dict | None = None) -> GainTable:
     """The table of a verified result with its metadata.
 
     Parameters
@@ -134,6 +135,9 @@ def gain_table(result, *, toolpath_sha256: str | None = None) -> GainTable:
         A verified result (``status == "ok"``).
     toolpath_sha256 : str, optional
         SHA-256 of the submitted toolpath text (``Job.toolpath_sha256``), recorded in the metadata.
+    setpoints_source : dict, optional
+        Recorded setpoints: where they came from (``Job.recorded.source``: file, format,
+        SHA-256), recorded in the metadata as ``setpoints_source``.
 
     Raises
     ------
@@ -165,6 +169,8 @@ def gain_table(result, *, toolpath_sha256: str | None = None) -> GainTable:
         "columns": header,
         "units": {c: _unit(c) for c in header},
     }
+    if setpoints_source is not None:
+        meta["setpoints_source"] = dict(setpoints_source)
     return GainTable(header=tuple(header), data=data, meta=meta)
 
 
@@ -273,18 +279,22 @@ def render_table(table: GainTable, fmt: str, *, name: str = C_NAME) -> bytes:
                       f"{', '.join(TABLE_FORMATS)})")
 
 
-def table_json(result, *, toolpath_sha256: str | None = None) -> str:
+def table_json(result, *, toolpath_sha256: str | None = None,
+               setpoints_source: dict | None = None) -> str:
     """The gain table as JSON: ``{"meta": {...}, "columns": {name: [value per sample]}}``.
 
     Floats round-trip float64 exactly. Refuses a failed result (OptimizeError).
     """
-    return _table_json(gain_table(result, toolpath_sha256=toolpath_sha256))
+    return _table_json(gain_table(result, toolpath_sha256=toolpath_sha256,
+                                  setpoints_source=setpoints_source))
 
 
-def table_npz(result, *, toolpath_sha256: str | None = None) -> bytes:
+def table_npz(result, *, toolpath_sha256: str | None = None,
+              setpoints_source: dict | None = None) -> bytes:
     """The gain table as a compressed NumPy ``.npz``: one float64 array per column and
     ``meta`` (a JSON string). Refuses a failed result (OptimizeError)."""
-    return _table_npz(gain_table(result, toolpath_sha256=toolpath_sha256))
+    return _table_npz(gain_table(result, toolpath_sha256=toolpath_sha256,
+                                 setpoints_source=setpoints_source))
 
 
 def table_c_header(result, name: str = C_NAME, *, toolpath_sha256: str | None = None) -> str:

@@ -13,7 +13,7 @@ from numba import njit
 __all__ = ["command_peaks", "eq2_excess"]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def command_peaks(u, check, te):
     """Largest ``|u|``, ``|du|/Te`` and ``|d2u|/Te^2`` over the samples to check.
 
@@ -53,7 +53,7 @@ def command_peaks(u, check, te):
     return v_pk, da_pk / te, dj_pk / (te * te)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def eq2_excess(u, u1, u2, vmax, amax, jmax, te, n, check):
     """Largest excess over 1 of ``|u|/V``, ``|du|/(A Te)``, ``|d2u|/(J Te^2)`` over ``u[:n]``
     at the samples where ``check`` is True (every sample of the program: the callers

@@ -48,6 +48,7 @@ __all__ = [
     "Timing",
     "GainSettings",
     "PlannerSettings",
+    "Home",
     "Machine",
     "PRESETS",
     "load_machine",
@@ -283,6 +284,38 @@ class PlannerSettings(_Frozen):
     jerk_fraction: Annotated[float, Field(gt=0, le=1)] = 0.75
 
 
+Position = tuple[_in("position_mm"), _in("position_mm"), _in("position_mm")]
+
+
+class WorkOffsets(_Frozen):
+    """Work offsets G54 .. G59.3 (x, y, z machine coordinates of the work zero), mm; the ones
+    not given are zero (LinuxCNC's parameters 5221.. without a parameter file)."""
+
+    g54: Position = (0.0, 0.0, 0.0)
+    g55: Position = (0.0, 0.0, 0.0)
+    g56: Position = (0.0, 0.0, 0.0)
+    g57: Position = (0.0, 0.0, 0.0)
+    g58: Position = (0.0, 0.0, 0.0)
+    g59: Position = (0.0, 0.0, 0.0)
+    g59_1: Position = (0.0, 0.0, 0.0)
+    g59_2: Position = (0.0, 0.0, 0.0)
+    g59_3: Position = (0.0, 0.0, 0.0)
+
+
+class Home(_Frozen):
+    """Where a program's machine-position moves go, for the G-code readers (section
+    ``[home]`` of a machine file; optional). Machine coordinates (x, y, z), mm.
+
+    ``g28_mm`` / ``g30_mm``: the G28 / G30 positions (LinuxCNC's parameters 5161-5163 and
+    5181-5183; default machine zero, LinuxCNC's without a parameter file);
+    ``work_offsets_mm``: G54-G59.3.
+    """
+
+    g28_mm: Position = (0.0, 0.0, 0.0)
+    g30_mm: Position = (0.0, 0.0, 0.0)
+    work_offsets_mm: WorkOffsets = WorkOffsets()
+
+
 class Machine(_Frozen):
     """A machine tool: named linear axes (subset of x, y, z), timing and gain settings.
 
@@ -297,6 +330,7 @@ class Machine(_Frozen):
     timing: Timing = Timing()
     gains: GainSettings = GainSettings()
     planner: PlannerSettings = PlannerSettings()
+    home: Home | None = None
 
     @model_validator(mode="after")
     def _axis_names(self) -> "Machine":
@@ -372,6 +406,20 @@ class Machine(_Frozen):
             amax_m_s2=lim.amax_m_s2 * self.planner.accel_fraction,
             jmax_m_s3=lim.jmax_m_s3 * self.planner.jerk_fraction,
         )
+
+    def gcode_setup(self, tool_table: str | None = None):
+        """The :class:`feedplan.gcode.Setup` of the G-code readers: :attr:`home` (machine
+        zero and no offsets without it) and the tool table ``tool_table`` (its text, or
+        None). GcodeError (line, column) if the table does not read."""
+        from feedplan.gcode.setup import Setup, parse_tool_table
+
+        tools = None if tool_table is None else parse_tool_table(tool_table, "tool table")
+        home = self.home or Home()
+        w = home.work_offsets_mm
+        return Setup(
+            g28_m=np.array(home.g28_mm) * 1e-3, g30_m=np.array(home.g30_mm) * 1e-3,
+            work_offsets_m=np.array([getattr(w, f) for f in WorkOffsets.model_fields]) * 1e-3,
+            tools=tools)
 
     def digest(self) -> str:
         """SHA-256 of the canonical JSON of this machine (identifies it in a table).

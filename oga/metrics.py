@@ -114,7 +114,7 @@ def contour_metrics(
     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _figures(ce, pd, pa, keep):
     """The figures of :func:`contour_metrics` but the percentiles, in one pass; the numbers of
     numpy's ``a = |ce[keep]|``, ``mean(a * a)``, ``a.max()``, ``|pd - pa|.max(axis=0)`` and
@@ -194,7 +194,7 @@ def nan_max(x, y):
     return y if y > x or y != y else x
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _pairwise_sum(x, lo, n):
     """``x[lo:lo + n].sum()`` as numpy adds a contiguous float64 array: its pairwise summation
     (:func:`_block_sum` on blocks of up to 128, halves above, cut at multiples of 8), the
@@ -257,7 +257,7 @@ def _block_sum(x, lo, n):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def track_max(pd, pa):
     """``np.abs(pd - pa).max(axis=0)``, the largest tracking error per axis (NaN-propagating,
     the same floats) in one compiled pass, without the temporaries; 0 for no sample.

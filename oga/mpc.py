@@ -104,7 +104,7 @@ _LIN_MARGIN = 0.95
 _WIDEN = 3.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _chol(a):
     """Lower Cholesky factor of a symmetric positive definite matrix (a copy)."""
     n = a.shape[0]
@@ -130,7 +130,7 @@ def _chol_row(a, low, i):
     low[i, i] = np.sqrt(max(s, 1e-300))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _chol_solve(low, b, out):
     """Solve ``L L' out = b``."""
     n = low.shape[0]
@@ -146,7 +146,7 @@ def _chol_solve(low, b, out):
         out[i] = s / low[i, i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
     """Minimise ``x'Px/2 + q'x`` subject to ``lo <= A x <= hi`` (first ``m`` rows of A).
 
@@ -289,7 +289,7 @@ def _qp_active_set(p, q, a, lo, hi, m, c0, c1, x):
     return False
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plan_at(points, a, g, tau, kspace):
     """Gain ``g`` (0 Kp, 1 Kf) of axis ``a`` at ``tau`` samples after the last applied one.
 
@@ -312,14 +312,14 @@ def _spline_weights(tau, kspace, last):
             0.5 * (1.0 - f) ** 2, 0.5 + f - f * f, 0.5 * f * f)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gains(points, a, g, w, kspace, out):
     """The plan's gain at every window sample ``i`` (``tau = i + 1``) into ``out[:w]``."""
     for i in range(w):
         out[i] = _plan_at(points, a, g, i + 1, kspace)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _step_points(points, scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_hi, kf_lo, kf_hi):
     """Add ``scale * x`` to the free points in place, each held inside its gain's bounds."""
     for v in range(nv):
@@ -334,7 +334,7 @@ def _step_points(points, scale, x, nv, var_axis, var_gain, var_point, kp_lo, kp_
         points[a, g, jk] = val
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plan_gains(points, a, w, kspace, kpa, kfa):
     """The plan's Kp (1/s) and Kf of axis ``a`` at every window sample, into ``kpa``, ``kfa``."""
     _gains(points, a, 0, w, kspace, kpa)
@@ -343,7 +343,7 @@ def _plan_gains(points, a, w, kspace, kpa, kfa):
         kpa[i] *= _C
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p, out_u, scratch):
     """Exact prediction of axis ``a`` over the window along the plan ``points``: positions
     into ``out_p``, commands into ``out_u``."""
@@ -352,7 +352,7 @@ def _sim_plan(states, params, pdT, vdT, k, w, points, a, kspace, kpa, kfa, out_p
     run(scratch, params[a], pdT[a, k:k + w], vdT[a, k:k + w], kpa, kfa, out_p, out_u)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _basis(jk, tau, kspace, last):
     """Weight of control point ``jk`` in :func:`_plan_at` at ``tau`` (the derivative of the
     gain with respect to that point)."""
@@ -385,7 +385,7 @@ def _keep_row(m, lo_r, hi_r, reach, c0, c1, alo, ahi, col0, col1):
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
     """Squared contour error (um^2) of the predicted positions ``trial`` (3, w), summed
     over the window's feed samples (the metric's: no rapid, nothing past the end)."""
@@ -400,7 +400,7 @@ def _window_cost(pd, tree, win_lo, win_hi, k, w, trial, feed):
     return cost * _M2_TO_UM2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _eq2_rows(m, s, k, wk, moving, var_lo, var_hi, vmax, amax, jmax, te, live, u0, su, u_hist,
               trust, amat, alo, ahi, col0, col1):
     """Linearised eq. 2 rows (v, a, j at every live window sample) of plant ``s`` (its limits
@@ -434,7 +434,7 @@ def _eq2_rows(m, s, k, wk, moving, var_lo, var_hi, vmax, amax, jmax, te, live, u
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _ferror_rows(m, s, k, wk, moving, var_lo, var_hi, ferror_max, live, pdT, p0, sp, trust, amat,
                  alo, ahi, col0, col1):
     """Linearised following-error rows ``|pd - p0 - S d| <= margin * limit`` of plant ``s``
@@ -456,7 +456,7 @@ def _ferror_rows(m, s, k, wk, moving, var_lo, var_hi, ferror_max, live, pdT, p0,
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mpc_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
@@ -487,7 +487,7 @@ def mpc_chunk(
     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mpc_multi_chunk(
     k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
     kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,

@@ -1,8 +1,9 @@
 """Options of the gain search: one pydantic model for library, CLI and API.
 
 Field names are the CLI flags of ``oga optimize`` (``np``, ``lam``, ``adjust``,
-``gains``, ``baseline``, ``kp_range``, ``nominal``, ``feed``, ``tolerance``); unknown keys
-are refused. Defaults come from :mod:`oga.defaults`.
+``gains``, ``baseline``, ``kp_range``, ``nominal``, ``certify``, ``threads``, ``feed``,
+``tolerance``, ``reader``; ``tool_table`` holds the text of the ``--tool-table`` file);
+unknown keys are refused. Defaults come from :mod:`oga.defaults`.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pydantic import (BaseModel, ConfigDict, Field, StrictBool, ValidationError,
 
 from oga import defaults
 from oga.errors import OptionError
+from oga.parallel import MAX_THREADS
 
 __all__ = ["OptimizeOptions", "options_from_dict"]
 
@@ -68,10 +70,25 @@ class OptimizeOptions(BaseModel):
         the robust one). False (:data:`oga.defaults.NOMINAL`): where the machine has an
         uncertainty set, the robust search (:mod:`oga.robust`) and its certificate; a
         machine without a set is searched nominally either way.
+    certify : int or None
+        Robust search: the Monte Carlo plants of the certificate's set (its corners come on
+        top); None: :data:`oga.defaults.ROBUST_MC_PLANTS`. More plants tighten the
+        certificate's confidence bound (:mod:`oga.robust.certificate`) and cost time.
+    threads : int or None
+        Threads for the independent work of the robust search (the certificate's replays,
+        the set's stable ranges, the baseline's candidates); None: the cores this process may
+        use (the service and ``oga batch`` run each job on one unless set). The result does
+        not depend on it, to the last bit.
     feed_mm_per_min : float or None
         Overrides the program's feed.
     tolerance_mm : float
         Interpolation tolerance of the feed planner.
+    reader : {"auto", "builtin", "linuxcnc"}
+        The G-code reader (:func:`feedplan.gcode.parse_gcode`): the built-in one, LinuxCNC's
+        interpreter, or the built-in one and LinuxCNC's where it refuses (the default).
+    tool_table : str or None
+        A LinuxCNC tool table (its text; lengths in mm) for G43's tool lengths; None: no
+        table (G43 applies length 0, with a warning).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid", populate_by_name=True)
@@ -88,6 +105,8 @@ class OptimizeOptions(BaseModel):
     lam: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     anchor: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
     nominal: StrictBool = defaults.NOMINAL
+    certify: Annotated[int, Field(ge=1, le=defaults.ROBUST_MC_PLANTS_MAX)] | None = None
+    threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
     feed_mm_per_min: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | None = Field(
         None, alias="feed"
     )
@@ -96,6 +115,18 @@ class OptimizeOptions(BaseModel):
                                          allow_inf_nan=False)] = Field(
         defaults.TOL_M * 1e3, alias="tolerance"
     )
+
+    reader: Literal["auto", "builtin", "linuxcnc"] = defaults.GCODE_READER
+    tool_table: Annotated[str, Field(max_length=1 << 20)] | None = None
+
+    @field_validator("tool_table")
+    @classmethod
+    def _tools(cls, v):
+        if v is not None:
+            from feedplan.gcode.setup import parse_tool_table
+
+            parse_tool_table(v)  # GcodeError (a ValueError) naming the line and column
+        return v
 
     @field_validator("adjust", "gains", mode="before")
     @classmethod
@@ -133,6 +164,8 @@ class OptimizeOptions(BaseModel):
                 raise ValueError("baseline: Kf must lie in [0, 1]")
         if self.knot is not None and self.mode != "full":
             raise ValueError("knot: only full mode plans a spline of gains")
+        if self.nominal and self.certify is not None:
+            raise ValueError("certify: the nominal search has no certificate (drop nominal)")
         if self.kp_range is not None:
             lo, hi = self.kp_range
             if not 0 < lo <= hi:

@@ -1,14 +1,16 @@
 """The whole job on plain inputs: toolpath text -> setpoints -> verified gain schedule.
 
 Used by ``oga optimize``, ``oga batch`` and the REST workers, so every surface
-runs exactly the same steps.
+runs exactly the same steps. A job's input may instead be setpoints another interpolator
+produced (format ``setpoints-csv``, ``setpoints-halsampler``, ``setpoints-twincat``:
+:mod:`oga.recorded`), optimised on as they are.
 """
 
 from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from feedplan.path import Path
 from feedplan.read import read_toolpath
@@ -17,7 +19,15 @@ from oga.machine import Machine
 from oga.optimize import OptimizeResult, optimize
 from oga.options import OptimizeOptions
 
-__all__ = ["Job", "PLAN_SHARE", "plan_toolpath", "run_job", "toolpath_sha256"]
+if TYPE_CHECKING:
+    from oga.recorded import RecordedSetpoints
+
+__all__ = ["Job", "PLAN_SHARE", "SETPOINTS_PREFIX", "plan_toolpath", "read_program", "run_job",
+           "stored_options", "toolpath_sha256"]
+
+#: Input format of a job whose input is recorded setpoints: this prefix and the file's format
+#: (``setpoints-csv``, ``setpoints-halsampler``, ``setpoints-twincat``).
+SETPOINTS_PREFIX = "setpoints-"
 
 #: Share of a job's progress fraction given to planning (measured: about a third of the time
 #: of LinuxCNC's arcspiral goes to planning, the rest to the search).
@@ -30,29 +40,61 @@ class Job:
 
     Attributes
     ----------
-    path : Path
-        The parsed toolpath.
+    path : Path or None
+        The parsed toolpath (None for recorded setpoints).
     setpoints : Setpoints
-        The planned motion.
+        The planned (or recorded) motion.
     result : OptimizeResult
         The verified schedule (check ``result.status``).
     toolpath_sha256 : str
-        Hash of the submitted toolpath text.
+        Hash of the submitted text (the toolpath's, or the setpoints file's).
+    recorded : RecordedSetpoints or None
+        The recorded setpoints optimised on, and where they came from.
     """
 
-    path: Path
+    path: Path | None
     setpoints: Setpoints
     result: OptimizeResult
     toolpath_sha256: str
+    recorded: RecordedSetpoints | None = None
 
     def summary(self) -> dict:
-        """The summary JSON of ``oga optimize --summary``."""
-        return self.result.summary(toolpath=self.path.source, toolpath_sha256=self.toolpath_sha256)
+        """The summary JSON of ``oga optimize --summary`` (recorded setpoints: their file,
+        format, SHA-256 and reading under ``setpoints_source``)."""
+        out = self.result.summary(toolpath=self.setpoints.source if self.path is None
+                                  else self.path.source, toolpath_sha256=self.toolpath_sha256)
+        if self.recorded is not None:
+            out["setpoints_source"] = dict(self.recorded.source)
+        return out
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """Non-fatal remarks of the reader and the planner."""
+        return (*(self.path.warnings if self.path is not None else ()), *self.setpoints.warnings)
+
+
+def stored_options(stored: dict, **overrides) -> tuple[OptimizeOptions, dict | None]:
+    """A stored job's options (API, batch): the search options (``overrides`` given over the
+    stored ones, as :func:`oga.options.options_from_dict` takes them), and the reading options
+    of recorded setpoints (stored under ``setpoints``; None for a toolpath)."""
+    from oga.options import options_from_dict
+
+    rest = dict(stored)
+    read = rest.pop("setpoints", None)
+    return options_from_dict(rest, **overrides), read
 
 
 def toolpath_sha256(text: str) -> str:
     """Hash of a toolpath's text (UTF-8, hex), as summaries and tables record it."""
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def read_program(text: str, fmt: str, machine: Machine, options: OptimizeOptions, *,
+                 source: str = "") -> Path:
+    """The path of a toolpath as the job reads it: G-code through ``options.reader``, with the
+    machine's home positions and work offsets and ``options.tool_table``."""
+    setup = machine.gcode_setup(options.tool_table) if fmt == "gcode" else None
+    return read_toolpath(text, fmt, source=source, reader=options.reader, setup=setup)
 
 
 def plan_toolpath(
@@ -79,14 +121,15 @@ def run_job(
     *,
     source: str = "",
     progress: Callable[[float], None] | None = None,
+    setpoints_options: dict | None = None,
 ) -> Job:
-    """Read, plan and optimise one toolpath.
+    """Read, plan and optimise one toolpath (or optimise recorded setpoints).
 
     Parameters
     ----------
     text : str
-        The toolpath (G-code, CSV or JSON text).
-    fmt : {"gcode", "csv", "json"}
+        The toolpath (G-code, CSV or JSON text), or the setpoints file.
+    fmt : {"gcode", "csv", "json"} or ``SETPOINTS_PREFIX`` + a setpoints format
         Its format.
     machine : Machine
         The machine.
@@ -97,6 +140,9 @@ def run_job(
     progress : callable, optional
         Called with the fraction done (0..1): planning the first :data:`PLAN_SHARE`, then
         the search.
+    setpoints_options : dict, optional
+        Recorded setpoints: ``columns``, ``units``, ``error_previous_target`` of
+        :func:`oga.recorded.read_setpoints`.
 
     Raises
     ------
@@ -105,7 +151,24 @@ def run_job(
     PlanError, OptimizeError
         Planning or search failed.
     """
-    path = read_toolpath(text, fmt, source=source)
+    if fmt.startswith(SETPOINTS_PREFIX):
+        from oga.recorded import read_setpoints
+
+        if options.feed_m_s is not None:
+            from oga.errors import OptionError
+
+            raise OptionError("feed: recorded setpoints are optimised as recorded (their "
+                              "interpolator applied its feeds); record them at the feed wanted")
+        rec = read_setpoints(text, machine, fmt.removeprefix(SETPOINTS_PREFIX), source=source,
+                             **(setpoints_options or {}))
+        result = optimize(rec.setpoints, machine, options, progress=progress)
+        return Job(path=None, setpoints=rec.setpoints, result=result,
+                   toolpath_sha256=toolpath_sha256(text), recorded=rec)
+    if setpoints_options:
+        from oga.errors import OptionError
+
+        raise OptionError("setpoints options apply to recorded setpoints only")
+    path = read_program(text, fmt, machine, options, source=source)
     if progress is None:
         plan_progress = search_progress = None
     else:

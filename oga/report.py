@@ -616,6 +616,8 @@ def _fig_stability(d: ReportData) -> tuple[str, str]:
 
 
 def _fig_ratio(c: CertificateData) -> tuple[str, str]:
+    from oga.robust.certificate import confidence_text
+
     sc = c.summary
     ratio = np.sort(c.ratio)
     frac = np.arange(1, len(ratio) + 1) / len(ratio)
@@ -640,7 +642,9 @@ def _fig_ratio(c: CertificateData) -> tuple[str, str]:
                "and the bound 1 (a worse table is not exported). Plants where a limit breaks: "
                f"schedule {len(sc['breaks']['schedule'])}, baseline "
                f"{len(sc['breaks']['baseline'])}, schedule only "
-               f"{len(sc['breaks']['schedule-only'])}.")
+               f"{len(sc['breaks']['schedule-only'])}."
+               + (f" Confidence: {confidence_text(sc)}." if "confidence" in sc
+                  else ""))
     return _svg(1100, 300, body, "certificate ratio"), caption
 
 

@@ -196,12 +196,13 @@ def _params_of(digest: str, machine: Machine, axis: str, lifted: bool = True) ->
     """The memoised packed parameters of :func:`axis_params`, not copied (callers must not
     write them), by the machine's ``digest`` (once per :func:`simulate`, not per axis)."""
     key = (digest, axis, lifted)
-    if key not in _PARAMS:
+    value = _PARAMS.get(key)  # one lookup: another thread may clear the memo meanwhile
+    if value is None:
         if len(_PARAMS) >= 1024:  # a server sees many machines: keep the memo small (a robust
             # certificate alone asks for 3 axes of ~100 plants; an entry is ~0.5 kB)
             _PARAMS.clear()
-        _PARAMS[key] = _pack(machine, axis, lifted)
-    return _PARAMS[key]
+        value = _PARAMS[key] = _pack(machine, axis, lifted)
+    return value
 
 
 #: Packed parameters per (machine digest, axis, lifted): the sub-step matrices cost a
@@ -379,7 +380,7 @@ def state_size(machine: Machine) -> int:
     return _sizes(machine)[1]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rest_state(params: np.ndarray, p0: float) -> np.ndarray:
     """An axis at rest at position ``p0`` (m): every other entry (velocities, force,
     integral, command histories) zero.
@@ -405,7 +406,7 @@ def _smooth_sign(x: float) -> float:
     return math.copysign((1.0 - t) / (1.0 + t), x)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def friction_command_m_s(params: np.ndarray, v: float) -> float:
     """The machine's friction at velocity ``v`` as an input-equivalent velocity command.
 
@@ -434,7 +435,7 @@ def friction_command_m_s(params: np.ndarray, v: float) -> float:
     return (friction_nonlinear(params, v) + params[_B] * v) / params[_KV]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def friction_nonlinear(params: np.ndarray, v: float) -> float:
     """Coulomb + Stribeck friction force (N) at velocity ``v`` (m/s) of a cascade axis,
     viscous part excluded."""
@@ -522,7 +523,7 @@ def _pi_substep(ud, v, i, pi):
     return fc, i, fc == raw, integrating
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _substeps(params, p, v, f, i, ud, load, fn):
     """The sub-steps of one Te from ``(p, v, F, I)`` with velocity command ``ud`` and load held;
     ``fn`` is ``F_n + load`` at ``v`` (the first sub-step's, already known to the caller)."""
@@ -557,7 +558,7 @@ def _mechanics(c, p, v, f, fc, fn):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _lifted_guard(params, v, f, i, ud, fn):
     """True when the lifted map over Te equals the sub-steps from this state.
 
@@ -609,7 +610,7 @@ def _linear(params, p, v, f, i, ud, load):
     return _affine(params, _NA, p, v, f, i, ud, load)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _advance(params, p, v, f, i, ud, load):
     """One Te from ``(p, v, F, I)`` with velocity command ``ud`` held: ``(p, v, F, I)``.
 
@@ -647,7 +648,7 @@ def _affine(params, at, p, v, f, i, ud, x):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def step(
     state: np.ndarray, params: np.ndarray, pd: float, vd: float, kp_si: float, kf: float
 ) -> float:
@@ -674,7 +675,7 @@ def step(
     return u
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def drive(state: np.ndarray, params: np.ndarray, u: float, load_n: float) -> None:
     """Issue the velocity command ``u`` at sample k and advance the axis to k+1, in place.
 
@@ -716,7 +717,7 @@ def drive(state: np.ndarray, params: np.ndarray, u: float, load_n: float) -> Non
     state[_I] = i
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _arx_drive(state, params, u, load_n):
     """:func:`drive` for an ARX axis (state and parameter layouts in the module docstring)."""
     nv = int(params[_A_NV])
@@ -768,7 +769,7 @@ def _command(pd, vd, k, p, kp_si, kf):
     return kp_si * (pd[last] - p)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def window(
     state: np.ndarray,
     params: np.ndarray,
@@ -822,7 +823,7 @@ def window(
         out_p[j] = p
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run(
     state: np.ndarray,
     params: np.ndarray,
@@ -866,7 +867,7 @@ def run(
     _store_cascade(state, dead, out_u, n, p, v, f, i)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
     """:func:`run` of several cascade axes at once: per axis the same operations in the same
     order (the same bits), the axes' sub-steps interleaved.
@@ -1121,7 +1122,7 @@ def _at_rest(model, pd: np.ndarray, vd: np.ndarray) -> bool:
     return model.arx is None and _still(pd, vd)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _still(pd, vd):
     """``np.all(pd == pd[0]) and not np.any(vd)`` of ``pd``, ``vd`` (N,), N >= 1, in one
     compiled pass (a NaN setpoint is not still, a NaN velocity is not zero)."""

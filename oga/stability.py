@@ -292,7 +292,7 @@ def _frequency_grid(te: float) -> np.ndarray:
     return w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _unwrap(p):
     """``np.unwrap(p)`` (period 2 pi, discontinuity pi) of shape (G,), compiled: numpy's
     arithmetic in numpy's order (``mod(dd + pi, 2 pi) - pi``, the ambiguous ``-pi`` made
@@ -620,7 +620,7 @@ def _summarise(axis: str, g: GainSettings, kp, pm, gm, stable) -> StabilityRange
 # to rounding, decides within 1e-6 of the unit circle; the real ``geev`` elsewhere).
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _h_modal(lam, res, dead, te, w):
     """``H(exp(j w Te))`` of the modal form (:meth:`_Loop.response`), s."""
     z = complex(math.cos(w * te), math.sin(w * te))
@@ -633,7 +633,7 @@ def _h_modal(lam, res, dead, te, w):
     return s * (1.0 / p)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _h_modal_grid(lam, res, dead, te, w):
     """:func:`_h_modal` at every frequency of ``w`` (shape (G,)), s."""
     out = np.empty(w.size, dtype=np.complex128)
@@ -642,7 +642,7 @@ def _h_modal_grid(lam, res, dead, te, w):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _unit_circle_of(w, te, dead):
     """``z`` and ``1 / z^d`` at each frequency of ``w`` (shape (G,)): :func:`_h_modal`'s."""
     z = np.empty(w.size, dtype=np.complex128)
@@ -657,7 +657,7 @@ def _unit_circle_of(w, te, dead):
     return z, inv
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _h_modal_table(lam, res, z, inv):
     """:func:`_h_modal_grid` from the table of :func:`_unit_circle` (the same operations, the
     same bits; the sines and cosines once per period), s."""
@@ -670,7 +670,7 @@ def _h_modal_table(lam, res, z, inv):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _f_modal(kind, offset, lam, res, dead, te, w):
     """What a crossover zeroes: ``ln |H| + offset`` (kind 0, gain) or ``Im H`` (kind 1, phase)."""
     h = _h_modal(lam, res, dead, te, w)
@@ -679,7 +679,7 @@ def _f_modal(kind, offset, lam, res, dead, te, w):
     return h.imag
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _root_modal(kind, offset, lam, res, dead, te, lo, hi, f_lo, f_hi):
     """:func:`_root` of :func:`_f_modal` (Brent's method as scipy's ``brentq``, xtol 1e-12,
     rtol 1e-14, 100 iterations; ``f_lo``, ``f_hi`` stand for the ends' values)."""
@@ -726,7 +726,7 @@ def _root_modal(kind, offset, lam, res, dead, te, lo, hi, f_lo, f_hi):
     return xcur
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gain_margin_modal(lam, res, dead, te, w, h, phase):
     """``(gm_db, w_phase_crossover_rad_s)`` of :class:`_Loop` (modal form), compiled: the
     phase crossovers where the unwrapped ``phase`` passes -180 deg refined by Brent's method
@@ -753,7 +753,7 @@ def _gain_margin_modal(lam, res, dead, te, w, h, phase):
     return gm, w_pc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _sign(x):
     return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else (0.0 if x == 0.0 else x))
 
@@ -769,7 +769,7 @@ _DGEEV = _LAPACK().numba_ez_rgeev(types.float64)
 _RADIUS_GUARD = 1e-6
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi):
     """Whether every eigenvalue of ``A - B (Kp C)`` lies inside the unit circle, decided as
     the complex ``geev`` of numba's ``np.linalg.eigvals`` on it (the walk's reference) decides.
@@ -801,7 +801,7 @@ def _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi):
     return np.max(np.abs(np.linalg.eigvals(acl))) < 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, lo_b, hi_b,
                 pm_min, gm_min, kp_si_per):
     """:func:`_ends`'s walk over ``grid`` with :func:`_margins`' figures, compiled.

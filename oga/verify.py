@@ -76,7 +76,7 @@ def _limits(machine: Machine) -> np.ndarray:
     return limits
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _largest_steps(x):
     """``np.abs(np.diff(x, axis=0)).max(axis=0, initial=0.0)`` of ``x`` (N, 3) in one pass,
     the same numbers (NaN once a step is NaN, as numpy's maximum)."""

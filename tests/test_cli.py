@@ -75,7 +75,8 @@ def test_optimize_with_a_following_error_limit_in_the_machine_file(tmp_path, cap
 
 @pytest.mark.parametrize(
     "text, needle",
-    [("G21 G90\nG1 X1 F100\nG91\n", "3:1"), ("G21\nG1 X#1 F100\n", "2:"), ("G21\nG1 A3 F100\n", "2:")],
+    [("G21 G90\nG1 X1 F100\nM31\n", "3:1"), ("G21\nG1 X#1 F[1/0]\n", "2:"),
+     ("G21\nG1 A3 F100\n", "2:")],
 )
 def test_bad_gcode_exit_2_one_line(tmp_path, text, needle):
     bad = tmp_path / "bad.ngc"

@@ -27,8 +27,9 @@ from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
 from oga.law.law import AxisLaw, Law, basis, interp, law_gains, quantized
 from oga.law.override import override_path, plan_override
 from oga.law.search import Program, search_law
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.errors import OptionError
+from oga.robust.baseline import robust_baseline
 from oga.robust.plants import scenario_set
 from oga.simulate import simulate
 from oga.verify import verify
@@ -174,7 +175,7 @@ def test_search_certifies_a_law_better_than_the_baseline(searched, short):
     cert = res.certificate.cases[("short_xz", 1.2)]
     p = cert.plants[-1]
     law_v = verify(sp, scen.plants[-1], kp, kf, p.kp_bounds)
-    base_v = verify(sp, scen.plants[-1], np.full((n, 3), base.kp_m_min_per_mm),
+    base_v = verify(sp, scen.plants[-1], np.full((n, 3), base.kp),
                     np.full((n, 3), base.kf), p.kp_bounds)
     assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[-1], rel=1e-12)
     assert law_v.ok
@@ -182,6 +183,32 @@ def test_search_certifies_a_law_better_than_the_baseline(searched, short):
     q = quantized(res.law)
     for a in res.law.axes:
         assert np.array_equal(q.axes[a].kp_m_min_per_mm, res.law.axes[a].kp_m_min_per_mm)
+
+
+def test_the_laws_baseline_is_the_robust_searchs(searched, short):
+    """The law is judged against the robust baseline itself: the same gains and replays as
+    :func:`oga.robust.baseline.robust_baseline` called directly (its own bounds and Kp range,
+    on one thread where the law's ran on the default)."""
+    res, scen = searched
+    law_base = res.baselines["short_xz"]
+    direct = robust_baseline(short[1][1.0], MACHINE, scen, threads=1)
+    assert direct.ok and (law_base.kp, law_base.kf) == (direct.kp, direct.kf)
+    assert law_base.mse_m2 == direct.mse_m2
+    assert [v.metrics.mse_m2 for v in law_base.replays] == [v.metrics.mse_m2 for v in direct.replays]
+
+
+def test_no_baseline_is_the_laws_error_naming_the_program_and_the_remedy():
+    d = MACHINE.model_dump(mode="json", exclude_none=True)
+    for ax in d["axes"].values():  # mass and Kv far more uncertain (test_robust_baseline's)
+        ax["uncertainty"] |= {"mass_kg": [0.2, 5.0], "kv_n_s_m": [0.2, 3.0]}
+    m = machine_from_dict(d)
+    sp = plan_override(load_toolpath(DATA / "short_xz.ngc"), m, 1.0, 2e-5)
+    with pytest.raises(OptionError) as err:
+        search_law([Program("short_xz", {1.0: sp})], m, "lincurve", 3,
+                   scenarios=scenario_set(m, n=16), threads=1)
+    msg = str(err.value)
+    assert msg.startswith("short_xz: baseline: no equal fixed gains"), msg
+    assert all(w in msg for w in ("accel_fraction", "uncertainty", "no nominal mode")), msg
 
 
 def test_exports_state_the_law_in_each_controllers_units(searched, short):

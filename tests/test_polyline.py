@@ -154,10 +154,10 @@ def test_load_polylines_and_gcode_error_names_the_file(tmp_path):
     (tmp_path / "b.JSON").write_text("[[0,0,0],[0,0,1]]")
     assert load_toolpath(tmp_path / "a.csv").length == pytest.approx(1e-3)
     assert load_toolpath(str(tmp_path / "b.JSON")).length == pytest.approx(1e-3)
-    (tmp_path / "bad.ngc").write_text("G21\nG91\n")
+    (tmp_path / "bad.ngc").write_text("G21\nG12\n")
     with pytest.raises(GcodeError) as err:
         load_toolpath(tmp_path / "bad.ngc")
-    assert str(err.value).startswith(f"{tmp_path / 'bad.ngc'}:2:1: G91")
+    assert str(err.value).startswith(f"{tmp_path / 'bad.ngc'}:2:1: G12")
 
 
 def test_load_errors(tmp_path):

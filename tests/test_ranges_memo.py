@@ -1,5 +1,5 @@
-"""The best fixed gains found with a memo shared across limit sets (the robust baseline's
-design machines, their limits cut reserve after reserve) are those of a fresh search, bit
+"""The best fixed gains found with a memo shared across limit sets (design machines, their
+limits cut reserve after reserve) are those of a fresh search, bit
 for bit, whichever configurations the memo already knew."""
 
 from __future__ import annotations
@@ -13,10 +13,26 @@ from feedplan.read import load_toolpath
 from oga.machine import load_machine
 from oga.pipeline import plan_toolpath
 from oga.ranges import EqualGainMemo, best_fixed_gains
-from oga.robust.search import design_machine
+from oga.machine import Machine, machine_from_dict
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")
+
+
+def design_machine(machine: Machine, reserve: float, kp_bounds: tuple[float, float]) -> Machine:
+    """``machine`` with acceleration, jerk and following-error limits times ``reserve`` and
+    its configured Kp bounds cut to ``kp_bounds``; no uncertainty section."""
+    data = machine.model_dump(mode="json", exclude_none=True)
+    for ax in data["axes"].values():
+        ax.pop("uncertainty", None)
+        lim = ax["limits"]
+        for k in ("amax_m_s2", "jmax_m_s3", "ferror_max_m"):
+            if k in lim:
+                lim[k] = lim[k] * reserve
+    lo, hi = data["gains"]["kp_bounds_m_min_per_mm"]
+    data["gains"]["kp_bounds_m_min_per_mm"] = [max(lo, kp_bounds[0]), min(hi, kp_bounds[1])]
+    data["name"] = f"{machine.name}-design"
+    return machine_from_dict(data, where="design machine")
 
 
 def _same(a, b):

@@ -3,22 +3,19 @@ multi-scenario search does what a search on several plants should."""
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath, read_toolpath
-from oga.errors import OptionError
-from oga.machine import Machine, load_machine, machine_from_dict
+from oga.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
 from oga.robust.certificate import certify, plant_bounds
 from oga.robust.multi import multi_search
 from oga.robust.plants import perturbed_machine, scenario_set
-from oga.robust.search import (PROGRESS_ROUNDS, _screen, _screened, design_machine,
-                               robust_optimize)
+from oga.robust.search import PROGRESS_ROUNDS, _screen, _screened, robust_optimize
 from oga.stability import stable_range
 from oga.verify import verify
 
@@ -31,18 +28,6 @@ def short_xz():
     return m, plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
 
 
-def test_design_machine_scales_the_limits_and_cuts_the_kp_bounds_only():
-    m = load_machine("ucp710")
-    d = design_machine(m, 0.8, (1.2, 2.3))
-    for a in ("x", "y", "z"):
-        lim, dl = m.axes[a].limits, d.axes[a].limits
-        assert dl.vmax_m_s == lim.vmax_m_s and dl.amax_m_s2 == pytest.approx(0.8 * lim.amax_m_s2)
-        assert dl.jmax_m_s3 == pytest.approx(0.8 * lim.jmax_m_s3)
-        assert d.axes[a].cascade == m.axes[a].cascade and d.axes[a].uncertainty is None
-    assert d.gains.kp_bounds_m_min_per_mm == (1.2, 2.3)
-    assert stable_range(d, "x").kp_max == pytest.approx(2.3)
-
-
 def _fixed(n, kp, kf):
     return np.full((n, 3), kp), np.full((n, 3), kf)
 
@@ -52,9 +37,9 @@ def test_robust_table_and_baseline_hold_on_every_plant(short_xz):
     scen = scenario_set(m, n=8, seed=9)
     seen = []
     r = robust_optimize(sp, m, scenarios=scen, progress=seen.append)
-    # progress: rising through the stable ranges, every baseline replay and every round
+    # progress: rising through the stable ranges, the baseline and every round
     assert np.all(np.diff(seen) > 0) and 0 < seen[0] and seen[-1] <= 1.0
-    assert len(seen) > len(scen) and seen[-1] >= PROGRESS_ROUNDS
+    assert len(seen) > 2 * r.rounds and seen[-1] >= PROGRESS_ROUNDS
     n = len(sp)
     kp0, kf0 = r.result.baseline_kp["x"], r.result.baseline_kf["x"]
     bkp, bkf = _fixed(n, kp0, kf0)
@@ -134,50 +119,15 @@ def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
     full = certify(sp, m, found.kp, found.kf, bkp, bkf, scen, bounds, base)
     np.testing.assert_array_equal(done.ratio[list(keep)], full.ratio[list(keep)])
     assert np.isnan(np.delete(done.ratio, keep)).all()
-    assert done.key[0] and done.key[1:] <= (len(full.breaks("schedule-only")), full.worst)
+    # the screen's plants that fail, and its worst ratio, bound the whole set's from below
+    assert done.key[0] and done.key[1] <= int(full.failures().sum())
+    assert done.key[2] <= full.worst
     if done.fails_screen:
         assert full.worst > 0.9 or full.breaks("schedule-only")
     done.complete(sp, m, bkp, bkf, scen, bounds, base)
     assert done.full and tuple(p.label for p in done.cert.plants) == scen.labels
     np.testing.assert_array_equal(done.cert.ratio, full.ratio)
     assert _screen(scen, done) == tuple(range(len(scen)))  # later rounds: the whole set
-
-
-def _wide(**planner) -> Machine:
-    """ucp710 with mass x0.3-3 and Kv x0.3-2 on every axis (its planner fractions changed by
-    ``planner``): at the preset's fractions no equal fixed gains keep the limits on every
-    plant of that set."""
-    d = load_machine("ucp710").model_dump(mode="json", exclude_none=True)
-    for ax in d["axes"].values():
-        ax["uncertainty"] |= {"mass_kg": [0.3, 3.0], "kv_n_s_m": [0.3, 2.0]}
-    d["planner"] |= planner
-    return machine_from_dict(d)
-
-
-def test_no_robust_baseline_names_the_gains_the_break_and_a_remedy_that_works():
-    m = _wide()
-    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
-    with pytest.raises(OptionError) as err:
-        robust_optimize(sp, m)
-    msg = str(err.value)
-    found = re.search(r"Kp ([\d.]+) Kf ([\d.]+), break them on (\d+) of 96 plants; on '([^']+)': "
-                      r"(axis [xyz]: .*line \d+.*?)\)\. ", msg)
-    assert found, msg
-    kp, kf, label = float(found[1]), float(found[2]), found[4]
-    # the break it names, from a fresh replay of those gains on that plant
-    scen = scenario_set(m)
-    i = scen.labels.index(label)
-    n = len(sp)
-    v = verify(sp, scen.plants[i], np.full((n, 3), kp), np.full((n, 3), kf), {})
-    assert not v.limits_ok and found[5] == v.violations[0]
-    assert int(found[3]) >= 1
-    assert all(words in msg for words in ("accel_fraction", "jerk_fraction", "uncertainty",
-                                          "--nominal"))
-    # the remedy it names: with gentler planner fractions the baseline keeps every plant
-    g = _wide(accel_fraction=0.5, jerk_fraction=0.35)
-    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), g, feed_m_s=None, tol_m=2e-5)
-    r = robust_optimize(sp, g)
-    assert r.status == "ok" and not r.certificate.breaks("baseline")
 
 
 #: Two 5 mm circles at F3000 joined by a 412 mm rapid (1.35 s, most of it at the axes' speed).
@@ -212,10 +162,12 @@ def test_the_robust_search_holds_its_gains_inside_a_rapid():
         assert np.ptp(gains[:s0, :2], axis=0).max() > 1e-3
     # the robust table of that program, replayed afresh on every plant of the set (other
     # plants than those searched; every sample, the rapid's included): no limit broken
-    # where its baseline keeps it
-    r = robust_optimize(sp, m)
-    assert r.status == "ok"
+    # where its baseline keeps it (the table is the baseline where no searched one passes)
+    r = robust_optimize(sp, m, threads=2)
     bkp, bkf = _fixed(n, r.result.baseline_kp["x"], r.result.baseline_kf["x"])
+    if r.status != "ok":
+        np.testing.assert_array_equal(r.schedule.kp_m_min_per_mm, bkp)
+        np.testing.assert_array_equal(r.schedule.kf, bkf)
     for plant in scenario_set(m).plants:
         if verify(sp, plant, bkp, bkf, kb).limits_ok:
             assert verify(sp, plant, r.schedule.kp_m_min_per_mm, r.schedule.kf, kb).limits_ok

@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path as FilePath
 
-from oga.defaults import NP, TOL_M
+from oga.defaults import GCODE_READER, GCODE_READERS, NP, ROBUST_MC_PLANTS, TOL_M
 from oga.errors import InputError, OgaError, OptionError
 
 __all__ = [
@@ -36,13 +36,22 @@ def add_toolpath_args(p: argparse.ArgumentParser, *, toolpath_required: bool = T
 
 
 def add_plan_args(p: argparse.ArgumentParser, whose: str) -> None:
-    """``--machine``, ``--feed`` (``whose`` F it overrides), ``--tolerance``: what a plan needs."""
+    """``--machine``, ``--feed`` (``whose`` F it overrides), ``--tolerance``, ``--reader``,
+    ``--tool-table``: what a plan needs."""
     p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
                    help="machine preset name or machine file (.toml/.json); default ucp710")
     p.add_argument("--feed", type=float, metavar="MM_PER_MIN",
                    help=f"feed override in mm/min (default: {whose} F)")
     p.add_argument("--tolerance", type=float, default=None, metavar="MM",
                    help=f"interpolation tolerance in mm (default {TOL_M * 1e3:g})")
+    p.add_argument("--reader", default=None, choices=GCODE_READERS,
+                   help="G-code reader: builtin (the dialect of CAM posts), linuxcnc "
+                        "(LinuxCNC's own interpreter: cutter compensation, O-words, "
+                        f"parameters), auto (default {GCODE_READER}: builtin, and linuxcnc "
+                        "for what it does not read)")
+    p.add_argument("--tool-table", default=None, metavar="FILE",
+                   help="LinuxCNC tool table (lengths in mm) for G43's tool lengths "
+                        "(default none: length 0, with a warning)")
 
 
 def add_base_machine_arg(p: argparse.ArgumentParser, what: str) -> None:
@@ -76,6 +85,12 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                    help="search the machine's nominal model only (default: where the machine "
                         "has an uncertainty set, as ucp710 has, the robust search and its "
                         "certificate)")
+    p.add_argument("--certify", type=int, default=None, metavar="N",
+                   help=f"robust search: Monte Carlo plants of the certificate, the set's corners "
+                        f"on top (default {ROBUST_MC_PLANTS}; more tighten its confidence bound)")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="threads for the robust search's independent replays (default: the "
+                        "available cores; the result does not depend on it)")
 
 
 def options_from_args(args: argparse.Namespace, fields: tuple[str, ...] = ()):
@@ -84,8 +99,21 @@ def options_from_args(args: argparse.Namespace, fields: tuple[str, ...] = ()):
     from oga.options import options_from_dict
 
     fields = fields or _SEARCH_FLAGS
-    given = {name: getattr(args, name) for name in fields}
+    given = {name: getattr(args, name, None) for name in fields}
+    if given.get("tool_table") is not None:
+        given["tool_table"] = _tool_table_text(given["tool_table"])
     return options_from_dict(None, names={name: _flag(name) for name in fields}, **given)
+
+
+def _tool_table_text(name: str) -> str:
+    """The text of the ``--tool-table`` file, checked (InputError naming file:line:column)."""
+    from feedplan.gcode import load_tool_table
+
+    if os.path.exists(name) and not os.path.isfile(name):
+        raise InputError(f"--tool-table {name}: not a regular file")
+    load_tool_table(name)  # ToolpathError / GcodeError naming the file, line and column
+    with open(name, encoding="utf-8-sig") as f:
+        return f.read()
 
 
 def _flag(field: str) -> str:
@@ -102,7 +130,8 @@ def flag_message(err: OptionError) -> OptionError:
 
 #: The flags of add_search_args and add_toolpath_args that are fields of OptimizeOptions.
 _SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot", "lam",
-                 "anchor", "nominal", "feed", "tolerance")
+                 "anchor", "nominal", "certify", "threads", "feed", "tolerance", "reader",
+                 "tool_table")
 
 
 def load_inputs(args: argparse.Namespace):
@@ -110,10 +139,11 @@ def load_inputs(args: argparse.Namespace):
     from feedplan.read import load_toolpath
     from oga.machine import load_machine
 
-    options = options_from_args(args, ("feed", "tolerance"))  # the bounds of oga optimize's
+    options = options_from_args(args, ("feed", "tolerance", "reader", "tool_table"))
     machine = load_machine(args.machine)
     try:
-        path = load_toolpath(args.toolpath)
+        setup = machine.gcode_setup(options.tool_table)
+        path = load_toolpath(args.toolpath, reader=options.reader, setup=setup)
     except InputError as err:
         raise toolpath_message(err, args.toolpath) from None
     return path, machine, options.feed_m_s, options.tol_m
@@ -195,7 +225,8 @@ def check_files(args: argparse.Namespace, *names: str) -> None:
     (``args.<name>``, flag ``--<name>``) can be written and names a file of its own,
     neither another output nor an input."""
     seen = {}
-    for name, label in (("toolpath", "TOOLPATH"), ("machine", "--machine")):
+    for name, label in (("toolpath", "TOOLPATH"), ("setpoints", "--setpoints"),
+                        ("machine", "--machine")):
         value = getattr(args, name, None)
         if value and os.path.exists(value):
             if not os.path.isfile(value):

@@ -150,7 +150,9 @@ def _run_one(task: _Task, progress) -> dict:
     t0 = time.perf_counter()
     try:
         text, fmt = read_file(task.file) if task.text is None else (task.text, task.fmt)
-        job = run_job(text, fmt, machine_from_dict(task.machine), options_from_dict(task.options),
+        # one thread per program unless --threads says otherwise: programs run side by side
+        options = options_from_dict(task.options, threads=task.options.get("threads") or 1)
+        job = run_job(text, fmt, machine_from_dict(task.machine), options,
                       source=FilePath(task.file).name, progress=progress)
         res = job.result
         summary = job.summary()
@@ -236,8 +238,16 @@ def _up_to_date(out: FilePath, task: _Task, machine_sha256: str) -> bool:
     return (summary.get("status") == "ok"
             and summary.get("toolpath_sha256") == toolpath_sha256(text)
             and summary.get("machine_sha256") == machine_sha256
-            and summary.get("options") == task.options
+            and _result_options(summary.get("options")) == _result_options(task.options)
             and all((out / t).is_file() for t in tables))
+
+
+def _result_options(options) -> dict | None:
+    """The options that decide a program's result: all but ``threads`` (a program is run on one
+    thread unless told, and the result is the same bits on any number)."""
+    if not isinstance(options, dict):
+        return None
+    return {k: v for k, v in options.items() if k != "threads"}
 
 
 def _store(out: FilePath, task: _Task, outcome: dict) -> None:

@@ -1,6 +1,8 @@
 """``oga export``: a gain table written by ``oga optimize`` (or the API) as controller files.
 
-``--format linuxcnc`` writes a ``streamer`` data file and HAL files (:mod:`oga.linuxcnc`).
+``--format linuxcnc`` writes a ``streamer`` data file and HAL files (:mod:`oga.linuxcnc`):
+with ``--recording`` (the LinuxCNC recording the table was computed on) the production files
+for LinuxCNC's motion controller (:mod:`oga.linuxcnc.motion`), else the bench stream.
 The table is a ``.csv`` (``oga optimize --out``), ``.json`` or ``.npz`` (the API's formats,
 with their metadata); the summary JSON (``--summary``) gives the fixed baseline gains the
 loops fall back to and must hash to the same program and machine.
@@ -21,11 +23,11 @@ from oga.defaults import TABLE_MAX_BYTES
 from oga.errors import InputError
 from oga.files import read_limited
 
-__all__ = ["register", "run", "read_table"]
+__all__ = ["register", "run", "read_table", "parse_joints"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from oga.defaults import LINUXCNC
+    from oga.defaults import LINUXCNC, LINUXCNC_MOTION
 
     p = sub.add_parser(
         "export",
@@ -58,6 +60,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pid loop per axis, e.g. x=0,z=1 (default 0, 1, ... in x, y, z order)")
     p.add_argument("--thread", default=LINUXCNC["thread"], metavar="NAME",
                    help=f"HAL thread (default {LINUXCNC['thread']})")
+    g = p.add_argument_group("production on LinuxCNC's motion controller")
+    g.add_argument("--recording", metavar="REC",
+                   help="the LinuxCNC recording the table was computed on (oga lcnc-record; "
+                        "oga optimize --setpoints REC): write oga_table.tcl, its stream and "
+                        "feeder, which drive only Pgain and FF1 while the motion is the "
+                        "recorded one")
+    g.add_argument("--pos-tol-um", type=float, default=None, metavar="UM",
+                   help=f"fall back once a joint's command leaves the row by more (default "
+                        f"{LINUXCNC_MOTION['pos_tol_m'] * 1e6:g})")
+    g.add_argument("--vel-tol-um-s", type=float, default=None, metavar="UM_S",
+                   help=f"fall back once motion.current-vel leaves the row's by more (default "
+                        f"{LINUXCNC_MOTION['vel_tol_m_s'] * 1e6:g})")
     p.set_defaults(func=run)
 
 
@@ -122,7 +136,8 @@ def _pair(text: str, flag: str) -> tuple[float, float]:
     return kp, kf
 
 
-def _joints(text: str) -> dict[str, int]:
+def parse_joints(text: str) -> dict[str, int]:
+    """``--joints x=0,z=1`` as a dict (InputError if malformed)."""
     try:
         return {a.strip(): int(j) for a, j in (item.split("=") for item in text.split(","))}
     except ValueError:
@@ -149,6 +164,11 @@ def run(args: argparse.Namespace) -> int:
             if summary.get(key):
                 table.meta.setdefault(key, summary[key])
     table.meta.setdefault("toolpath", FilePath(args.table).name)
+    if args.recording:
+        return _run_motion(args, table, summary)
+    for flag in ("pos_tol_um", "vel_tol_um_s"):
+        if getattr(args, flag) is not None:
+            raise InputError(f"--{flag.replace('_', '-')}: applies with --recording only")
     machine = None
     if args.with_feedback:
         name = args.machine or table.meta.get("machine")
@@ -162,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         error_previous_target=None if args.error_previous_target is None
         else args.error_previous_target == "true",
         axes=args.axes.split(",") if args.axes else None,
-        joints=_joints(args.joints) if args.joints else None)
+        joints=parse_joints(args.joints) if args.joints else None)
     out = output_folder("--out", args.out)  # DIR is created (not its parents) once all is read
     for name, text in export.files.items():
         write_text(out / name, text)
@@ -171,4 +191,39 @@ def run(args: argparse.Namespace) -> int:
           f"{'TRUE' if export.error_previous_target else 'FALSE'}, servo period "
           f"{export.period_ns} ns" + (", simulated feedback" if args.with_feedback else "")
           + f" -> {out}/")
+    return 0
+
+
+def _run_motion(args: argparse.Namespace, table, summary) -> int:
+    """``oga export --recording``: the production files (:func:`oga.linuxcnc.motion_export`)."""
+    from oga.identify.trace import TraceError
+    from oga.linuxcnc.export import baseline_gains
+    from oga.linuxcnc.motion import motion_export
+    from oga.recorded import read_setpoints, read_setpoints_file
+
+    for flag, given in (("--with-feedback", args.with_feedback),
+                        ("--error-previous-target", args.error_previous_target is not None),
+                        ("--axes", args.axes is not None)):
+        if given:
+            raise InputError(f"{flag}: not with --recording (the recording sets it)")
+    te = table.meta.get("sample_period_s")
+    try:
+        text, fmt = read_setpoints_file(args.recording)
+        recorded = read_setpoints(text, None, fmt, source=FilePath(args.recording).name,
+                                  te_s=te)
+    except TraceError as err:
+        raise InputError(f"--recording {args.recording}: {err}") from None
+    base_kp, base_kf = baseline_gains(
+        table, summary, _pair(args.baseline, "--baseline") if args.baseline else None)
+    export = motion_export(
+        table, base_kp, base_kf, recorded,
+        joints=parse_joints(args.joints) if args.joints else None,
+        pos_tol_m=None if args.pos_tol_um is None else args.pos_tol_um * 1e-6,
+        vel_tol_m_s=None if args.vel_tol_um_s is None else args.vel_tol_um_s * 1e-6)
+    out = output_folder("--out", args.out)
+    for name, text in export.files.items():
+        write_text(out / name, text)
+    joints = ", ".join(f"{a} -> joint {export.joints[a]}" for a in export.axes)
+    print(f"linuxcnc (motion): {export.rows} rows ({joints}), {export.units}, servo period "
+          f"{export.period_ns} ns -> {out}/ (HALFILE = oga_table.tcl)")
     return 0

@@ -1,4 +1,5 @@
-"""``oga optimize``: toolpath in, verified gain table (and summary JSON) out."""
+"""``oga optimize``: toolpath (or recorded setpoints) in, verified gain table (and summary
+JSON) out."""
 
 from __future__ import annotations
 
@@ -19,7 +20,48 @@ from oga.cli._common import (
 )
 from oga.cli._progress import ProgressBar
 
-__all__ = ["register", "run", "certificate_lines"]
+__all__ = ["register", "run", "certificate_lines", "add_setpoints_args", "setpoints_options"]
+
+
+def add_setpoints_args(p: argparse.ArgumentParser) -> None:
+    """``--setpoints FILE`` and how to read it (:func:`oga.recorded.read_setpoints`)."""
+    from oga.recorded import SETPOINT_FORMATS, UNITS
+
+    g = p.add_argument_group("recorded setpoints (instead of TOOLPATH)")
+    g.add_argument("--setpoints", metavar="FILE",
+                   help="optimise on these setpoints instead of planning TOOLPATH: an oga "
+                        "lcnc-record recording, a halsampler recording of joint.N.motor-pos-cmd, "
+                        "or the CSV/TwinCAT formats of oga identify (<a>_cmd_m per axis)")
+    g.add_argument("--setpoints-format", choices=SETPOINT_FORMATS, default=None,
+                   help="default: halsampler for an oga lcnc-record file or with "
+                        "--setpoints-columns (not .csv), else csv")
+    g.add_argument("--setpoints-columns", metavar="A,B,...",
+                   help="halsampler/twincat: column names in order, e.g. "
+                        "sample,x_cmd_m,z_cmd_m,line")
+    g.add_argument("--setpoints-units", choices=tuple(UNITS), default=None,
+                   help="length unit of the file (default: an oga lcnc-record header's, else m)")
+    g.add_argument("--error-previous-target", choices=("true", "false"), default=None,
+                   help="halsampler without header: pid.N.error-previous-target (default true)")
+
+
+def setpoints_options(args: argparse.Namespace) -> dict:
+    """The reading options of ``--setpoints`` (InputError if given without it)."""
+    from oga.errors import InputError
+
+    given = {"--setpoints-format": args.setpoints_format,
+             "--setpoints-columns": args.setpoints_columns,
+             "--setpoints-units": args.setpoints_units,
+             "--error-previous-target": args.error_previous_target}
+    if args.setpoints is None:
+        extra = [flag for flag, v in given.items() if v is not None]
+        if extra:
+            raise InputError(f"{extra[0]}: applies to --setpoints only")
+        return {}
+    return {"columns": None if args.setpoints_columns is None
+            else args.setpoints_columns.split(","),
+            "units": args.setpoints_units,
+            "error_previous_target": None if args.error_previous_target is None
+            else args.error_previous_target == "true"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -27,10 +69,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "optimize",
         help="compute a verified gain schedule for a toolpath",
         description="Plan the toolpath, search the gain schedule (receding-horizon OGA), "
-        "verify it by replay and write the gain table.",
+        "verify it by replay and write the gain table. With --setpoints, optimise on the "
+        "setpoints another interpolator produced (e.g. LinuxCNC's, oga lcnc-record) instead.",
     )
-    add_toolpath_args(p)
+    add_toolpath_args(p, toolpath_required=False)
     add_search_args(p)
+    add_setpoints_args(p)
     p.add_argument("--out", required=True, metavar="TABLE.csv", help="gain table CSV to write")
     p.add_argument("--summary", metavar="SUMMARY.json", help="summary JSON to write")
     p.add_argument("--report", metavar="REPORT.html",
@@ -39,7 +83,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from oga.errors import InputError
+
     options = options_from_args(args)
+    if (args.toolpath is None) == (args.setpoints is None):
+        raise InputError("give a TOOLPATH to plan or --setpoints FILE, one of them")
+    read_options = setpoints_options(args)
+    if args.setpoints is not None and args.tolerance is not None:
+        raise InputError("--tolerance: recorded setpoints are optimised as recorded (their "
+                         "interpolator applied its tolerance)")
     check_files(args, "out", "summary", "report")  # before the compiled kernels load
 
     from feedplan.read import read_file
@@ -48,15 +100,29 @@ def run(args: argparse.Namespace) -> int:
     from oga.export import table_csv
     from oga.machine import load_machine
     from oga.pipeline import run_job
+    from oga.identify.trace import TraceError
 
     machine = load_machine(args.machine)
     try:
-        text, fmt = read_file(args.toolpath)
-        with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
-            job = run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
-                          progress=bar.update)
+        if args.setpoints is not None:
+            from oga.pipeline import SETPOINTS_PREFIX
+            from oga.recorded import read_setpoints_file
+
+            text, fmt = read_setpoints_file(args.setpoints, args.setpoints_format,
+                                            read_options["columns"])
+            with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
+                job = run_job(text, SETPOINTS_PREFIX + fmt, machine, options,
+                              source=FilePath(args.setpoints).name, progress=bar.update,
+                              setpoints_options=read_options)
+        else:
+            text, fmt = read_file(args.toolpath)
+            with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
+                job = run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
+                              progress=bar.update)
     except (GcodeError, ToolpathError) as err:
         raise toolpath_message(err, args.toolpath) from None
+    except TraceError as err:  # SetpointsError too
+        raise toolpath_message(err, args.setpoints) from None
     except OptionError as err:
         raise flag_message(err) from None
     res = job.result
@@ -67,7 +133,11 @@ def run(args: argparse.Namespace) -> int:
         from oga.report import render_report
 
         write_text(args.report, render_report(job))
-    for w in (*job.path.warnings, *job.setpoints.warnings):
+    if job.recorded is not None:
+        src = job.recorded.source
+        print(f"setpoints: {src['file']} ({src['format']}, {src['law']}), {src['samples']} "
+              f"samples from row {src['first_row']}, SHA-256 {src['sha256'][:12]}...")
+    for w in job.warnings:
         print(f"warning: {w}")
     b, o = summary["baseline"], summary["optimized"]
     kp_b = {a: v for a, v in b["kp"].items() if a in machine.axes}
@@ -104,6 +174,8 @@ def run(args: argparse.Namespace) -> int:
 
 def certificate_lines(cert: dict) -> list[str]:
     """The certificate of a summary (``summary["certificate"]``) as the lines printed."""
+    from oga.robust.certificate import confidence_text
+
     br = cert["breaks"]
     s, b = cert["schedule"], cert["baseline"]
     axes = [a for a in s["track_max_um"] if s["track_max_um"][a] or b["track_max_um"][a]]
@@ -114,6 +186,7 @@ def certificate_lines(cert: dict) -> list[str]:
         f"p90 {cert['ratio_p90']:.3f}, worst {cert['ratio_worst']:.3f} ({cert['worst_plant']})",
         f"  plants where a limit breaks: schedule {len(br['schedule'])}, baseline "
         f"{len(br['baseline'])}, schedule only {len(br['schedule-only'])}",
+        f"  {confidence_text(cert)}",
         f"  largest CE (um): schedule {s['max_ce_um']:.3f}, baseline {b['max_ce_um']:.3f}; "
         "largest following error (um): " + ", ".join(
             f"{a} {s['track_max_um'][a]:.1f} (baseline {b['track_max_um'][a]:.1f})" for a in axes),

@@ -43,8 +43,8 @@ from oga.defaults import (
 from oga.errors import InputError
 from oga.files import read_limited
 
-__all__ = ["AxisTrace", "Trace", "TraceError", "FORMATS", "read_trace", "load_trace",
-           "parse_gains", "trace_csv"]
+__all__ = ["AxisTrace", "Trace", "TraceError", "TraceTable", "FORMATS", "read_table",
+           "read_trace", "load_trace", "parse_gains", "trace_csv", "check_speed"]
 
 #: Trace formats read.
 FORMATS = ("csv", "halsampler", "twincat")
@@ -142,10 +142,11 @@ def _float(cell: str, col: str, row: int, decimal_comma: bool = False) -> float:
     return x
 
 
-def _table(lines, names: list[str], first_row: int, split, decimal_comma=False) -> np.ndarray:
-    """Rows of numbers into an (N, len(names)) array; rows are counted from ``first_row``
-    (1-based line numbers of the file) for messages."""
-    rows = []
+def _table(lines, names: list[str], first_row: int, split,
+           decimal_comma=False) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of numbers into an (N, len(names)) array, and the 1-based file line of each row
+    (``lines[0]`` is line ``first_row``; blank lines are skipped)."""
+    rows, where = [], []
     for i, line in enumerate(lines):
         if not line.strip():
             continue
@@ -156,26 +157,30 @@ def _table(lines, names: list[str], first_row: int, split, decimal_comma=False) 
             raise TraceError(
                 f"row {first_row + i}: {len(cells)} columns, the header names {len(names)}")
         rows.append([_float(c, n, first_row + i, decimal_comma) for c, n in zip(cells, names)])
+        where.append(first_row + i)
     if len(rows) < 2:
         raise TraceError("the trace has fewer than 2 rows of data")
-    return np.array(rows)
+    return np.array(rows), np.array(where)
 
 
-def _read_csv(text: str) -> tuple[list[str], np.ndarray, int]:
+def _read_csv(text: str) -> tuple[list[str], np.ndarray, np.ndarray]:
     lines = text.splitlines()
     if not lines:
         raise TraceError("empty trace")
     names = [c.strip() for c in lines[0].split(",")]
-    return names, _table(lines[1:], names, 2, lambda s: s.split(",")), 2
+    return (names, *_table(lines[1:], names, 2, lambda s: s.split(",")))
 
 
-def _read_halsampler(text: str, columns: list[str]) -> tuple[list[str], np.ndarray, int]:
+def _read_halsampler(text: str,
+                     columns: list[str]) -> tuple[list[str], np.ndarray, np.ndarray]:
     if not columns:
         raise TraceError("a halsampler trace needs --columns naming its columns in order")
-    return columns, _table(text.splitlines(), columns, 1, str.split), 1
+    lines = ["" if ln.startswith("#") else ln for ln in text.splitlines()]  # comments
+    return (columns, *_table(lines, columns, 1, str.split))
 
 
-def _read_twincat(text: str, columns: list[str] | None) -> tuple[list[str], np.ndarray, int]:
+def _read_twincat(text: str,
+                  columns: list[str] | None) -> tuple[list[str], np.ndarray, np.ndarray]:
     lines = text.splitlines()
     sep = "\t" if any("\t" in ln for ln in lines[:50]) else (
         ";" if any(";" in ln for ln in lines[:50]) else ",")
@@ -197,7 +202,8 @@ def _read_twincat(text: str, columns: list[str] | None) -> tuple[list[str], np.n
     if start is None:
         raise TraceError("no rows of numbers found in the first 1000 lines of the TwinCAT export")
     width = len(split(lines[start]))
-    raw = _table(lines[start:], [f"column {j + 1}" for j in range(width)], start + 1, split, dec)
+    raw, where = _table(lines[start:], [f"column {j + 1}" for j in range(width)], start + 1,
+                        split, dec)
     keep = [j for j in range(1, width) if not np.array_equal(raw[:, j], raw[:, 0])]
     if columns:
         names = columns
@@ -209,7 +215,74 @@ def _read_twincat(text: str, columns: list[str] | None) -> tuple[list[str], np.n
         raise TraceError(
             f"--columns names {len(names)} channels; the export has {len(keep)} besides time")
     data = np.column_stack([raw[:, 0] * 1e-3] + [raw[:, j] for j in keep])
-    return ["t_s", *names], data, start + 1
+    return ["t_s", *names], data, where
+
+
+@dataclass(frozen=True, eq=False)
+class TraceTable:
+    """The numbers of a trace file before they are given meaning: named columns over
+    uniformly sampled rows (:func:`read_table`).
+
+    Attributes
+    ----------
+    columns : dict of str to int
+        Column name -> index into ``data`` (columns named ``-`` are left out).
+    data : ndarray, shape (N, C)
+        The rows of numbers (TwinCAT: the time in s first, its channels' time columns dropped).
+    dt_s : float
+        The uniform period, s.
+    rows : ndarray of int, shape (N,)
+        1-based line of the file holding each row (messages name file rows).
+    """
+
+    columns: dict
+    data: np.ndarray
+    dt_s: float
+    rows: np.ndarray
+
+
+def read_table(text: str, fmt: str = "csv", *, columns: list[str] | None = None,
+               te_s: float | None = None, extra: tuple[str, ...] = ()) -> TraceTable:
+    """A trace file's rows, named and checked for uniform sampling (:func:`read_trace`'s
+    first steps, shared with readers of other recordings).
+
+    Parameters
+    ----------
+    text, fmt, columns, te_s
+        As :func:`read_trace`. A halsampler file's ``#`` lines are comments.
+    extra : tuple of str
+        Column names accepted besides ``t_s``, ``sample`` and ``<a>_<channel>``.
+
+    Raises
+    ------
+    TraceError
+        Naming the column and the row.
+    """
+    if fmt not in FORMATS:
+        raise TraceError(f"unknown trace format {fmt!r}; use one of {', '.join(FORMATS)}")
+    lines = text.count("\n")  # bounded before the text is split into lines
+    if lines > TRACE_MAX_ROWS + 1000:  # the rows and a header (TwinCAT's is long)
+        raise TraceError(f"{lines} lines, more than the {TRACE_MAX_ROWS} rows a trace may have")
+    cols = None if columns is None else [c.strip() for c in columns]
+    if fmt == "csv":
+        names, data, rows = _read_csv(text)
+    elif fmt == "halsampler":
+        names, data, rows = _read_halsampler(text, cols)
+    else:
+        names, data, rows = _read_twincat(text, cols)
+    col = _columns(names, extra)
+    if "t_s" in col:
+        t = data[:, col["t_s"]]
+    elif "sample" in col:
+        if te_s is None:
+            raise TraceError("a trace with sample numbers needs the machine's period")
+        t = data[:, col["sample"]] * te_s
+    elif te_s is not None:
+        t = np.arange(len(data)) * te_s
+    else:
+        raise TraceError("the trace has no t_s column")
+    dt = _check_times(t, "t_s" if "t_s" in col else "sample", rows)
+    return TraceTable(columns=col, data=data, dt_s=dt, rows=rows)
 
 
 def read_trace(
@@ -250,32 +323,10 @@ def read_trace(
     TraceError
         Anything wrong, naming the column and the row.
     """
-    if fmt not in FORMATS:
-        raise TraceError(f"unknown trace format {fmt!r}; use one of {', '.join(FORMATS)}")
     if units not in ("m", "mm"):
         raise TraceError(f"--units must be m or mm, got {units!r}")
-    lines = text.count("\n")  # bounded before the text is split into lines
-    if lines > TRACE_MAX_ROWS + 1000:  # the rows and a header (TwinCAT's is long)
-        raise TraceError(f"{lines} lines, more than the {TRACE_MAX_ROWS} rows a trace may have")
-    cols = None if columns is None else [c.strip() for c in columns]
-    if fmt == "csv":
-        names, data, row0 = _read_csv(text)
-    elif fmt == "halsampler":
-        names, data, row0 = _read_halsampler(text, cols)
-    else:
-        names, data, row0 = _read_twincat(text, cols)
-    col = _columns(names)
-    if "t_s" in col:
-        t = data[:, col["t_s"]]
-    elif "sample" in col:
-        if te_s is None:
-            raise TraceError("a trace with sample numbers needs the machine's period")
-        t = data[:, col["sample"]] * te_s
-    elif te_s is not None:
-        t = np.arange(len(data)) * te_s
-    else:
-        raise TraceError("the trace has no t_s column")
-    dt = _check_times(t, "t_s" if "t_s" in col else "sample", row0)
+    table = read_table(text, fmt, columns=columns, te_s=te_s)
+    col, data, dt, rows = table.columns, table.data, table.dt_s, table.rows
     scale = 1e-3 if units == "mm" else 1.0
     kp_opt, kf_opt = parse_gains(kp, "kp"), parse_gains(kf, "kf")
     axes = {}
@@ -299,22 +350,22 @@ def read_trace(
                 raise TraceError(f"axis {a}: no {a}_{gain} column and no {flag} for it")
             chans[gain] = np.full(len(data), value)
         for name in ("cmd_m", "act_m"):
-            _check_speed(chans[name], dt, f"{a}_{name}", row0, units)
+            check_speed(chans[name], dt, f"{a}_{name}", rows, units)
         if np.any(chans["kp_m_min_per_mm"] <= 0):
             k = int(np.argmax(chans["kp_m_min_per_mm"] <= 0))
-            raise TraceError(f"column {a}_kp_m_min_per_mm, row {row0 + k}: Kp must be positive")
+            raise TraceError(f"column {a}_kp_m_min_per_mm, row {rows[k]}: Kp must be positive")
         axes[a] = AxisTrace(**chans)
     if not axes:
         raise TraceError("the trace has no axis columns (<a>_cmd_m and <a>_act_m, a = x, y, z)")
     return Trace(dt_s=dt, n=len(data), axes=axes, source=source)
 
 
-def _columns(names: list[str]) -> dict[str, int]:
+def _columns(names: list[str], extra: tuple[str, ...] = ()) -> dict[str, int]:
     col = {}
     for j, name in enumerate(names):
         if name == "-":
             continue
-        if name not in ("t_s", "sample") and not _NAME.match(name):
+        if name not in ("t_s", "sample", *extra) and not _NAME.match(name):
             raise TraceError(
                 f"column {j + 1}: unknown name {name!r} (t_s, sample, or <a>_<channel> with "
                 f"a in x, y, z and channel in {', '.join(_CHANNELS)})")
@@ -324,14 +375,14 @@ def _columns(names: list[str]) -> dict[str, int]:
     return col
 
 
-def _check_times(t: np.ndarray, name: str, row0: int) -> float:
+def _check_times(t: np.ndarray, name: str, rows: np.ndarray) -> float:
     """The trace's period (s); TraceError at the first duplicated, missing or off-period step."""
     steps = np.diff(t)
     dt = float(np.median(steps))
     if not dt > 0:
         raise TraceError(f"column {name!r}: times do not increase")
     for k in np.flatnonzero(np.abs(steps - dt) > TRACE_DT_REL_TOL * dt)[:1]:
-        row = row0 + int(k) + 1
+        row = int(rows[k + 1])
         if steps[k] == 0:
             raise TraceError(f"column {name!r}, row {row}: duplicated row (same time as the row before)")
         if steps[k] > 1.5 * dt:
@@ -342,14 +393,16 @@ def _check_times(t: np.ndarray, name: str, row0: int) -> float:
     return dt
 
 
-def _check_speed(x: np.ndarray, dt: float, name: str, row0: int, units: str) -> None:
+def check_speed(x: np.ndarray, dt: float, name: str, rows: np.ndarray, units: str) -> None:
+    """TraceError naming the column and the row where ``x`` (m) moves faster than any
+    machine axis does (:data:`oga.defaults.TRACE_MAX_SPEED_M_S`): a file in mm read as m."""
     v = np.abs(np.diff(x)) / dt
     over = np.flatnonzero(v > TRACE_MAX_SPEED_M_S)
     if over.size:
         k = int(over[0])
-        hint = "" if units == "mm" else " (a trace in mm? give --units mm)"
+        hint = "" if units in ("mm", "inch") else " (a trace in mm? give --units mm)"
         raise TraceError(
-            f"column {name!r}, row {row0 + k + 1}: speed {v[k]:.3g} m/s is absurd{hint}")
+            f"column {name!r}, row {int(rows[k + 1])}: speed {v[k]:.3g} m/s is absurd{hint}")
 
 
 def load_trace(path: str | os.PathLike, fmt: str | None = None, **kw) -> Trace:

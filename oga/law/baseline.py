@@ -1,45 +1,23 @@
 """The fixed gains a law is judged against: the robust baseline of each program.
 
-One function, :func:`robust_baseline`, so that the law follows the robust search's baseline
-wherever it is defined. Today it is the robust search's own
-(:func:`oga.robust.search.robust_optimize`, step 2: the best equal fixed gains of a design
-machine whose limit reserve is cut until they keep eq. 2, the following-error limit and
-the stable range on every plant of the set), found on the program at 100 % feed and replayed
-at every override.
+:func:`program_baseline` calls the robust search's own baseline
+(:func:`oga.robust.baseline.robust_baseline`, with the arguments
+:func:`oga.robust.search.robust_optimize` gives it: the equal fixed gains of least
+geometric-mean MSE(CE) over the set's objective plants among those that keep eq. 2, the
+following-error limit and the stable range on every plant of the set and the nominal one),
+found on the program at 100 % feed and replayed at every override.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from feedplan.setpoints import AXES, Setpoints
+from oga.errors import OptionError
 from oga.machine import Machine
+from oga.robust.baseline import BaselineResult, robust_baseline
 from oga.robust.certificate import plant_bounds
 from oga.robust.plants import ScenarioSet, perturbed_machine
-from oga.robust.search import _robust_baseline
-from oga.verify import Verification
 
-__all__ = ["Baseline", "robust_baseline", "common_kp_range"]
-
-
-@dataclass(frozen=True, eq=False)
-class Baseline:
-    """A program's robust baseline.
-
-    Attributes
-    ----------
-    kp_m_min_per_mm, kf : float
-        The equal fixed gains of every moving axis.
-    reserve : float
-        The limit reserve of the design machine they were found on.
-    replays : tuple of Verification
-        Their replays on every plant of the set (the program at 100 % feed).
-    """
-
-    kp_m_min_per_mm: float
-    kf: float
-    reserve: float
-    replays: tuple[Verification, ...]
+__all__ = ["program_baseline", "common_kp_range"]
 
 
 def common_kp_range(machine: Machine, scenarios: ScenarioSet, bounds, axes) -> tuple[float, float]:
@@ -54,17 +32,21 @@ def common_kp_range(machine: Machine, scenarios: ScenarioSet, bounds, axes) -> t
     return (max(b[a][0] for b in every for a in axes), min(b[a][1] for b in every for a in axes))
 
 
-def robust_baseline(setpoints: Setpoints, machine: Machine, scenarios: ScenarioSet,
-                    bounds) -> Baseline:
-    """The robust baseline of ``setpoints`` on ``machine``'s set (module doc).
+def program_baseline(name: str, setpoints: Setpoints, machine: Machine, scenarios: ScenarioSet,
+                     bounds, *, threads: int | None = None) -> BaselineResult:
+    """The robust baseline of program ``name`` (``setpoints`` at 100 % feed) on
+    ``machine``'s set (module doc); ``bounds`` its :func:`oga.robust.certificate.plant_bounds`.
 
     Raises
     ------
     OptionError
-        No equal fixed gains keep the limits on every plant (the robust search's message).
+        No equal fixed gains keep the limits on every plant (the robust baseline's message,
+        naming the program and the remedies).
     """
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
-    kp_range = common_kp_range(machine, scenarios, bounds, moving)
-    kp, kf, reserve, replays = _robust_baseline(setpoints, machine, scenarios, bounds, kp_range)
-    return Baseline(kp_m_min_per_mm=float(kp), kf=float(kf), reserve=float(reserve),
-                    replays=tuple(replays))
+    base = robust_baseline(setpoints, machine, scenarios, tuple(bounds),
+                           common_kp_range(machine, scenarios, bounds, moving), threads=threads)
+    if not base.ok:
+        raise OptionError(f"{name}: {base.message} (a law is certified on the set: "
+                          "oga law has no nominal mode)")
+    return base

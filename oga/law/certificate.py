@@ -112,7 +112,7 @@ def _certify_on(law, cases, machine, scenarios, keep) -> LawCertificate:
     out, reasons = {}, []
     for prog, o, sp, base, base_replays, bounds in cases:
         n = len(sp)
-        bkp, bkf = np.full((n, 3), base.kp_m_min_per_mm), np.full((n, 3), base.kf)
+        bkp, bkf = np.full((n, 3), base.kp), np.full((n, 3), base.kf)
         for i in keep:
             if i not in base_replays:
                 base_replays[i] = verify(sp, scenarios.plants[i], bkp, bkf, bounds[i])
@@ -134,7 +134,7 @@ def certify_law(law: Law, cases, machine, scenarios: ScenarioSet,
     law : Law
     cases : list of tuple
         ``(program, override, setpoints, baseline, baseline_replays, bounds)``: the
-        program's :class:`oga.law.baseline.Baseline`, its replays by plant index (filled
+        program's :class:`oga.robust.baseline.BaselineResult`, its replays by plant index (filled
         in here where missing) and the set's stable ranges over the program's moving axes
         (:func:`oga.robust.certificate.plant_bounds`).
     machine : Machine

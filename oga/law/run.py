@@ -25,6 +25,7 @@ def law_optimize(
     overrides=defaults.LAW_OVERRIDES,
     tol_m: float = defaults.TOL_M,
     scenarios: ScenarioSet | None = None,
+    threads: int | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> LawResult:
     """One gain law for every program of ``paths``, searched and certified at every feed
@@ -44,6 +45,8 @@ def law_optimize(
     tol_m : float
         Path tolerance of the plans, m.
     scenarios : ScenarioSet, optional
+    threads : int, optional
+        Threads of the robust baselines' search (default: the available cores).
     progress : callable, optional
         Called with the fraction done (planning: the first 10 %).
 
@@ -76,5 +79,5 @@ def law_optimize(
             done += 1
             report(0.1 * done / total)
         programs.append(Program(name, sps))
-    return search_law(programs, machine, kind, points, scenarios=scenarios,
+    return search_law(programs, machine, kind, points, scenarios=scenarios, threads=threads,
                       progress=lambda f: report(0.1 + 0.9 * f))

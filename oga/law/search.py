@@ -28,8 +28,8 @@ most, so the search is a Gauss-Newton sequential QP over the whole programs:
 **Rounds** (:data:`oga.defaults.LAW_ROUNDS` at most), as the robust table's: the first
 searches the nominal plant, each next one adds the plant of the set where the last law did
 worst (the nominal plant and :data:`oga.defaults.ROBUST_ACTIVE` - 1 others at most), and
-cuts the reserve where the law breaks a limit that the baseline keeps. Each round's law, rounded to its controller's resolution,
-is certified (:mod:`oga.law.certificate`) on every case: first on a screen of the set (its
+cuts the reserve (1 at first, as the robust table's) where the law breaks a limit that the
+baseline keeps. Each round's law, rounded to its controller's resolution, is certified (:mod:`oga.law.certificate`) on every case: first on a screen of the set (its
 32 corners and 8 Monte Carlo plants: a screen that fails proves the whole set fails), then
 on the whole set; where it fails, its shrinks towards the baseline
 (:data:`oga.defaults.LAW_ALPHAS`) are. The rounds stop at the first whose own law is
@@ -56,13 +56,15 @@ from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.contour import contour_error_of, path_index
 from oga.errors import OptionError
-from oga.law.baseline import Baseline, common_kp_range, robust_baseline
+from oga.law.baseline import common_kp_range, program_baseline
 from oga.law.certificate import LawCertificate, certify_law
 from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
 from oga.law.law import AxisLaw, Law, basis, check_kind, law_gains, quantized, support_points
 from oga.machine import Machine
 from oga.metrics import track_max
 from oga.mpc import _qp_active_set
+from oga.parallel import resolve_threads
+from oga.robust.baseline import BaselineResult
 from oga.robust.certificate import plant_bounds
 from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
 from oga.simulate import simulate
@@ -108,8 +110,8 @@ class LawResult:
         The law to export (rounded to its controller's resolution).
     certificate : LawCertificate
         The exported law's certificate (the searched law's when the baseline is kept).
-    baselines : dict of str to Baseline
-        Each program's robust baseline.
+    baselines : dict of str to BaselineResult
+        Each program's robust baseline (:func:`oga.law.baseline.program_baseline`).
     rounds : int
     reserve : float
         The kept round's limit reserve.
@@ -131,7 +133,7 @@ class LawResult:
     status: str
     law: Law
     certificate: LawCertificate
-    baselines: dict[str, Baseline]
+    baselines: dict[str, BaselineResult]
     rounds: int
     reserve: float
     active: tuple[str, ...]
@@ -148,8 +150,8 @@ class LawResult:
             "status": self.status,
             "reason": self.reason,
             "law": self.law.summary(),
-            "baselines": {p: {"kp_m_min_per_mm": b.kp_m_min_per_mm, "kf": b.kf,
-                              "reserve": b.reserve} for p, b in self.baselines.items()},
+            "baselines": {p: {"kp_m_min_per_mm": b.kp, "kf": b.kf, "mse_m2": b.mse_m2}
+                          for p, b in self.baselines.items()},
             "rounds": self.rounds,
             "reserve": self.reserve,
             "active": list(self.active),
@@ -170,7 +172,7 @@ class _Case:
     program: str
     override: float
     sp: Setpoints
-    base: Baseline
+    base: BaselineResult
     moving: tuple[int, ...]
     feed: np.ndarray
     index: tuple
@@ -260,7 +262,8 @@ def search_law(
     points: int | None = None,
     *,
     scenarios: ScenarioSet | None = None,
-    baselines: dict[str, Baseline] | None = None,
+    baselines: dict[str, BaselineResult] | None = None,
+    threads: int | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> LawResult:
     """One law for ``programs`` at all their overrides, robust over ``machine``'s set
@@ -277,8 +280,11 @@ def search_law(
         Support points per input (default per kind, :data:`oga.defaults.LAW_POINTS`).
     scenarios : ScenarioSet, optional
         Default :func:`oga.robust.plants.scenario_set` of ``machine``.
-    baselines : dict of str to Baseline, optional
+    baselines : dict of str to BaselineResult, optional
         Each program's robust baseline when already found.
+    threads : int, optional
+        Threads of the baselines' search (default: the available cores; the result does
+        not depend on it).
     progress : callable, optional
         Called with the fraction done (0..1).
 
@@ -303,6 +309,7 @@ def search_law(
     if scenarios is None:
         scenarios = scenario_set(machine)
     report = progress or (lambda f: None)
+    threads = resolve_threads(threads)
     plants = _Plants(machine, scenarios)
     baselines = dict(baselines or {})
     cases: list[_Case] = []
@@ -314,9 +321,10 @@ def search_law(
         if not moving:
             raise OptionError(f"{p.name}: no axis moves; nothing to adapt")
         names = tuple(AXES[i] for i in moving)
-        bounds_of[p.name] = plant_bounds(scenarios, names)
+        bounds_of[p.name] = plant_bounds(scenarios, names, threads)
         if p.name not in baselines:
-            baselines[p.name] = robust_baseline(sp1, machine, scenarios, bounds_of[p.name])
+            baselines[p.name] = program_baseline(p.name, sp1, machine, scenarios,
+                                                 bounds_of[p.name], threads=threads)
         moving_all.update(moving)
     report(0.1)
     law_axes = tuple(AXES[i] for i in sorted(moving_all))
@@ -326,11 +334,11 @@ def search_law(
     kp_lo, kp_hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
     kf_lo, kf_hi = machine.gains.kf_range
     first = baselines[programs[0].name]
-    fixed_kp = {a: first.kp_m_min_per_mm for a in AXES if a not in law_axes}
+    fixed_kp = {a: first.kp for a in AXES if a not in law_axes}
     fixed_kf = {a: first.kf for a in AXES if a not in law_axes}
     # support points over every case; the start: of the programs' baselines, the constant
     # law that keeps the limits (then of least cost) on the nominal plant
-    start_law = _start_law(kind, n_pts, programs, law_axes, first.kp_m_min_per_mm, first.kf,
+    start_law = _start_law(kind, n_pts, programs, law_axes, first.kp, first.kf,
                            fixed_kp, fixed_kf)
     layout = _Layout(kind, start_law.axes)
     for p in programs:
@@ -351,12 +359,13 @@ def search_law(
                          weights=w)
             if o == 1.0:
                 case.base_replays.update(enumerate(base.replays))
+                case.base_replays[-1] = base.nominal
             cases.append(case)
     lo, hi = layout.constant(kp_lo, kf_lo), layout.constant(kp_hi, kf_hi)
     ctx = _Context(cases, plants, layout, lo, hi, fixed_kp, fixed_kf, bounds_of)
-    theta0 = min((layout.constant(b.kp_m_min_per_mm, b.kf) for b in baselines.values()),
+    theta0 = min((layout.constant(b.kp, b.kf) for b in baselines.values()),
                  key=ctx.start_key)
-    reserve = min(b.reserve for b in baselines.values())
+    reserve = 1.0  # the rounds' limit reserve starts where the robust table's does
     # the first round searches the nominal plant and the first Monte Carlo plants (typical
     # ones: the nominal plant alone is not the set's median plant)
     active: list[int] = list(range(min(defaults.LAW_TYPICAL_PLANTS, scenarios.n_monte_carlo)))
@@ -430,7 +439,7 @@ class _Context:
             bnd = (self.bounds_of[case.program][key] if key >= 0 else
                    {a: (self.lo.min(), self.hi.max()) for a in moving})
             case.base_replays[key] = verify(case.sp, self.plants[key],
-                                            np.full((n, 3), case.base.kp_m_min_per_mm),
+                                            np.full((n, 3), case.base.kp),
                                             np.full((n, 3), case.base.kf), bnd)
         return case.base_replays[key]
 

@@ -1,7 +1,14 @@
-"""LinuxCNC: a verified gain table as a ``streamer`` file and HAL files for the ``pid`` loops.
+"""LinuxCNC: a verified gain table as files LinuxCNC runs.
 
-See :mod:`oga.linuxcnc.export`; the README section "Running a table on LinuxCNC" says how a
-machine or a bench runs them.
+- :mod:`oga.linuxcnc.export`: a ``streamer`` file and HAL files for the ``pid`` loops (a bench
+  run, or a machine whose joints the stream drives);
+- :mod:`oga.linuxcnc.motion`: production: LinuxCNC's motion controller runs the program, the
+  table drives only ``Pgain`` and ``FF1`` while the motion is the recorded one;
+- :mod:`oga.linuxcnc.record`: a program run headless in the user's configuration and its
+  setpoints recorded (``oga lcnc-record``), in a :mod:`oga.linuxcnc.session`;
+- :mod:`oga.linuxcnc.halfile`: writing HAL commands (``.hal`` or Tcl HALFILEs).
+
+The documentation page "Running a table on LinuxCNC" says how a machine or a bench runs them.
 """
 
 from __future__ import annotations
@@ -12,10 +19,17 @@ from oga.linuxcnc.export import (
     TABLE_HAL,
     UNIT_M,
     LinuxcncExport,
+    baseline_gains,
     export_table,
     linuxcnc_export,
     replay_feedback,
 )
+from oga.linuxcnc.halfile import HalCommands
+from oga.linuxcnc.motion import FEEDER, MOTION_TCL, motion_export
+from oga.linuxcnc.record import Recording, record_program
+from oga.linuxcnc.session import LinuxcncError, run_session
 
-__all__ = ["BENCH_HAL", "STREAM", "TABLE_HAL", "UNIT_M", "LinuxcncExport", "export_table",
-           "linuxcnc_export", "replay_feedback"]
+__all__ = ["BENCH_HAL", "FEEDER", "MOTION_TCL", "STREAM", "TABLE_HAL", "UNIT_M", "HalCommands",
+           "LinuxcncError", "LinuxcncExport", "Recording", "baseline_gains", "export_table",
+           "linuxcnc_export", "motion_export", "record_program", "replay_feedback",
+           "run_session"]

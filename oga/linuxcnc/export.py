@@ -33,6 +33,7 @@ import numpy as np
 from feedplan.setpoints import AXES
 from oga.defaults import LINUXCNC
 from oga.errors import InputError, MachineError, OptionError
+from oga.linuxcnc.halfile import printable
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "linuxcnc_export",
     "export_table",
     "replay_feedback",
+    "baseline_gains",
 ]
 
 #: Machine units: metres per unit.
@@ -209,12 +211,6 @@ def replay_feedback(table, machine, axes=None) -> dict[str, np.ndarray]:
     return out
 
 
-def _printable(text: str) -> str:
-    """``text`` for a comment line: printable ASCII kept, anything else (a newline would end
-    the comment and start a HAL command) as ``?``."""
-    return "".join(c if " " <= c <= "~" else "?" for c in text)
-
-
 def _stream_text(head: list[str], data: np.ndarray) -> str:
     buf = io.StringIO()
     for line in head:
@@ -291,7 +287,7 @@ def linuxcnc_export(table, baseline_kp: dict, baseline_kf: dict, *, units: str |
     data = np.column_stack(cols)
     if not np.isfinite(data).all():
         raise InputError("table: non-finite values; not exported")
-    m = {k: _printable(v) for k, v in table.meta.items() if isinstance(v, str)}
+    m = {k: printable(v) for k, v in table.meta.items() if isinstance(v, str)}
     per_axis = list(_COLUMNS) + ([_FEEDBACK] if feedback_m is not None else [])
     about = [
         f"oga gain table for LinuxCNC: {m.get('toolpath', '')}, machine {m.get('machine', '')}",
@@ -396,6 +392,34 @@ def _bench_hal(about, axes, joints, period_ns, thread, feedback) -> str:
     return "\n".join(lines) + "\n"
 
 
+def baseline_gains(table, summary: dict | None = None, baseline=None) -> tuple[dict, dict]:
+    """The fixed gains per axis a table falls back to: ``baseline`` (Kp, Kf for every axis),
+    else the summary's, whose hashes must be the table's.
+
+    Raises
+    ------
+    InputError
+        The summary belongs to another table, or no baseline is given.
+    """
+    if summary is not None:
+        for key in ("setpoints_sha256", "machine_sha256"):
+            ours, theirs = table.meta.get(key), summary.get(key)
+            if ours and theirs and ours != theirs:
+                raise InputError(f"summary: {key} {theirs[:12]}... is not the table's "
+                                 f"({ours[:12]}...): not the same "
+                                 + ("program" if key.startswith("setpoints") else "machine"))
+    if baseline is not None:
+        kp, kf = baseline
+        return dict.fromkeys(AXES, kp), dict.fromkeys(AXES, kf)
+    if summary is not None and isinstance(summary.get("baseline"), dict):
+        base_kp, base_kf = summary["baseline"].get("kp"), summary["baseline"].get("kf")
+        if not isinstance(base_kp, dict) or not isinstance(base_kf, dict):
+            raise InputError("summary: baseline has no kp and kf per axis")
+        return base_kp, base_kf
+    raise InputError("the fixed baseline gains are needed (the loops fall back to them): "
+                     "give the summary or Kp,Kf")
+
+
 def export_table(table, *, summary: dict | None = None, baseline=None, machine=None,
                  with_feedback: bool = False, **options) -> LinuxcncExport:
     """:func:`linuxcnc_export` of a stored table, its summary and its machine.
@@ -421,23 +445,7 @@ def export_table(table, *, summary: dict | None = None, baseline=None, machine=N
     InputError
         The summary belongs to another table, or no baseline is given.
     """
-    if summary is not None:
-        for key in ("setpoints_sha256", "machine_sha256"):
-            ours, theirs = table.meta.get(key), summary.get(key)
-            if ours and theirs and ours != theirs:
-                raise InputError(f"summary: {key} {theirs[:12]}... is not the table's "
-                                 f"({ours[:12]}...): not the same "
-                                 + ("program" if key.startswith("setpoints") else "machine"))
-    if baseline is not None:
-        kp, kf = baseline
-        base_kp, base_kf = dict.fromkeys(AXES, kp), dict.fromkeys(AXES, kf)
-    elif summary is not None and isinstance(summary.get("baseline"), dict):
-        base_kp, base_kf = summary["baseline"].get("kp"), summary["baseline"].get("kf")
-        if not isinstance(base_kp, dict) or not isinstance(base_kf, dict):
-            raise InputError("summary: baseline has no kp and kf per axis")
-    else:
-        raise InputError("the fixed baseline gains are needed (the loops fall back to them): "
-                         "give the summary or Kp,Kf")
+    base_kp, base_kf = baseline_gains(table, summary, baseline)
     feedback = None
     if with_feedback:
         if machine is None:

@@ -27,7 +27,7 @@ def certificate_lines(result: LawResult, machine_name: str, plants: int) -> list
                      f"{c.median:.3f}, p90 {c.p90:.3f}, worst {c.worst:.3f}; plants where the "
                      f"law alone breaks a check: {len(c.breaks('schedule-only'))}")
     for prog, b in result.baselines.items():
-        lines.append(f"  baseline of {prog}: Kp {b.kp_m_min_per_mm:g} (m/min)/mm, Kf {b.kf:g}")
+        lines.append(f"  baseline of {prog}: Kp {b.kp:g} (m/min)/mm, Kf {b.kf:g}")
     lines += [
         "Not covered: other programs, feed overrides outside those above, a machine further "
         "from its model than its uncertainty set says,",

@@ -1,0 +1,190 @@
+"""The robust baseline is the best equal fixed gains over the set that keep every plant's
+checks; the robust search gives the same bits on any number of threads; the certificate's
+confidence bound is the exact binomial one.
+
+Every figure here is recomputed by fresh replays (:func:`oga.robust.certificate.certify`
+with no cached replay, :func:`oga.verify.verify`) or by scipy's binomial distribution, not
+taken from the search that produced it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from feedplan.read import load_toolpath
+from feedplan.setpoints import AXES
+from oga.cli.optimize import certificate_lines
+from oga.errors import OptionError
+from oga.machine import load_machine, machine_from_dict
+from oga.options import options_from_dict
+from oga.pipeline import plan_toolpath, run_job
+from oga.report import render_report
+from oga.robust.baseline import robust_baseline
+from oga.robust.certificate import certify, plant_bounds, share_bound
+from oga.robust.plants import scenario_set
+from oga.robust.search import robust_optimize
+from oga.verify import verify
+
+DATA = Path(__file__).parent / "data"
+
+
+def _fixed(n, kp, kf):
+    return np.full((n, 3), kp), np.full((n, 3), kf)
+
+
+def _geo(x) -> float:
+    return float(np.exp(np.mean(np.log(x))))
+
+
+@pytest.fixture(scope="module")
+def ucp710():
+    m = load_machine("ucp710")
+    return m, scenario_set(m)
+
+
+# the pairs the issue found better than the old baseline on every plant, and that baseline
+@pytest.mark.parametrize("name, pair, old", [("reference_xz", (1.95, 0.86), (1.3, 0.9)),
+                                             ("circle_r50_f3000", (1.90, 0.88), (1.4, 0.9))])
+def test_the_baseline_is_the_best_equal_fixed_gains_that_keep_every_plant(ucp710, name, pair,
+                                                                          old):
+    m, scen = ucp710
+    sp = plan_toolpath(load_toolpath(DATA / f"{name}.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    moving = tuple(AXES[i] for i in sp.moving_axes)
+    bounds = plant_bounds(scen, moving, threads=2)
+    r = robust_baseline(sp, m, scen, bounds, threads=2)
+    assert r.ok and r.objective_plants == tuple(range(32))
+    n = len(sp)
+    base = _fixed(n, r.kp, r.kf)
+    obj = list(r.objective_plants)
+    # against the pair and the old baseline, both replayed afresh on every plant
+    for kp, kf in (pair, old):
+        c = certify(sp, m, *_fixed(n, kp, kf), *base, scen, bounds, threads=2)
+        assert not c.breaks("baseline")  # the baseline keeps every check on every plant
+        assert not c.breaks("schedule")  # and so does its competitor
+        # the aggregate it minimises (the geometric mean MSE over the objective plants)
+        assert _geo(c.ratio[obj]) > 1.0
+    assert c.ratio.min() > 1.0  # the old baseline is worse on every plant
+    # and on the nominal plant (fresh replay on the machine itself)
+    kb = {a: (1.0, r.kp) for a in moving}
+    assert verify(sp, m, *base, kb).ok
+    # no gains next to it do better by more than 0.1 % and keep every plant's checks
+    geo = _geo([v.metrics.mse_m2 for v in (r.replays[i] for i in obj)])
+    for dkp, dkf in ((0.01, 0.0), (-0.01, 0.0), (0.0, 0.005), (0.0, -0.005), (0.01, -0.005)):
+        kp, kf = r.kp + dkp, r.kf + dkf
+        if kp > min(b[a][1] for b in bounds for a in moving):
+            continue  # outside some plant's stable range
+        near = [verify(sp, p, *_fixed(n, kp, kf), b) for p, b in zip(scen.plants, bounds)]
+        if all(v.ok for v in near):
+            assert _geo([near[i].metrics.mse_m2 for i in obj]) > geo * (1 - 1e-3), (dkp, dkf)
+
+
+def test_no_baseline_names_the_closest_gains_their_break_and_a_remedy_that_works():
+    def wide(mass, kv):  # ucp710 with mass and Kv far more uncertain on every axis
+        d = load_machine("ucp710").model_dump(mode="json", exclude_none=True)
+        for ax in d["axes"].values():
+            ax["uncertainty"] |= {"mass_kg": list(mass), "kv_n_s_m": list(kv)}
+        return machine_from_dict(d)
+
+    m = wide((0.2, 5.0), (0.2, 3.0))
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    scen = scenario_set(m, n=16)
+    r = robust_baseline(sp, m, scen, threads=2)
+    assert r.status == "none" and math.isnan(r.kp)
+    import re
+    found = re.search(r"Kp ([\d.]+) Kf ([\d.]+), break them on (\d+) of 49 plants; on '([^']+)': "
+                      r"(axis [xyz]: .*line \d+.*?)\)\. ", r.message)
+    assert found, r.message
+    kp, kf, label = float(found[1]), float(found[2]), found[4]
+    i = scen.labels.index(label)
+    v = verify(sp, scen.plants[i], *_fixed(len(sp), kp, kf), {})  # the break, replayed afresh
+    assert not v.limits_ok and found[5] == v.violations[0] and int(found[3]) >= 1
+    assert all(w in r.message for w in ("accel_fraction", "uncertainty", "--nominal"))
+    with pytest.raises(OptionError, match="no equal fixed gains"):
+        robust_optimize(sp, m, scenarios=scen, threads=1)
+    # the remedy it names: a narrower set has a baseline, and it keeps every plant (afresh)
+    m = wide((0.3, 3.0), (0.3, 2.0))
+    scen = scenario_set(m, n=16)
+    r = robust_baseline(sp, m, scen, threads=2)
+    assert r.ok
+    bounds = plant_bounds(scen, ("x", "z"))
+    assert all(verify(sp, p, *_fixed(len(sp), r.kp, r.kf), b).ok
+               for p, b in zip(scen.plants, bounds))
+
+
+def test_the_robust_search_gives_the_same_bits_on_any_thread_count():
+    m = load_machine("ucp710")
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    scen = scenario_set(m, n=6, seed=5)
+    runs = [robust_optimize(sp, m, scenarios=scen, threads=t) for t in (1, 2, 3)]
+    for r in runs[1:]:
+        assert (r.result.baseline_kp, r.result.baseline_kf) == (runs[0].result.baseline_kp,
+                                                                runs[0].result.baseline_kf)
+        np.testing.assert_array_equal(r.schedule.kp_m_min_per_mm, runs[0].schedule.kp_m_min_per_mm)
+        np.testing.assert_array_equal(r.schedule.kf, runs[0].schedule.kf)
+        np.testing.assert_array_equal(r.certificate.ratio, runs[0].certificate.ratio)
+        assert r.rounds == runs[0].rounds
+
+
+@pytest.mark.parametrize("failures, draws", [(0, 64), (0, 299), (3, 64), (1, 10), (10, 10)])
+def test_the_share_bound_is_the_one_sided_exact_binomial_bound(failures, draws):
+    bound = share_bound(failures, draws, 0.95)
+    if failures == draws:
+        assert bound == 1.0
+        return
+    assert bound == pytest.approx(stats.beta.ppf(0.95, failures + 1, draws - failures), rel=1e-9)
+    # the share at which seeing so few failures has probability 5 % (scipy's binomial)
+    assert stats.binom.cdf(failures, draws, bound) == pytest.approx(0.05, rel=1e-6)
+    if failures == 0:
+        assert bound == pytest.approx(1 - 0.05 ** (1 / draws), rel=1e-9)
+    assert (draws, bound < 0.01) != (299, False)  # 299 clean draws: under 1 %
+
+
+def test_the_confidence_bound_is_in_the_summary_the_cli_and_the_report():
+    m = load_machine("ucp710")
+    text = (DATA / "short_xz.ngc").read_text()
+    job = run_job(text, "gcode", m, options_from_dict({"certify": 8, "threads": 2}),
+                  source="short_xz.ngc")
+    cert = job.summary()["certificate"]
+    conf = cert["confidence"]
+    assert cert["monte_carlo"] == 8 and conf["draws"] == 8 and conf["level"] == 0.95
+    # recomputed from the per-plant figures: a Monte Carlo plant fails where the table is
+    # worse than the baseline or breaks a check the baseline keeps
+    mc = [lab for lab in cert["ratio_per_plant"] if lab.startswith("mc-")]
+    fails = sum(cert["ratio_per_plant"][lab] > 1 or lab in cert["breaks"]["schedule-only"]
+                for lab in mc)
+    assert conf["failures"] == fails
+    assert conf["share_bound"] == pytest.approx(stats.beta.ppf(0.95, fails + 1, 8 - fails))
+    pct = f"{conf['share_bound'] * 100:.2f} %"
+    assert any(pct in line and "95 % confidence" in line for line in certificate_lines(cert))
+    assert pct in render_report(job)
+    # a table that failed its certificate is not exported: the line says whose bound it is
+    from oga.robust.certificate import confidence_text
+    ok = {**cert, "status": "ok"}
+    assert "confidence the table fails" in confidence_text(ok)
+    assert "the searched table (not exported)" in confidence_text({**cert, "status": "failed"})
+    with pytest.raises(OptionError, match="certify"):
+        options_from_dict({"certify": 8, "nominal": True})
+    with pytest.raises(OptionError, match="threads"):
+        options_from_dict({"threads": 0})
+
+
+def test_the_refinement_qp_is_the_least_of_a_dense_grid():
+    from oga.robust.baseline import _qp
+
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        m = int(rng.integers(0, 6))
+        rows, rhs = rng.normal(size=(m, 2)), rng.uniform(0.0, 1.0, size=m)
+        low = rng.normal(size=(2, 2))
+        h, g, r = low @ low.T + 0.01 * np.eye(2), rng.normal(size=2), rng.uniform(0.2, 2.0)
+        x = _qp(g, h, rows, rhs, r)
+        grid = np.stack(np.meshgrid(*[np.linspace(-r, r, 201)] * 2), -1).reshape(-1, 2)
+        inside = np.all(grid @ rows.T <= rhs, axis=1)
+        value = 2 * grid @ g + np.einsum("ij,jk,ik->i", grid, h, grid)
+        assert np.all(np.abs(x) <= r * (1 + 1e-12)) and np.all(rows @ x <= rhs + 1e-9)
+        assert 2 * x @ g + x @ h @ x <= value[inside].min() + 1e-12
