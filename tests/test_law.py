@@ -194,7 +194,8 @@ def test_the_laws_baseline_is_the_robust_searchs(searched, short):
     direct = robust_baseline(short[1][1.0], MACHINE, scen, threads=1)
     assert direct.ok and (law_base.kp, law_base.kf) == (direct.kp, direct.kf)
     assert law_base.mse_m2 == direct.mse_m2
-    assert [v.metrics.mse_m2 for v in law_base.replays] == [v.metrics.mse_m2 for v in direct.replays]
+    assert ([v.metrics.mse_m2 for v in law_base.replays]
+            == [v.metrics.mse_m2 for v in direct.replays])
 
 
 def test_no_baseline_is_the_laws_error_naming_the_program_and_the_remedy():

@@ -29,9 +29,10 @@ most, so the search is a Gauss-Newton sequential QP over the whole programs:
 searches the nominal plant, each next one adds the plant of the set where the last law did
 worst (the nominal plant and :data:`oga.defaults.ROBUST_ACTIVE` - 1 others at most), and
 cuts the reserve (1 at first, as the robust table's) where the law breaks a limit that the
-baseline keeps. Each round's law, rounded to its controller's resolution, is certified (:mod:`oga.law.certificate`) on every case: first on a screen of the set (its
-32 corners and 8 Monte Carlo plants: a screen that fails proves the whole set fails), then
-on the whole set; where it fails, its shrinks towards the baseline
+baseline keeps. Each round's law, rounded to its controller's resolution, is certified
+(:mod:`oga.law.certificate`) on every case: first on a screen of the set (its 32 corners
+and 8 Monte Carlo plants: a screen that fails proves the whole set fails), then on the
+whole set; where it fails, its shrinks towards the baseline
 (:data:`oga.defaults.LAW_ALPHAS`) are. The rounds stop at the first whose own law is
 certified; of every certified law the one of least mean median ratio over the cases is
 kept. If none is, the law is the baseline itself (a constant law: status ``"failed"``, with
