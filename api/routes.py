@@ -31,6 +31,7 @@ from api.schemas import (
     JobOut,
     JobPage,
     JobRequest,
+    LawRequest,
     MachineList,
     TableFormat,
     job_out,
@@ -164,10 +165,15 @@ def _accept_setpoints(request: Request, body: JobRequest, machine: Machine, sync
 
 
 def _no_table(row: JobRow) -> None:
-    """409 for an identification job at a route of optimisations."""
+    """409 for an identification or a law job at a route of optimisations."""
+    from api.law import is_law
+
     if is_identification(row):
         raise HTTPException(409, f"job {row.id} identifies a machine: no table "
                             f"(GET /v1/jobs/{row.id}/machine)")
+    if is_law(row):
+        raise HTTPException(409, f"job {row.id} searches a gain law: no table "
+                            f"(GET /v1/jobs/{row.id}/law)")
 
 
 def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Response:
@@ -314,6 +320,7 @@ def _report(request: Request, job_id: str) -> Response:
         page = identification_report(row.toolpath, row.toolpath_format, machine_from_dict(
             row.machine), row.options, row.source, row.summary, blob)
         return HTMLResponse(page, headers={"X-Oga-Job-Id": row.id})
+    _no_table(row)  # a law job has no report: its summary holds the certificates
     table = table_from_npz(blob)
     machine = machine_from_dict(row.machine)
     options, read = stored_options(row.options)
@@ -424,3 +431,52 @@ def get_machine(name: str, response: Response) -> dict:
     m = load_machine(name)
     response.headers["X-Oga-Machine-Sha256"] = m.digest()
     return m.model_dump(mode="json", exclude_none=True)  # an axis has one model kind
+
+
+@router.post("/law", status_code=202, response_model=JobAccepted, responses=_BODY_ERRORS,
+             summary="Submit programs: a certified gain law for a controller that adapts its gains")
+async def submit_law(body: LawRequest, request: Request, response: Response) -> dict:
+    """Queue a gain-law search (``oga law``): the programs are read and the options checked
+    at once (422 naming the program's line and column, or the field); the search and the
+    certificate at every feed override run in a worker. When the job has succeeded,
+    ``GET /v1/jobs/{id}/law`` is a zip of the controller files and ``/summary`` the law and
+    its certificate per program and override."""
+    row = await _cpu(request, "read", _accept_law, request, body)
+    response.headers["Location"] = f"/v1/jobs/{row.id}"
+    return {"id": row.id, "status": row.status}
+
+
+def _accept_law(request: Request, body: LawRequest) -> JobRow:
+    """Check a law request (programs read, options, machine with a set, motion bounded) and
+    queue its job."""
+    from api.law import LAW_FORMAT, check_law, law_job
+
+    machine = _machine(body.machine)
+    text, options = law_job(body)
+    paths = check_law(text, machine, options)
+    settings = request.app.state.settings
+    for name, path in paths:  # every override plans it again: bounded at the slowest
+        _check_motion(path, machine, None, settings.job_max_motion_s * min(options["overrides"]),
+                      where=f" ({name})", advice=" (the server's --job-max-motion-s, at the "
+                      "slowest override)")
+    return _store(request).submit(
+        source=",".join(n for n, _ in paths)[:255], toolpath_format=LAW_FORMAT, toolpath=text,
+        machine=machine.model_dump(mode="json", exclude_none=True), options=options)
+
+
+@router.get("/jobs/{job_id}/law", responses={
+    200: {"content": {"application/zip": {}}, "description": "the controller files"},
+    **_ERRORS}, summary="The controller files of a gain-law job")
+def get_law(job_id: str, request: Request) -> Response:
+    """The zip of a succeeded law job's files (``oga law --out``)."""
+    from api.law import is_law
+
+    row = _job(request, job_id)
+    if not is_law(row):
+        raise HTTPException(409, f"job {row.id} is not a gain-law job")
+    blob = _store(request).table(row.id)
+    if row.status != "succeeded" or blob is None:
+        raise HTTPException(409, f"job {row.id} is {row.status}: no law")
+    return Response(blob, media_type="application/zip", headers={
+        "Content-Disposition": f'attachment; filename="oga_law_{row.id}.zip"',
+        "X-Oga-Job-Id": row.id})

@@ -244,3 +244,21 @@ def json_safe(value):
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
     return value
+
+
+class LawRequest(_Strict):
+    """Body of ``POST /v1/law``: the options of ``oga law``."""
+
+    programs: list[ToolpathIn] = Field(min_length=1, max_length=32,
+                                       description="the programs the machine runs")
+    machine: str | dict[str, Any] = Field(
+        "ucp710", description="a preset name or a machine object, with an uncertainty set")
+    kind: Literal["mac", "pl", "lincurve"] = Field(
+        "lincurve", description="mac: Heidenhain (Kp, Kf over |v| and |a|); pl: TwinCAT CNC "
+        "dynamic Kv (Kp over |v|, Kf constant); lincurve: LinuxCNC (Kp, Kf over |v|)")
+    points: int | None = Field(None, description="support points per input (default mac 3, "
+                               "pl 2, lincurve 4)")
+    overrides: list[float] = Field([0.5, 0.8, 1.0, 1.2], min_length=1, max_length=8,
+                                   description="feed overrides (shares), 1 among them")
+    tolerance: float | None = Field(None, description="interpolation tolerance, mm")
+    units: Literal["mm", "inch"] = Field("mm", description="LinuxCNC machine units")

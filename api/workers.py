@@ -159,6 +159,14 @@ def run_claimed(store: Store, job: JobRow) -> str:
             store.succeed(job.id, job.attempts, json_safe(ident.summary()),
                           ident.toml.encode("utf-8"))
             return "succeeded"
+        from api.law import is_law
+
+        if is_law(job):
+            from api.law import run_law
+
+            summary, files = run_law(job.toolpath, machine, job.options, progress=progress)
+            store.succeed(job.id, job.attempts, json_safe(summary), files)
+            return "succeeded"
         # one thread per job unless its options say otherwise: jobs run side by side
         options, read = stored_options(job.options, threads=job.options.get("threads") or 1)
         done = run_job(job.toolpath, job.toolpath_format, machine, options, source=job.source,

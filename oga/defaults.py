@@ -506,3 +506,35 @@ IDENT_MODEL_ERROR_MAX_SHARE = 0.25
 #: A fractional dead time is kept where it lowers the position residual's mean square by at
 #: least this share below the best whole dead time's (measurably better).
 IDENT_FRACTION_MIN_GAIN = 0.02
+
+# gain laws (oga.law) --------------------------------------------------------------------------
+#: Kinds of gain law (:mod:`oga.law.law`): Heidenhain MAC (Kp and Kf bilinear in |v| and |a|),
+#: TwinCAT CNC dynamic Kv (Kp piecewise-linear in |v|, Kf constant), LinuxCNC lincurve (Kp and
+#: Kf piecewise-linear in |v|).
+LAW_KINDS = ("mac", "pl", "lincurve")
+#: Support points per input of each kind when not given (mac: per axis of its grid).
+LAW_POINTS = {"mac": 3, "pl": 2, "lincurve": 4}
+#: Largest support points per input of each kind (lincurve: the component's 16; TwinCAT's
+#: dynamic Kv has exactly two; MAC's grid is kept small: its support points are typed in).
+LAW_POINTS_MAX = {"mac": 5, "pl": 2, "lincurve": 16}
+#: Feed overrides every law is searched and certified at (shares of the programmed feed).
+LAW_OVERRIDES = (0.5, 0.8, 1.0, 1.2)
+#: Override range accepted (LinuxCNC's default MAX_FEED_OVERRIDE is 1.2; a shop uses 0.5-1.2).
+LAW_OVERRIDE_RANGE = (0.1, 2.0)
+#: Rounds of the law search at most (the nominal plant, then the worst plants join).
+LAW_ROUNDS = 5
+#: Monte Carlo plants of the set the first round searches on besides the nominal one.
+LAW_TYPICAL_PLANTS = 0
+#: Gauss-Newton iterations per round at most, and the relative cost decrease that stops them.
+LAW_ITERATIONS = 25
+LAW_STOP = 1e-3
+#: First trust region of a step: Kp ((m/min)/mm) and Kf.
+LAW_TRUST = (0.3, 0.1)
+#: Linearised eq. 2 rows per case, plant, axis and limit at most (local peaks of largest
+#: ratio first; the exact replay of the line search checks every sample).
+LAW_ROWS = 400
+#: A sample's eq. 2 row joins the step's QP when its ratio may reach this share of its limit
+#: within the trust region.
+LAW_ROW_SHARE = 0.9
+#: Shares of the searched law's departure from the baseline tried when no round certifies.
+LAW_ALPHAS = (0.75, 0.5, 0.25)

@@ -1,0 +1,52 @@
+"""The fixed gains a law is judged against: the robust baseline of each program.
+
+:func:`program_baseline` calls the robust search's own baseline
+(:func:`oga.robust.baseline.robust_baseline`, with the arguments
+:func:`oga.robust.search.robust_optimize` gives it: the equal fixed gains of least
+geometric-mean MSE(CE) over the set's objective plants among those that keep eq. 2, the
+following-error limit and the stable range on every plant of the set and the nominal one),
+found on the program at 100 % feed and replayed at every override.
+"""
+
+from __future__ import annotations
+
+from feedplan.setpoints import AXES, Setpoints
+from oga.errors import OptionError
+from oga.machine import Machine
+from oga.robust.baseline import BaselineResult, robust_baseline
+from oga.robust.certificate import plant_bounds
+from oga.robust.plants import ScenarioSet, perturbed_machine
+
+__all__ = ["program_baseline", "common_kp_range"]
+
+
+def common_kp_range(machine: Machine, scenarios: ScenarioSet, bounds, axes) -> tuple[float, float]:
+    """The Kp range stable on every plant of ``scenarios`` (``bounds``: their
+    :func:`oga.robust.certificate.plant_bounds`) and on the nominal plant, over ``axes``,
+    (m/min)/mm (as the robust search takes it)."""
+    nominal = perturbed_machine(machine, {}, 0, machine.name)
+    nb = plant_bounds(ScenarioSet(status="nominal-only", nominal=machine, plants=(nominal,),
+                                  labels=("nominal",), draws=(({}, 0),), seed=0,
+                                  n_monte_carlo=0, n_corners=0), axes)[0]
+    every = tuple(bounds) + (nb,)
+    return (max(b[a][0] for b in every for a in axes), min(b[a][1] for b in every for a in axes))
+
+
+def program_baseline(name: str, setpoints: Setpoints, machine: Machine, scenarios: ScenarioSet,
+                     bounds, *, threads: int | None = None) -> BaselineResult:
+    """The robust baseline of program ``name`` (``setpoints`` at 100 % feed) on
+    ``machine``'s set (module doc); ``bounds`` its :func:`oga.robust.certificate.plant_bounds`.
+
+    Raises
+    ------
+    OptionError
+        No equal fixed gains keep the limits on every plant (the robust baseline's message,
+        naming the program and the remedies).
+    """
+    moving = tuple(AXES[i] for i in setpoints.moving_axes)
+    base = robust_baseline(setpoints, machine, scenarios, tuple(bounds),
+                           common_kp_range(machine, scenarios, bounds, moving), threads=threads)
+    if not base.ok:
+        raise OptionError(f"{name}: {base.message} (a law is certified on the set: "
+                          "oga law has no nominal mode)")
+    return base

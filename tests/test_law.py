@@ -1,0 +1,281 @@
+"""Gain laws (oga.law): evaluation, derivatives, search, certificate, exports, CLI and API."""
+
+from __future__ import annotations
+
+import io
+import json
+import socket
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from api import Settings, create_app
+from api.storage import Owner
+from api.workers import run_claimed
+from feedplan.read import load_toolpath
+from feedplan.setpoints import AXES
+from oga.cli import main
+from oga.contour import contour_error_of, path_index
+from oga.law.export import law_files
+from oga.law.export.heidenhain import heidenhain_text
+from oga.law.export.linuxcnc import law_hal
+from oga.law.export.twincat import twincat_files
+from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
+from oga.law.law import AxisLaw, Law, basis, interp, law_gains, quantized
+from oga.law.override import override_path, plan_override
+from oga.law.search import Program, search_law
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.errors import OptionError
+from oga.robust.baseline import robust_baseline
+from oga.robust.plants import scenario_set
+from oga.simulate import simulate
+from oga.verify import verify
+
+DATA = Path(__file__).parent / "data"
+MACHINE = load_machine("ucp710")
+
+
+@pytest.fixture(scope="module")
+def short():
+    path = load_toolpath(DATA / "short_xz.ngc")
+    return path, {o: plan_override(path, MACHINE, o, 2e-5) for o in (0.8, 1.0, 1.2)}
+
+
+def _mac_law(sp):
+    """A Heidenhain-style law on a 3 x 3 grid of |v| and |a| with distinct values."""
+    axes = {}
+    rng = np.random.default_rng(3)
+    for a in ("x", "z"):
+        i = AXES.index(a)
+        v = np.array([0.0, 0.4, 1.0]) * np.abs(sp.vel[:, i]).max()
+        acc = np.array([0.0, 0.3, 1.0]) * np.abs(sp.acc[:, i]).max()
+        axes[a] = AxisLaw(v_m_s=v, a_m_s2=acc, kp_m_min_per_mm=rng.uniform(1.2, 2.0, (3, 3)),
+                          kf=rng.uniform(0.7, 0.95, (3, 3)))
+    return Law(kind="mac", axes=axes, fixed_kp={"y": 1.3}, fixed_kf={"y": 0.9})
+
+
+def test_interp_is_lincurve_and_the_basis_gives_the_same_gains(short):
+    """``interp`` against numpy's (the same clamping as lincurve); the search's weights
+    (``basis``) against the evaluation, on a bilinear law (two code paths)."""
+    rng = np.random.default_rng(1)
+    xs = np.sort(rng.uniform(0, 1, 6))
+    ys = rng.uniform(-1, 1, 6)
+    x = rng.uniform(-0.5, 1.5, 1000)
+    assert np.allclose(interp(xs, ys, x), np.interp(x, xs, ys), rtol=0, atol=1e-15)
+    sp = short[1][1.0]
+    law = _mac_law(sp)
+    kp, kf = law_gains(law, sp)
+    for a, ax in law.axes.items():
+        i = AXES.index(a)
+        w = basis(ax, ax.kp_m_min_per_mm.shape, sp.vel[:, i], sp.acc[:, i])
+        assert np.allclose(w.sum(axis=1), 1.0)
+        assert np.allclose(w @ ax.kp_m_min_per_mm.ravel(), kp[:, i], atol=1e-12)
+        assert np.allclose(w @ ax.kf.ravel(), kf[:, i], atol=1e-12)
+        # bilinear by hand at one sample inside the grid
+        k = int(np.argmax((np.abs(sp.vel[:, i]) > ax.v_m_s[1]) & (np.abs(sp.acc[:, i]) > 0)
+                          & (np.abs(sp.acc[:, i]) < ax.a_m_s2[1])))
+        fv = (abs(sp.vel[k, i]) - ax.v_m_s[1]) / (ax.v_m_s[2] - ax.v_m_s[1])
+        fa = abs(sp.acc[k, i]) / ax.a_m_s2[1]
+        t = ax.kp_m_min_per_mm
+        want = ((1 - fa) * ((1 - fv) * t[0, 1] + fv * t[0, 2])
+                + fa * ((1 - fv) * t[1, 1] + fv * t[1, 2]))
+        assert kp[k, i] == pytest.approx(want, rel=1e-12)
+    assert (kp[:, 1] == 1.3).all() and (kf[:, 1] == 0.9).all()
+
+
+def test_derivatives_match_finite_differences(short):
+    """The tangent sensitivities of positions and commands, and the Gauss-Newton gradient of
+    the squared contour error, against central differences of fresh replays."""
+    sp = short[1][1.0]
+    law = _mac_law(sp)
+    kp, kf = law_gains(law, sp)
+    pd = np.ascontiguousarray(sp.pos)
+    ws, sens, cols, start = {}, {}, {}, 0
+    for a, ax in law.axes.items():
+        i = AXES.index(a)
+        ws[i] = (basis(ax, (3, 3), sp.vel[:, i], sp.acc[:, i]),
+                 basis(ax, (3, 3), sp.vel[:, i], sp.acc[:, i]))
+        p, u, s_p, s_u = axis_tangent(MACHINE, a, i, pd, sp.vel, kp[:, i], kf[:, i], *ws[i])
+        sim = simulate(sp, MACHINE, kp, kf)
+        assert np.array_equal(p, sim.pos[:, i]) and np.array_equal(u, sim.u[:, i])
+        sens[i] = s_p
+        cols[i] = slice(start, start + 18)
+        start += 18
+        for j in (4, 13):  # a Kp and a Kf support value
+            h = 1e-5
+            w = ws[i][0][:, j] if j < 9 else ws[i][1][:, j - 9]
+            kp2, kf2 = kp.copy(), kf.copy()
+            res = []
+            for sgn in (1, -1):
+                kp2[:, i], kf2[:, i] = kp[:, i], kf[:, i]
+                if j < 9:
+                    kp2[:, i] = kp[:, i] + sgn * h * w
+                else:
+                    kf2[:, i] = kf[:, i] + sgn * h * w
+                res.append(simulate(sp, MACHINE, kp2, kf2))
+            fd_p = (res[0].pos[:, i] - res[1].pos[:, i]) / (2 * h)
+            fd_u = (res[0].u[:, i] - res[1].u[:, i]) / (2 * h)
+            assert np.abs(s_p[:, j] - fd_p).max() <= 1e-4 * np.abs(fd_p).max() + 1e-15
+            assert np.abs(s_u[:, j] - fd_u).max() <= 1e-4 * np.abs(fd_u).max() + 1e-15
+    # the gradient of sum CE^2 (feed samples) along a Kp support value of x
+    feed = ~sp.rapid
+    tree, lo, hi = path_index(pd, 200)
+    sim = simulate(sp, MACHINE, kp, kf)
+    dq, tang = np.empty((len(sp), 3)), np.empty((len(sp), 3))
+    total = ce_offsets(pd, tree, lo, hi, feed, np.ascontiguousarray(sim.pos), dq, tang)
+    ce = contour_error_of(sp, sim.pos)
+    assert total == pytest.approx(float(np.sum(ce[feed] ** 2)), rel=1e-9)
+    _h, g, _s = gauss_newton(dq, tang, feed, sens, cols, 36)
+    j, h = 4, 1e-5
+    vals = []
+    for sgn in (1, -1):
+        kp2 = kp.copy()
+        kp2[:, 0] = kp[:, 0] + sgn * h * ws[0][0][:, j]
+        ce2 = contour_error_of(sp, simulate(sp, MACHINE, kp2, kf).pos)
+        vals.append(float(np.sum(ce2[feed] ** 2)))
+    fd = (vals[0] - vals[1]) / (2 * h)
+    assert 2 * g[j] == pytest.approx(fd, rel=2e-3)
+
+
+def test_override_scales_the_feed_moves_only(short):
+    path, sps = short
+    fast = override_path(path, 1.2)
+    for a, b in zip(path.segments, fast.segments):
+        assert b.feed_m_s == (a.feed_m_s if a.rapid else pytest.approx(1.2 * a.feed_m_s))
+    top = {o: float(np.linalg.norm(sp.vel[~sp.rapid], axis=1).max()) for o, sp in sps.items()}
+    assert top[0.8] < top[1.0] < top[1.2]  # (the cycle time need not fall: the blends change)
+    with pytest.raises(OptionError, match="--overrides"):
+        from oga.law.override import check_overrides
+        check_overrides([0.5, 0.8])
+
+
+@pytest.fixture(scope="module")
+def searched(short):
+    """A lincurve law of short_xz at 80/100/120 % on a small set (8 Monte Carlo plants and
+    the 32 corners: the search's and certificate's code, fewer replays)."""
+    _path, sps = short
+    scen = scenario_set(MACHINE, n=8)
+    return search_law([Program("short_xz", sps)], MACHINE, "lincurve", 3, scenarios=scen), scen
+
+
+def test_search_certifies_a_law_better_than_the_baseline(searched, short):
+    res, scen = searched
+    assert res.status == "ok" and res.certificate.full
+    for (prog, o), cert in res.certificate.cases.items():
+        assert cert.worst <= 1.0 and not cert.breaks("schedule-only")
+        assert cert.median < 0.9, (o, cert.median)
+    # the certificate's ratio on a plant, replayed afresh from the law and the baseline
+    sp = short[1][1.2]
+    base = res.baselines["short_xz"]
+    kp, kf = law_gains(res.law, sp)
+    n = len(sp)
+    cert = res.certificate.cases[("short_xz", 1.2)]
+    p = cert.plants[-1]
+    law_v = verify(sp, scen.plants[-1], kp, kf, p.kp_bounds)
+    base_v = verify(sp, scen.plants[-1], np.full((n, 3), base.kp),
+                    np.full((n, 3), base.kf), p.kp_bounds)
+    assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[-1], rel=1e-12)
+    assert law_v.ok
+    # what is certified is what is exported: the law is its own quantization
+    q = quantized(res.law)
+    for a in res.law.axes:
+        assert np.array_equal(q.axes[a].kp_m_min_per_mm, res.law.axes[a].kp_m_min_per_mm)
+
+
+def test_the_laws_baseline_is_the_robust_searchs(searched, short):
+    """The law is judged against the robust baseline itself: the same gains and replays as
+    :func:`oga.robust.baseline.robust_baseline` called directly (its own bounds and Kp range,
+    on one thread where the law's ran on the default)."""
+    res, scen = searched
+    law_base = res.baselines["short_xz"]
+    direct = robust_baseline(short[1][1.0], MACHINE, scen, threads=1)
+    assert direct.ok and (law_base.kp, law_base.kf) == (direct.kp, direct.kf)
+    assert law_base.mse_m2 == direct.mse_m2
+    assert ([v.metrics.mse_m2 for v in law_base.replays]
+            == [v.metrics.mse_m2 for v in direct.replays])
+
+
+def test_no_baseline_is_the_laws_error_naming_the_program_and_the_remedy():
+    d = MACHINE.model_dump(mode="json", exclude_none=True)
+    for ax in d["axes"].values():  # mass and Kv far more uncertain (test_robust_baseline's)
+        ax["uncertainty"] |= {"mass_kg": [0.2, 5.0], "kv_n_s_m": [0.2, 3.0]}
+    m = machine_from_dict(d)
+    sp = plan_override(load_toolpath(DATA / "short_xz.ngc"), m, 1.0, 2e-5)
+    with pytest.raises(OptionError) as err:
+        search_law([Program("short_xz", {1.0: sp})], m, "lincurve", 3,
+                   scenarios=scenario_set(m, n=16), threads=1)
+    msg = str(err.value)
+    assert msg.startswith("short_xz: baseline: no equal fixed gains"), msg
+    assert all(w in msg for w in ("accel_fraction", "uncertainty", "no nominal mode")), msg
+
+
+def test_exports_state_the_law_in_each_controllers_units(searched, short):
+    res, scen = searched
+    files = law_files(res, "ucp710", len(scen))
+    hal = files["oga_law.hal"]
+    assert "what the certificate covers" in hal.lower() and "short_xz at 120 % feed" in hal
+    ax = res.law.axes["x"]
+    for k, v in enumerate(ax.v_m_s):
+        assert f"setp oga-law-x-kp.x-val-{k:02d} {float(v) * 1e3!r}" in hal
+        assert (f"setp oga-law-x-kp.y-val-{k:02d} "
+                f"{float(ax.kp_m_min_per_mm[0, k]) * KP_SI_PER_M_MIN_PER_MM!r}") in hal
+    # TwinCAT: a two-point pl law in 0.01/s and um/s
+    law = Law(kind="pl", axes={"x": AxisLaw(np.array([0.004, 0.05]), np.zeros(1),
+                                            np.array([[1.8, 1.5]]), np.array([[0.86]]))})
+    tw = twincat_files(quantized(law), ["c"])["oga_law_twincat_x.txt"]
+    assert "getriebe[0].dyn_kv.kv1              3000" in tw
+    assert "getriebe[0].dyn_kv.v2               50000" in tw
+    assert "vorsteuer.vs_v_faktor       860" in tw
+    with pytest.raises(OptionError, match="--kind"):
+        twincat_files(Law(kind="pl", axes={"x": AxisLaw(np.array([0.0, 0.01, 0.05]), np.zeros(1),
+                                                         np.ones((1, 3)), np.ones((1, 1)))}), [])
+    mac = quantized(_mac_law(short[1][1.0]))
+    txt = heidenhain_text(mac, ["c"])
+    assert "[axis X]" in txt and "MP1396.0" in txt and len(txt.splitlines()) == 1 + 2 * 12
+    with pytest.raises(OptionError, match="--kind"):
+        law_hal(mac, [])
+
+
+def test_cli_refuses_bad_options(tmp_path, capsys):
+    prog = str(DATA / "short_xz.ngc")
+    for flags, what in ((["--kind", "siemens"], "--kind"), (["--points", "17"], "--points"),
+                        (["--kind", "pl", "--points", "3"], "--points"),
+                        (["--overrides", "0.5,0.8"], "--overrides"),
+                        (["--overrides", "0.5,1,5"], "--overrides"),
+                        (["--tolerance", "100"], "--tolerance"), (["--units", "m"], "--units"),
+                        (["--joints", "q=1"], "--joints")):
+        assert main(["law", prog, "--out", str(tmp_path / "o"), *flags]) == 2
+        assert capsys.readouterr().err.startswith(f"oga law: error: {what}")
+    assert main(["law", str(tmp_path / "missing.ngc"), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_api_law_job(tmp_path):
+    """POST /v1/law: 422 naming a bad option; a job's zip holds the controller files."""
+    app = create_app(Settings(db_path=str(tmp_path / "l.db"), workers=0))
+    text = (DATA / "short_xz.ngc").read_text()
+    body = {"programs": [{"format": "gcode", "content": text, "name": "short_xz"}],
+            "kind": "pl", "points": 2, "overrides": [1.0]}
+    with TestClient(app) as client:
+        for bad, field in (({"points": 5}, "points"), ({"overrides": [0.5]}, "overrides"),
+                           ({"kind": "x"}, "kind"), ({"tolerance": 50}, "tolerance"),
+                           ({"extra": 1}, "extra")):
+            r = client.post("/v1/law", json={**body, **bad})
+            assert r.status_code == 422 and field in json.dumps(r.json()), r.json()
+        bad_prog = {**body, "programs": [{"format": "gcode", "content": "G1 X1 Q#", "name": "b"}]}
+        r = client.post("/v1/law", json=bad_prog)
+        assert r.status_code == 422 and "b:1:" in r.json()["message"]
+        r = client.post("/v1/law", json=body)
+        assert r.status_code == 202
+        job = r.json()["id"]
+        owner = Owner(socket.gethostname(), 12345, "t", 12345)
+        assert run_claimed(app.state.store, app.state.store.claim(owner)) == "succeeded"
+        r = client.get(f"/v1/jobs/{job}/law")
+        assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+        names = zipfile.ZipFile(io.BytesIO(r.content)).namelist()
+        assert "oga_law.hal" in names and "oga_law_twincat_x.txt" in names
+        summary = client.get(f"/v1/jobs/{job}/summary").json()
+        assert summary["law"]["kind"] == "pl" and summary["certificate"]["cases"]
+        assert client.get(f"/v1/jobs/{job}/table").status_code == 409
