@@ -224,7 +224,7 @@ class _Stages:
         self.blocks: list = []  # the blocks plan() moved along
 
     def __enter__(self):
-        self._blocks, self._deriv = planner.blocks_of, planner._derivatives
+        self._blocks, self._deriv = planner.blocks_of, planner.derivatives
 
         def blocks(*a, **k):
             t = time.process_time()
@@ -237,11 +237,11 @@ class _Stages:
             self._mark = time.process_time()  # from here to plan()'s return: setpoints
             return self._deriv(*a, **k)
 
-        planner.blocks_of, planner._derivatives = blocks, deriv
+        planner.blocks_of, planner.derivatives = blocks, deriv
         return self
 
     def __exit__(self, *exc):
-        planner.blocks_of, planner._derivatives = self._blocks, self._deriv
+        planner.blocks_of, planner.derivatives = self._blocks, self._deriv
 
 
 class _PerBlock:
