@@ -12,19 +12,6 @@ from oga.machine import load_machine
 
 DATA = Path(__file__).parent / "data"
 
-#: The test files of a minute or more on CI's two cores (pytest --durations, 2026-11-27),
-#: longest first: they run first, so the workers end together (xdist hands out whole files in
-#: collection order: the longest last left one worker alone for 3.5 of the suite's 14 min).
-LONGEST_FIRST = ("test_identify_e2e.py", "test_cli.py", "test_gcode_cam.py", "test_docs.py",
-                 "test_cluster_batch.py", "test_api.py", "test_lcnc_production.py",
-                 "test_identify.py", "test_api_dask.py", "test_two_mass.py")
-
-
-def pytest_collection_modifyitems(config, items):
-    """The files of :data:`LONGEST_FIRST` first, in its order; the rest as collected."""
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
-
 
 @pytest.fixture(scope="module")
 def machine():
