@@ -258,16 +258,16 @@ def test_an_input_that_would_never_end_is_refused(tmp_path):
     assert not (tmp_path / "o.csv").exists() and not (tmp_path / "b").exists()
 
 
-def test_readme_quickstart_command_needs_its_mkdir(tmp_path):
-    """The Quickstart's oga command, as written (it makes its output folder first: without it
-    the command refuses). Its run and output: tests/test_docs.py runs the README's blocks."""
+def test_readme_quickstart_command_into_a_missing_folder_is_refused(tmp_path):
+    """The Quickstart's oga command, written into a folder that does not exist: refused, no
+    silent mkdir. Its run and output: tests/test_docs.py runs the README's blocks."""
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     block = readme.split("## Quickstart", 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
-    command = block.splitlines()[0].split("&& mkdir -p out && ", 1)[1]
-    assert command.startswith("oga optimize ")
+    command = block.splitlines()[0].split(" && ", 1)[1]
+    assert command.startswith("oga optimize ") and " --out table.csv " in command
     (tmp_path / "examples").symlink_to(Path(__file__).parents[1] / "examples")
-    r = oga(*command.split()[1:], cwd=tmp_path)
-    assert r.returncode == 2 and "folder out does not exist" in r.stderr  # no silent mkdir
+    r = oga(*command.replace("--out table.csv", "--out out/table.csv").split()[1:], cwd=tmp_path)
+    assert r.returncode == 2 and "folder out does not exist" in r.stderr
     assert not (tmp_path / "out").exists()
 
 

@@ -42,6 +42,7 @@ from oga.verify import command_ratios
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")
 V = ROBUST_FRICTION_LINEAR_BELOW_M_S
+#: (a digest of the machine file's values as parsed, no computed float: the same on any CPU)
 #: SHA-256 of ucp710 before the setting existed (an unset setting leaves every digest as it was).
 UCP_DIGEST = "22ad1a249ca68205412316fc2fbfe3cbb03f2a62527414b01ca5c556635606ac"
 SCEN = scenario_set(UCP)

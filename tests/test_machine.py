@@ -103,6 +103,7 @@ def test_planning_limits_keep_the_loop_reserve():
 
 
 def test_ucp710_digest_unchanged():
+    # (a digest of the machine file's values as parsed, no computed float: the same on any CPU)
     # tables carry the digest: the ARX axis kind must not change ucp710's; its nominal values
     # (the preset without the uncertainty set it gained in issue 17) keep their old digest
     data = load_machine("ucp710").model_dump(mode="json", exclude_none=True)
