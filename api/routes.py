@@ -70,6 +70,14 @@ async def _cpu(request: Request, kind: str, fn, *args):
         fn, *args, limiter=request.app.state.cpu_limiters[kind])
 
 
+def _result(request: Request, row, what: str) -> bytes:
+    """A succeeded job's stored result; 409 naming ``what`` until the job has one."""
+    blob = _store(request).table(row.id)
+    if row.status != "succeeded" or blob is None:
+        raise HTTPException(409, f"job {row.id} is {row.status}: no {what}")
+    return blob
+
+
 def _job(request: Request, job_id: str) -> JobRow:
     row = _store(request).get(job_id)
     if row is None:
@@ -178,9 +186,7 @@ def _no_table(row: JobRow) -> None:
 
 def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Response:
     _no_table(row)
-    blob = _store(request).table(row.id)
-    if row.status != "succeeded" or blob is None:
-        raise HTTPException(409, f"job {row.id} is {row.status}: no table")
+    blob = _result(request, row, "table")
     if fmt == "linuxcnc" and row.toolpath_format == "setpoints-halsampler":
         # a table computed on a LinuxCNC recording: the production files (oga export
         # --recording), the recording read again from the job
@@ -376,9 +382,7 @@ def get_identified_machine(job_id: str, request: Request) -> Response:
     row = _job(request, job_id)
     if not is_identification(row):
         raise HTTPException(409, f"job {row.id} optimises a toolpath: no machine file")
-    blob = _store(request).table(row.id)
-    if row.status != "succeeded" or blob is None:
-        raise HTTPException(409, f"job {row.id} is {row.status}: no machine file")
+    blob = _result(request, row, "machine file")
     stem = PurePath(row.source).stem or row.id
     return Response(blob, media_type="application/toml", headers={
         "Content-Disposition": f'attachment; filename="{_ascii(stem)}-identified.toml"',
@@ -474,9 +478,7 @@ def get_law(job_id: str, request: Request) -> Response:
     row = _job(request, job_id)
     if not is_law(row):
         raise HTTPException(409, f"job {row.id} is not a gain-law job")
-    blob = _store(request).table(row.id)
-    if row.status != "succeeded" or blob is None:
-        raise HTTPException(409, f"job {row.id} is {row.status}: no law")
+    blob = _result(request, row, "law")
     return Response(blob, media_type="application/zip", headers={
         "Content-Disposition": f'attachment; filename="oga_law_{row.id}.zip"',
         "X-Oga-Job-Id": row.id})
