@@ -16,6 +16,7 @@ is meant to change results; the commit says why)::
     PYTHONPATH=. python tests/references.py regen plan      # setpoints (the planner's)
     PYTHONPATH=. python tests/references.py regen search    # nominal schedules
     PYTHONPATH=. python tests/references.py regen verify    # replays
+    PYTHONPATH=. python tests/references.py regen robust    # robust tables, certificates
     PYTHONPATH=. python tests/references.py regen all
 
 ``search`` and ``verify`` run on the setpoints of :mod:`pinned_setpoints` (fixed arrays), so a
@@ -45,7 +46,7 @@ import plan_reference  # noqa: E402
 from pinned_setpoints import pinned_setpoints  # noqa: E402
 
 FOLDER = ROOT / "tests" / "data" / "reference"
-KINDS = ("plan", "search", "verify")
+KINDS = ("plan", "search", "verify", "robust")
 
 #: Programs whose nominal schedules are kept (full mode, default options, ucp710).
 SEARCH_PROGRAMS = ("reference_xz.ngc", "short_xz.ngc", "corner_steps.ngc",
@@ -55,6 +56,8 @@ SEARCH_STRIDE = 4
 #: Replays kept: plant 0 is ucp710, plant i its scenario_set(ucp710, 64, seed 17).plants[i - 1]
 #: (the linear friction setting unset: the exact kernel), reference_xz with wandering gains.
 VERIFY_PLANTS = (0, 8, 40, 72, 96)
+#: Programs whose robust table, baseline and certificate are kept (default options, ucp710).
+ROBUST_PROGRAMS = ("reference_xz.ngc",)
 #: Every VERIFY_STRIDE-th sample of a replay's positions, commands and contour error is kept.
 VERIFY_STRIDE = 5
 
@@ -70,6 +73,9 @@ TOL = {
                "command_ratio": (1e-13, 0.0), "ferror_ratio": (1e-13, 0.0),
                "max_dkp_per_sample": (1e-12, 0.0), "max_dkf_per_sample": (1e-12, 0.0),
                "metrics": (0.0, 1e-10)},
+    "robust": {"kp": (1e-6, 0.0), "kf": (1e-6, 0.0), "baseline": (1e-6, 0.0),
+               "alpha": (1e-6, 0.0), "reserve": (1e-8, 0.0), "ratio": (0.0, 1e-6),
+               "nominal": (0.0, 1e-6)},
 }
 
 #: glibc's libm without its FMA/AVX2 variants (exp, sin, pow ... as on a CPU without them).
@@ -152,6 +158,31 @@ def _verify_case(i: int) -> dict:
                                     for t in v.violations], dtype=str)}
 
 
+def robust_arrays(rob) -> dict:
+    """What the suite keeps of a :class:`oga.robust.search.RobustResult`: its status, the
+    robust baseline (Kp, Kf), every :data:`SEARCH_STRIDE`-th row of the exported table, the
+    kept shares and reserve, the rounds, the certificate's per-plant MSE ratio, and the
+    nominal MSE/RMS/max of the table and the baseline (the summary's figures)."""
+    res, c = rob.result, rob.certificate
+    m_o, m_b = res.optimized.metrics, res.baseline.metrics
+    return {"status": np.array(rob.status), "certificate": np.array(c.status),
+            "baseline": np.array([rob.baseline.kp, rob.baseline.kf]),
+            "kp": rob.schedule.kp_m_min_per_mm[::SEARCH_STRIDE],
+            "kf": rob.schedule.kf[::SEARCH_STRIDE],
+            "alpha": np.asarray(rob.alpha, dtype=float), "reserve": np.array(rob.reserve),
+            "rounds": np.array(rob.rounds), "ratio": np.asarray(c.ratio),
+            "nominal": np.array([m_o.mse_m2, m_o.rms_m, m_o.max_abs_m,
+                                 m_b.mse_m2, m_b.rms_m, m_b.max_abs_m])}
+
+
+def robust_case(name: str):
+    """The robust search of program ``name`` (pinned setpoints), ucp710, default options."""
+    from oga.machine import load_machine
+    from oga.robust.search import robust_optimize
+
+    return robust_optimize(pinned_setpoints(name), load_machine("ucp710"), threads=2)
+
+
 def cases(kind: str) -> dict:
     """Case name -> zero-argument function computing its arrays, for ``kind``."""
     if kind == "plan":
@@ -162,6 +193,8 @@ def cases(kind: str) -> dict:
         return out
     if kind == "verify":
         return {f"plant {i}": (lambda i=i: _verify_case(i)) for i in VERIFY_PLANTS}
+    if kind == "robust":
+        return {n: (lambda n=n: robust_arrays(robust_case(n))) for n in ROBUST_PROGRAMS}
     raise ValueError(f"unknown kind {kind!r}; one of {', '.join(KINDS)}")
 
 
