@@ -26,7 +26,7 @@ from api.store import (
 )
 
 __all__ = ["STATUSES", "FINISHED", "TRACE_PREFIX", "Owner", "JobRow", "Store", "SqliteStore",
-           "open_store", "is_identification", "is_postgres_url", "without_password",
+           "open_store", "store_class", "is_identification", "without_password",
            "default_db_path", "StoreError"]
 
 #: The backends of a URL scheme: module and class (imported when used: psycopg is only
@@ -41,11 +41,6 @@ def without_password(db: str | os.PathLike) -> str:
     """``db`` as it may be printed: a URL's password replaced by ``***``."""
     text = re.sub(r"(://[^:/@]*):[^@]*@", r"\1:***@", str(db))
     return re.sub(r"(?i)(password=)[^&\s]*", r"\1***", text)  # libpq's ?password=...
-
-
-def is_postgres_url(db: str) -> bool:
-    """Whether ``--db`` names a PostgreSQL database (``postgresql://`` or ``postgres://``)."""
-    return db.startswith(("postgresql://", "postgres://"))
 
 
 def store_class(db: str | os.PathLike) -> type[Store]:

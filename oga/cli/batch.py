@@ -6,11 +6,12 @@ removed first when a program is redone, so a summary always belongs to the
 tables beside it; a program is up to date (skipped) when its summary says
 ``ok`` for the same toolpath text, machine and options and its tables exist.
 
-Programs run in worker processes of the batch's own (spawned; one pipe each for
-the task, its progress and its outcome), which ignore SIGINT and SIGTERM: on
-either signal the batch kills them and returns 128 + the signal's number. A
-program's files are written with the signals deferred, so they are all there or
-all absent.
+Programs run on an executor (:class:`oga.cli.batch_task.Executor`) picked by
+:func:`open_executor`: by default worker processes of the batch's own
+(:mod:`oga.cli.batch_local`; spawned, one pipe each for the task, its progress and
+its outcome), which ignore SIGINT and SIGTERM: on either signal the batch kills
+them and returns 128 + the signal's number. A program's files are written with
+the signals deferred, so they are all there or all absent.
 
 With ``--scheduler tcp://HOST:8786`` the programs run on an existing Dask
 cluster instead (:mod:`oga.cli.batch_dask`): the batch reads each program and
@@ -45,7 +46,7 @@ from oga.cli._signals import STOP_SIGNALS, signals_deferred
 from oga.cli.batch_local import LocalExecutor
 from oga.cli.batch_task import BatchTask, Executor, output_names
 
-__all__ = ["register", "run"]
+__all__ = ["register", "run", "open_executor"]
 
 #: Formats ``oga batch`` writes: the text formats of oga.export.TABLE_FORMATS.
 BATCH_TABLE_FORMATS = ("csv", "json", "c")
