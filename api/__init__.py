@@ -11,7 +11,7 @@ from oga._lazy import lazy_exports
 _EXPORTS = {
     "Settings": "api.app",
     "create_app": "api.app",
-    "Store": "api.storage",
+    "Store": "api.store",
     "WorkerPool": "api.workers",
 }
 

@@ -1,4 +1,4 @@
-"""The FastAPI application: settings, lifespan (store and worker pool), guards, error bodies.
+"""The FastAPI application: settings, lifespan (store and executor), guards, error bodies.
 
 Every error answer is an :class:`api.schemas.ErrorBody` (``{"message", ...}``):
 bad input is 4xx (422 naming field, line and column; 400 for malformed JSON;
@@ -31,12 +31,14 @@ from starlette.routing import Match, Route
 
 from api import routes
 from api.schemas import Health, error_body
+from api.job_process import JobLimits
+from api.pool import JobPool
 from api.storage import open_store
-from api.workers import JobLimits, WorkerPool
+from api.workers import WorkerPool
 from oga import __version__, defaults
 from oga.errors import InputError
 
-__all__ = ["Settings", "create_app", "default_workers"]
+__all__ = ["Settings", "create_app", "default_workers", "open_pool"]
 
 log = logging.getLogger("oga.api")
 
@@ -210,19 +212,25 @@ class _Guard:
         await self.app(scope, replay, send)
 
 
-def create_app(settings: Settings) -> FastAPI:
-    """The API on ``settings.db_path``; workers start with the app's lifespan."""
+def open_pool(settings: Settings) -> JobPool | None:
+    """The executor of the jobs: the Dask cluster of ``settings.scheduler``, else
+    ``settings.workers`` local processes, else none (the API only queues)."""
+    limits = JobLimits(settings.job_cpu_s, settings.job_memory_bytes)
+    if settings.scheduler:
+        from api.workers_dask import DaskPool
+
+        return DaskPool(settings.db_path, settings.scheduler, limits, settings.stall_s)
+    if settings.workers:
+        return WorkerPool(settings.db_path, settings.workers, limits, settings.stall_s)
+    return None
+
+
+def _lifespan(settings: Settings):
+    """The app's lifespan: the executor started with the app and stopped with it."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        pool = None
-        limits = JobLimits(settings.job_cpu_s, settings.job_memory_bytes)
-        if settings.scheduler:
-            from api.workers_dask import DaskPool
-
-            pool = DaskPool(settings.db_path, settings.scheduler, limits, settings.stall_s)
-        elif settings.workers:
-            pool = WorkerPool(settings.db_path, settings.workers, limits, settings.stall_s)
+        pool = open_pool(settings)
         app.state.pool = pool
         app.state.cpu_limiters = {kind: anyio.CapacityLimiter(1) for kind in CPU_WORK}
         if pool is not None:
@@ -233,28 +241,30 @@ def create_app(settings: Settings) -> FastAPI:
             if pool is not None:
                 await run_in_threadpool(pool.stop)
 
-    app = FastAPI(
-        title="oga",
-        version=__version__,
-        summary="Offline gain schedules for CNC machine tools",
-        description=(
-            "POST a toolpath, get a verified table of position-loop gains (Kp in (m/min)/mm "
+    return lifespan
+
+
+def _description(settings: Settings) -> str:
+    """The OpenAPI description: what the service does and this server's limits."""
+    return ("POST a toolpath, get a verified table of position-loop gains (Kp in (m/min)/mm "
             "and Kf per axis, per sample). Jobs are durable (SQLite, WAL): they survive a "
             "restart of the server. Limits of this server: request body "
             f"{settings.max_upload_bytes} bytes (413 beyond); `POST /v1/gain-table` up to "
             f"{settings.sync_max_motion_s:g} s of motion (413 beyond: use jobs). "
             + ("Every route but /healthz and the web page needs the header `X-API-Key`."
-               if settings.api_key else "")),
-        lifespan=lifespan,
-    )
-    app.state.settings = settings
-    app.state.store = open_store(settings.db_path)
-    app.state.pool = None
-    app.include_router(routes.router)
+               if settings.api_key else ""))
+
+
+def _add_guard(app: FastAPI, settings: Settings) -> None:
+    """The API key, media-type and body-size middleware (:class:`_Guard`)."""
     json_paths = frozenset(r.path for r in routes.router.routes
                            if isinstance(r, APIRoute) and r.body_field is not None)
     app.add_middleware(_Guard, api_key=settings.api_key, max_bytes=settings.max_upload_bytes,
                        json_paths=json_paths)
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    """Every error answer an :class:`api.schemas.ErrorBody`: 4xx for bad input, 500 for a bug."""
 
     @app.exception_handler(InputError)
     async def _input_error(request: Request, err: InputError):
@@ -286,6 +296,10 @@ def create_app(settings: Settings) -> FastAPI:
         return JSONResponse({"message": "internal error", "type": "InternalError"},
                             status_code=500)
 
+
+def _add_health_and_page(app: FastAPI) -> None:
+    """``/healthz`` and the web page (``/`` and ``/static/``), open without the API key."""
+
     @app.get("/healthz", response_model=Health, summary="Liveness (no API key needed)")
     def healthz(request: Request) -> dict:
         """Always 200 while the server answers. ``status`` is ``"degraded"`` while a running
@@ -305,4 +319,17 @@ def create_app(settings: Settings) -> FastAPI:
         """The web page: submit a program, watch the job, open the report, download tables."""
         return FileResponse(STATIC_DIR / "index.html", media_type="text/html")
 
+
+def create_app(settings: Settings) -> FastAPI:
+    """The API on ``settings.db_path``; the executor starts with the app's lifespan."""
+    app = FastAPI(title="oga", version=__version__,
+                  summary="Offline gain schedules for CNC machine tools",
+                  description=_description(settings), lifespan=_lifespan(settings))
+    app.state.settings = settings
+    app.state.store = open_store(settings.db_path)
+    app.state.pool = None
+    app.include_router(routes.router)
+    _add_guard(app, settings)
+    _add_error_handlers(app)
+    _add_health_and_page(app)
     return app

@@ -4,7 +4,7 @@ worker (the fit)."""
 
 from __future__ import annotations
 
-from api.storage import TRACE_PREFIX
+from api.store import TRACE_PREFIX
 from oga.machine import Machine
 
 __all__ = ["identify_options", "read_job_trace", "run_identification", "identification_report"]

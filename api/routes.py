@@ -36,7 +36,7 @@ from api.schemas import (
     TableFormat,
     job_out,
 )
-from api.storage import FINISHED, STATUSES, TRACE_PREFIX, JobRow, Store, is_identification
+from api.store import FINISHED, STATUSES, TRACE_PREFIX, JobRow, Store, is_identification
 from feedplan.setpoints import AXES
 from oga.errors import MachineError, ToolpathError
 from oga.export import C_NAME, TABLE_FORMATS, render_table, table_from_npz

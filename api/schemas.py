@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from api.storage import JobRow, is_identification
+from api.store import JobRow, is_identification
 from oga.options import OptimizeOptions
 
 __all__ = [

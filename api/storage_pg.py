@@ -1,6 +1,6 @@
 """The job store in PostgreSQL: several servers, on several hosts, share one queue.
 
-The queries are :class:`api.storage.Store`'s; this backend gives the
+The queries are :class:`api.store.Store`'s; this backend gives the
 connections (psycopg 3, autocommit outside explicit transactions), the schema's
 spellings, and the claim's ``FOR UPDATE SKIP LOCKED``: two servers claiming at
 once take two different jobs, neither waits for the other. The lease and
@@ -20,7 +20,7 @@ import psycopg
 from psycopg.rows import dict_row
 from psycopg_pool import ConnectionPool
 
-from api.storage import SCHEMA, Store
+from api.store import SCHEMA, Store
 from oga.defaults import PG_CONNECT_S, PG_POOL_MAX
 
 __all__ = ["PgStore"]
@@ -84,7 +84,6 @@ class PgStore(Store):
     errors = (psycopg.Error,)
 
     def __init__(self, url: str) -> None:
-        super().__init__()
         self.url = url
         schema = SCHEMA.format(seq="\n    seq BIGSERIAL NOT NULL,", real="DOUBLE PRECISION",
                                blob="BYTEA")

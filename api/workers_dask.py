@@ -4,15 +4,15 @@
 dispatcher thread claims queued jobs from the store (for each worker thread of the
 cluster, one to run and one to wait) and submits one Dask task per claimed attempt. The store keeps every rule of the local path: the claim's attempt number
 fences every write, the server heartbeats its jobs, and the recovery of other
-servers' jobs is :meth:`WorkerPool.recover`'s.
+servers' jobs is :meth:`api.pool.JobPool.recover`'s.
 
 Jobs run in a child process. Dask cannot interrupt a running task, so the task
 (:func:`run_on_worker`) hands its job to a job process of its Dask worker thread
 (``python -m api.workers_dask``: started on the thread's first job and kept warm
-for the next, as a local worker process is; it runs :func:`api.workers.run_claimed`
+for the next, as a local worker process is; it runs :func:`api.job_process.run_claimed`
 with the same niceness, no core file, ``PR_SET_PDEATHSIG``, and the CPU cap as
 ``RLIMIT_CPU`` counted from the job's start) and watches it every
-:data:`~api.workers.WATCH_S`:
+:data:`~api.pool.WATCH_S`:
 
 - CPU cap: the kernel ends the job process with SIGXCPU; the task fails the job
   with the local path's message; it is not requeued.
@@ -24,7 +24,7 @@ with the same niceness, no core file, ``PR_SET_PDEATHSIG``, and the CPU cap as
   server also cancels the task's future, which drops a task still waiting on the
   cluster.
 - Any other death of the job process: the job goes back to the queue, failing
-  after :data:`~api.workers.MAX_ATTEMPTS` starts ("WorkerLost"), as locally.
+  after :data:`~api.pool.MAX_ATTEMPTS` starts ("WorkerLost"), as locally.
 
 A killed job process is replaced on the thread's next job; the Dask worker lives
 on and takes the next task.
@@ -38,9 +38,9 @@ second channel with neither property.
 
 A Dask worker lost mid-job: its job process dies with it (``PR_SET_PDEATHSIG``) and
 the scheduler runs the task again elsewhere. The first run recorded its job process in the
-row (:meth:`~api.storage.Store.mark_started`, once per attempt), so the rerun
+row (:meth:`~api.store.Store.mark_started`, once per attempt), so the rerun
 starts nothing: it requeues the job, which is claimed again as a new attempt,
-one more start counted against :data:`~api.workers.MAX_ATTEMPTS`. A stale run's
+one more start counted against :data:`~api.pool.MAX_ATTEMPTS`. A stale run's
 writes are fenced off by its attempt number, so no job completes twice.
 """
 
@@ -49,7 +49,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import resource
 import select
 import signal
 import subprocess
@@ -58,20 +57,10 @@ import threading
 import time
 import traceback
 
-from api.storage import Owner, Store, is_postgres_url, open_store
-from api.workers import (
-    HEARTBEAT_S,
-    MAX_ATTEMPTS,
-    POLL_S,
-    WATCH_S,
-    WORKER_NICE,
-    JobLimits,
-    WorkerPool,
-    _cap_cpu,
-    _die_with_parent,
-    _resident_bytes,
-    run_claimed,
-)
+from api.job_process import JobLimits, become_job_process, resident_bytes, run_capped
+from api.pool import HEARTBEAT_S, MAX_ATTEMPTS, POLL_S, WATCH_S, JobPool
+from api.store import Owner, Store
+from api.storage import open_store
 from oga import defaults
 
 __all__ = ["DaskPool", "run_on_worker"]
@@ -151,7 +140,7 @@ def run_on_worker(db: str, job_id: str, attempt: int, limits: JobLimits) -> str:
             if outcome == "memory":  # it ends itself (a fragmented heap)
                 _end(child)
             return outcome
-        if _resident_bytes(child.pid) > limits.memory_bytes:
+        if resident_bytes(child.pid) > limits.memory_bytes:
             _end(child)
             store.fail(job_id, attempt, {"message": limits.memory_message(),
                                          "type": "MemoryLimit"})
@@ -174,13 +163,9 @@ def _child_main(parent: int) -> None:
     """``python -m api.workers_dask PID``: the job process of a Dask worker thread (``PID``
     the Dask worker's); runs the jobs named on stdin (JSON lines), answers each with its
     outcome; ends after a job that ran out of memory."""
-    _die_with_parent(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a job killed at its CPU cap: no core file
-    os.nice(WORKER_NICE)
     answers = os.fdopen(os.dup(1), "w")  # the outcomes; anything printed goes to stderr
     os.dup2(2, 1)
-    import oga.pipeline  # noqa: F401  (the engine loaded before the first job)
+    become_job_process(parent)
 
     for line in sys.stdin:
         spec = json.loads(line)
@@ -188,21 +173,17 @@ def _child_main(parent: int) -> None:
         job = store.get(spec["job"], with_toolpath=True)
         outcome = "abandoned"
         if job is not None and job.status == "running" and job.attempts == spec["attempt"]:
-            saved = _cap_cpu(spec["cpu_s"])
-            try:
-                outcome = run_claimed(store, job)
-            finally:
-                resource.setrlimit(resource.RLIMIT_CPU, saved)
+            outcome = run_capped(store, job, spec["cpu_s"])
         answers.write(outcome + "\n")
         answers.flush()
         if outcome == "memory":
             return
 
 
-class DaskPool(WorkerPool):
+class DaskPool(JobPool):
     """The jobs of the store at ``db_path`` run on the Dask cluster at ``address``.
 
-    Same interface as :class:`~api.workers.WorkerPool` (``start``, ``kill``, ``alive``,
+    The interface of :class:`~api.pool.JobPool` (``start``, ``kill``, ``alive``,
     ``stalled``, ``stop``); :meth:`alive` counts the cluster's workers.
 
     Parameters
@@ -214,13 +195,12 @@ class DaskPool(WorkerPool):
     limits : JobLimits
         CPU time and memory of one attempt of a job.
     stall_s : float
-        As :class:`~api.workers.WorkerPool`'s.
+        As :class:`~api.pool.JobPool`'s.
     """
 
     def __init__(self, db_path, address: str, limits: JobLimits = JobLimits(),
                  stall_s: float = defaults.API_STALL_S) -> None:
-        db = str(db_path)  # as the workers must open it: an SQLite file by its absolute path
-        super().__init__(db if is_postgres_url(db) else os.path.abspath(db), 1, limits, stall_s)
+        super().__init__(db_path, limits, stall_s)  # db_path: an SQLite file made absolute
         self.address = address
         self.client = None
         self._futures: dict[str, tuple[object, int]] = {}  # job id -> (future, attempt)
@@ -240,7 +220,7 @@ class DaskPool(WorkerPool):
 
     def kill(self, job) -> bool:
         """Cancel the task of ``job`` (just cancelled in the store): dropped if it waits on
-        the cluster; if it runs, it kills its job process within :data:`~api.workers.WATCH_S`."""
+        the cluster; if it runs, it kills its job process within :data:`~api.pool.WATCH_S`."""
         o = job.owner
         if o is None or o.instance != self.instance:
             return False
@@ -253,7 +233,7 @@ class DaskPool(WorkerPool):
         return True
 
     def stalled(self) -> list[dict]:
-        """As :meth:`WorkerPool.stalled`, of the jobs whose task has started their process
+        """As :meth:`JobPool.stalled`, of the jobs whose task has started their process
         (a job waiting for a busy cluster is not stalled)."""
         return [s for s in super().stalled() if s["worker_pid"] is not None]
 
@@ -315,19 +295,15 @@ class DaskPool(WorkerPool):
                     "message": f"the Dask cluster failed the job: {type(err).__name__}: {err}",
                     "type": "ClusterError"})
 
-    def stop(self) -> None:
-        """Stop dispatching, cancel this server's tasks and requeue their jobs (the tasks
-        running them see the requeue and kill their job processes)."""
-        self._halt.set()
-        if self._thread.is_alive():
-            self._thread.join()
+    def _stop_workers(self) -> None:
+        """Cancel this server's tasks (the tasks running them see the requeue that follows
+        and kill their job processes) and close the client."""
         if self.client is not None:
             with self._lock:
                 futures = [f for f, _ in self._futures.values()]
             if futures:
                 self.client.cancel(futures, force=True)
             self.client.close()
-        super().stop()
 
 
 if __name__ == "__main__":

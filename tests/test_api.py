@@ -7,6 +7,7 @@ import json
 import socket
 import sqlite3
 import subprocess
+import sys
 import time
 
 import numpy as np
@@ -16,7 +17,7 @@ from hypothesis import HealthCheck, Phase, settings
 
 from api import Settings, create_app
 from api.schemas import TableFormat
-from api.storage import Owner
+from api.storage import Owner, SqliteStore, StoreError, open_store
 from api.workers import MAX_ATTEMPTS, WorkerPool, run_claimed
 from oga.export import TABLE_FORMATS, table_csv, table_from_npz, table_columns
 from oga.machine import load_machine, machine_from_dict
@@ -409,6 +410,27 @@ def test_a_submission_does_not_wait_behind_a_report_being_rendered(queue_only, m
         report.join(30)
     assert held_out == [False]
     assert answers[0].status_code == 409  # the job is queued: no report yet
+
+
+# -- the store's backend, chosen by the --db value ----------------------------------------------
+
+def test_a_database_url_of_an_unknown_scheme_is_refused_naming_it(tmp_path, monkeypatch):
+    """``mysql://...`` is no SQLite path (it would have made a folder ``mysql:``): refused,
+    naming the scheme, the password hidden, nothing created; ``oga serve`` exits 2 on it. A
+    path without a scheme is an SQLite file, which workers open by its absolute path."""
+    monkeypatch.chdir(tmp_path)
+    url = "mysql://oga:s3cret@localhost/jobs"
+    with pytest.raises(StoreError) as err:
+        open_store(url)
+    assert "'mysql'" in str(err.value) and "s3cret" not in str(err.value)
+    assert list(tmp_path.iterdir()) == []
+    r = subprocess.run([sys.executable, "-m", "oga", "serve", "--db", url, "--port", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "--db mysql://oga:***@localhost/jobs: unknown database scheme 'mysql'" in r.stderr
+    store = open_store("jobs.db")
+    assert isinstance(store, SqliteStore) and store.url == str(tmp_path / "jobs.db")
+    store.close()
 
 
 # -- API key --------------------------------------------------------------------------------------

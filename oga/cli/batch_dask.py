@@ -2,7 +2,7 @@
 
 The batch reads every program itself and sends its text (a worker on another host
 need not see the file); a worker optimises it with the same code as a local worker
-process (:func:`oga.cli.batch._run_one`) and returns the rendered tables; the batch
+process (:func:`oga.cli.batch_task.run_task`) and returns the rendered tables; the batch
 writes them as a local run does. A worker lost mid-program costs a retry of that
 program only (the scheduler hands it to another worker; after
 ``distributed.scheduler.allowed-failures`` deaths it fails, named). SIGINT or
@@ -12,12 +12,12 @@ when its program does; its result is dropped).
 
 from __future__ import annotations
 
-import sys
 import uuid
 from dataclasses import replace
-from pathlib import Path as FilePath
 
-__all__ = ["connect", "execute_on"]
+from oga.cli.batch_task import BatchTask, failed_outcome, run_task
+
+__all__ = ["connect", "DaskExecutor"]
 
 
 def connect(address: str):
@@ -42,56 +42,71 @@ def connect(address: str):
                          f"{reason}") from None
 
 
-def _run_remote(task) -> dict:
+def _run_remote(task: BatchTask) -> dict:
     """On a Dask worker: optimise one program (no progress reports)."""
-    from oga.cli.batch import _run_one
-
-    return _run_one(task, lambda fraction: None)
+    return run_task(task, lambda fraction: None)
 
 
-def execute_on(client, out: FilePath, todo: list, outcomes: dict[int, dict], *, finish) -> None:
-    """Optimise ``todo`` on the cluster of ``client``; ``finish(out, task, outcome, outcomes,
-    bar)`` writes each program's outputs and prints its line as it finishes.
+class DaskExecutor:
+    """The programs on the Dask cluster of the scheduler at ``address`` (connected at once:
+    an unreachable scheduler is the user's error, :class:`~oga.errors.InputError`)."""
 
-    Whatever ends this function (the last program, a signal, an error), the batch's tasks
-    still on the cluster are cancelled before it returns.
-    """
-    from distributed import as_completed
-    from distributed.scheduler import KilledWorker
+    def __init__(self, address: str) -> None:
+        self.client = connect(address)
 
-    from feedplan.read import read_file
-    from oga.cli._progress import ProgressBar
-    from oga.cli.batch import _failed
+    def label(self, n: int) -> str:
+        return f"Dask cluster {self.client.scheduler.address}"
 
-    bar = ProgressBar(f"batch ({len(todo)} program{'s' * (len(todo) > 1)}, Dask cluster "
-                      f"{client.scheduler.address})", enabled=sys.stderr.isatty())
-    run = uuid.uuid4().hex[:8]
-    futures = {}
-    with bar:
+    def close(self) -> None:
+        self.client.close()
+
+    def execute(self, todo: list[BatchTask], finish, bar) -> None:
+        """Optimise ``todo`` on the cluster; ``finish(task, outcome)`` as each program ends.
+
+        Whatever ends this function (the last program, a signal, an error), the batch's
+        tasks still on the cluster are cancelled before it returns.
+        """
+        from distributed import as_completed
+
+        futures: dict = {}
         try:
-            for task in todo:
-                try:
-                    text, fmt = read_file(task.file)
-                except Exception as err:
-                    finish(out, task, _failed(task, err), outcomes, bar)
-                    continue
-                future = client.submit(_run_remote, replace(task, text=text, fmt=fmt),
-                                       pure=False, key=f"oga-batch-{run}-{task.index}-{task.stem}")
-                futures[future] = task
-            for future in as_completed(list(futures), loop=client.loop):
+            self._submit(todo, finish, futures)
+            for future in as_completed(list(futures), loop=self.client.loop):
                 task = futures.pop(future)
-                try:
-                    outcome = future.result()
-                except KilledWorker:
-                    outcome = {"status": "failed", "time_s": 0.0,
-                               "reason": f"{task.file}: the Dask workers running it died "
-                               "too often (KilledWorker; out of memory?)"}
-                except Exception as err:  # cancelled on the cluster, a worker without oga...
-                    outcome = {"status": "failed", "time_s": 0.0,
-                               "reason": f"{task.file}: the Dask cluster failed it: "
-                               f"{type(err).__name__}: {err}"}
-                finish(out, task, outcome, outcomes, bar)
-                bar.update(len(outcomes) / len(todo))
+                finish(task, _outcome(task, future))
+                bar.update((len(todo) - len(futures)) / len(todo))
         finally:
             if futures:
-                client.cancel(list(futures), force=True)
+                self.client.cancel(list(futures), force=True)
+
+    def _submit(self, todo: list[BatchTask], finish, futures: dict) -> None:
+        """Read each program here and submit it with its text (a program that cannot be
+        read is finished at once, failed)."""
+        from feedplan.read import read_file
+
+        run = uuid.uuid4().hex[:8]
+        for task in todo:
+            try:
+                text, fmt = read_file(task.file)
+            except Exception as err:
+                finish(task, failed_outcome(task, err))
+                continue
+            future = self.client.submit(_run_remote, replace(task, text=text, fmt=fmt),
+                                        pure=False, key=f"oga-batch-{run}-{task.index}-{task.stem}")
+            futures[future] = task
+
+
+def _outcome(task: BatchTask, future) -> dict:
+    """A finished task's outcome; a task the cluster failed is a failed program."""
+    from distributed.scheduler import KilledWorker
+
+    try:
+        return future.result()
+    except KilledWorker:
+        return {"status": "failed", "time_s": 0.0,
+                "reason": f"{task.file}: the Dask workers running it died "
+                "too often (KilledWorker; out of memory?)"}
+    except Exception as err:  # cancelled on the cluster, a worker without oga...
+        return {"status": "failed", "time_s": 0.0,
+                "reason": f"{task.file}: the Dask cluster failed it: "
+                f"{type(err).__name__}: {err}"}
