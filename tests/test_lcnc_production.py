@@ -275,6 +275,7 @@ def test_session_ran_headless_with_the_exported_files(prod):
     src = prod["summary"]["setpoints_source"]
     assert src["law"] == "linuxcnc-pid" and src["format"] == "halsampler"
     assert src["samples"] == len(prod["recorded"].setpoints) == prod["table"].data.shape[0]
+    assert src["program_pauses"] == "0 (M0/M1, auto_resume)"  # none: a pause is a fallback
 
 
 def test_table_run_is_oga_prediction_sample_for_sample(prod):
