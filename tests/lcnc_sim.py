@@ -27,7 +27,7 @@ MAX_LIMIT = 1000
 
 [JOINT_{J}]
 TYPE = LINEAR
-HOME = 0
+HOME = {HOME}
 MAX_VELOCITY = 100
 MAX_ACCELERATION = 1000
 FERROR = {FERROR}
@@ -115,13 +115,15 @@ setp pid.{j}.FF1 [JOINT_{j}]FF1
 
 
 def write_config(folder: Path, kp_1_s: float, kf: float, extra_halfiles=(),
-                 owner: int | None = None) -> Path:
+                 owner: int | None = None, home_mm: dict[str, float] | None = None) -> Path:
     """Write the configuration into ``folder``; its INI file. ``kp_1_s``, ``kf``: the fixed
     gains (pid Pgain, FF1); ``extra_halfiles`` are added after ``sim.hal``; ``owner``: the
     user the folder is given to (LinuxCNC writes its parameter file there)."""
     folder.mkdir(parents=True, exist_ok=True)
+    home = {"x": 0.0, "y": 0.0, "z": 0.0, **(home_mm or {})}
     joints = "".join(_JOINT.format(A=a.upper(), J=j, FERROR=FERROR_MM, MIN_FERROR=MIN_FERROR_MM,
-                                   P=repr(kp_1_s), FF1=repr(kf)) for j, a in enumerate("xyz"))
+                                   P=repr(kp_1_s), FF1=repr(kf), HOME=repr(float(home[a])))
+                     for j, a in enumerate("xyz"))
     extra = "".join(f"HALFILE = {f}\n" for f in extra_halfiles)
     (folder / "sim.ini").write_text(_INI.format(EXTRA=extra) + joints)
     (folder / "sim.hal").write_text(_HAL + "".join(

@@ -1,6 +1,7 @@
 """A table in production on LinuxCNC 2.9: its own motion controller runs the program.
 
-Per program (reference_xz, and a CAM-style program with rapids): ``oga lcnc-record`` runs
+Per program (reference_xz, and a real CAM program with rapids: an excerpt of pcb2gcode's drill
+program, ``tests/data/pcb2gcode_drill_excerpt.ngc``, G81 over 8 holes): ``oga lcnc-record`` runs
 it headless in the servo simulation of ``tests/lcnc_sim.py`` (``linuxcnc`` with ``milltask``,
 ``motmod``, ``halui`` and oga's display; POSIX non-realtime) on the fixed gains, twice (the
 two runs must command the same motion), ``oga optimize --setpoints`` computes its table on
@@ -46,6 +47,7 @@ from oga.cli import main
 from oga.cli.export import read_table
 from oga.contour import contour_error_of
 from oga.linuxcnc import run_session
+from oga.linuxcnc.session import LinuxcncError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.recorded import read_setpoints
 from oga.simulate import simulate
@@ -61,7 +63,6 @@ BASE_KP, BASE_KF = 3.0, 0.9
 PER_AXIS = 6
 #: After them: oga-valid, motion.current-vel, motion.program-line.
 VALID, CVEL, LINE = 0, 1, 2
-HOME = {"mdi": "G0 X0 Y0 Z0"}
 OFF, ON = {"setp": {"oga-go.in-01": 0}}, {"setp": {"oga-go.in-01": 1}}  # table off, on
 READY = {"wait_pin": "oga-feeder.ready"}
 
@@ -110,18 +111,21 @@ def _test_hal(axes, joints) -> tuple[str, str]:
     return "\n".join(lines) + "\n", f"{'f' * PER_AXIS * len(axes)}bfs"
 
 
-def _production(name: str, tmp: Path, stops: list[list[dict]]) -> dict:
+def _production(name: str, tmp: Path, stops, home_mm: dict | None = None) -> dict:
     """Record, optimise, export and run ``name`` in LinuxCNC (module docstring); ``stops``:
-    the actions of the runs after the table's and the fixed gains' (one run each)."""
+    the actions of the runs after the table's and the fixed gains' (one run each), or a
+    function of the recorded setpoints giving them; ``home_mm``: where homing leaves the
+    axes (the program starts there)."""
     program = DATA / name
     tmp.mkdir()
     owner = _owner()
-    rec_ini = write_config(tmp / "rec", BASE_KP * KP_SI_PER_M_MIN_PER_MM, BASE_KF, owner=owner)
+    rec_ini = write_config(tmp / "rec", BASE_KP * KP_SI_PER_M_MIN_PER_MM, BASE_KF, owner=owner,
+                           home_mm=home_mm)
     rec_file = tmp / "rec.txt"
-    for attempt in range(3):  # LinuxCNC did not repeat the motion: record again
+    for attempt in range(4):  # LinuxCNC did not repeat the motion: record again
         code, record_out, err = _run_cli(["lcnc-record", str(program), "--ini", str(rec_ini),
                                           "--out", str(rec_file)])
-        if code == 0 or "did not repeat the motion" not in err or attempt == 2:
+        if code == 0 or "did not repeat the motion" not in err or attempt == 3:
             break
     assert code == 0, err
     table_csv, summary_json = tmp / "table.csv", tmp / "summary.json"
@@ -140,9 +144,14 @@ def _production(name: str, tmp: Path, stops: list[list[dict]]) -> dict:
     hal, types = _test_hal(axes, joints)
     (prod / "test.hal").write_text(hal)
     ini = write_config(prod, BASE_KP * KP_SI_PER_M_MIN_PER_MM, BASE_KF,
-                       extra_halfiles=("oga_table.tcl", "test.hal"), owner=owner)
+                       extra_halfiles=("oga_table.tcl", "test.hal"), owner=owner,
+                       home_mm=home_mm)
     retry = {"column": PER_AXIS * len(axes) + VALID, "min_rows": 100, "attempts": 3}
-    back = [OFF, HOME, {"sleep": 0.5}, ON, READY]  # a first run: no move, as recorded
+    home = {"x": 0.0, "y": 0.0, "z": 0.0, **(home_mm or {})}
+    back = [OFF, {"mdi": "G0 " + " ".join(f"{a.upper()}{v!r}" for a, v in home.items())},
+            {"tool_of_run": 0}, {"sleep": 0.5}, ON, READY]  # a first run: no move, as recorded
+    if callable(stops):
+        stops = stops(recorded.setpoints)
     runs = [{"prepare": back, "tail_s": 0.3, "retry": retry}]
     runs += [{"prepare": back, "actions": acts, "tail_s": 0.3, "retry": retry}
              for acts in stops]
@@ -180,14 +189,33 @@ def reference(workdir):
         [{"after_s": 0.8, "do": "estop"}]])
 
 
+def _mid_feed(sp, after_s: float) -> float:
+    """The middle (s from the first motion) of the first feed move (the speed above 5 mm/s,
+    not a rapid) starting after ``after_s``: a feed override acts on the motion there, in the
+    servo period it is applied, wherever the display's timing puts it within the move."""
+    te = sp.dt
+    moving = ~sp.rapid & (np.linalg.norm(sp.vel, axis=1) > 5e-3)
+    edges = np.flatnonzero(np.diff(moving.astype(np.int8)))
+    starts, ends = edges[moving[edges + 1]] + 1, edges[~moving[edges + 1]] + 1
+    for a in starts[starts * te > after_s]:
+        b = ends[ends > a][0]
+        return float((a + b) / 2 * te)
+    raise AssertionError(f"no feed move after {after_s} s")
+
+
 @pytest.fixture(scope="module")
 def cam(workdir):
-    """A CAM-style program with rapids: fallbacks on a feed override, a feed hold, an abort."""
-    return _production("cam_pocket_xy.ngc", workdir / "cam", [
-        [{"after_s": 1.5, "do": "feed_override", "value": 0.9}],
-        [{"after_s": 2.0, "do": "setp", "name": "motion.feed-hold", "value": 1},
-         {"after_s": 2.3, "do": "setp", "name": "motion.feed-hold", "value": 0}],
-        [{"after_s": 1.0, "do": "abort"}]])
+    """A real CAM program with rapids (pcb2gcode's drilling, starting at Z40 where its first
+    line retracts to): fallbacks on a feed override and a feed hold in the middle of a hole's
+    feed, an abort in the next one."""
+    def stops(sp):
+        t1, t2, t3 = _mid_feed(sp, 1.0), _mid_feed(sp, 1.8), _mid_feed(sp, 2.6)
+        return [[{"after_s": t1, "do": "feed_override", "value": 0.9}],
+                [{"after_s": t2, "do": "setp", "name": "motion.feed-hold", "value": 1},
+                 {"after_s": t2 + 0.3, "do": "setp", "name": "motion.feed-hold", "value": 0}],
+                [{"after_s": t3, "do": "abort"}]]
+    return _production("pcb2gcode_drill_excerpt.ngc", workdir / "cam", stops,
+                       home_mm={"z": 40.0})
 
 
 @pytest.fixture(params=["reference", "cam"])
@@ -247,6 +275,7 @@ def test_session_ran_headless_with_the_exported_files(prod):
     src = prod["summary"]["setpoints_source"]
     assert src["law"] == "linuxcnc-pid" and src["format"] == "halsampler"
     assert src["samples"] == len(prod["recorded"].setpoints) == prod["table"].data.shape[0]
+    assert src["program_pauses"] == "0 (M0/M1, auto_resume)"  # none: a pause is a fallback
 
 
 def test_table_run_is_oga_prediction_sample_for_sample(prod):
@@ -382,3 +411,30 @@ def test_following_error_checked_and_never_tripped(prod):
     assert peaks[0][1] > 0.2 * MIN_FERROR_MM
     print(f"{prod['recorded'].source['file']}: largest following error per run (mm): "
           + ", ".join(f"{p:.4f}" for _, p in peaks) + f" (MIN_FERROR {MIN_FERROR_MM} mm)")
+
+
+def test_program_pause_resumed_in_a_headless_run(workdir):
+    """A real CAM program's M0 (pcb2gcode's drill program up to its first hole: a tool change
+    M6 with an operator message, M0, dwells) in oga's headless display: the pause is resumed
+    at once and listed in the run's status (auto_resume, on by default), after the 1 s dwell
+    before it; the message is the program's, no error; with auto_resume off the session ends
+    at the pause with an error, within a bounded time (a headless run never waits for cycle
+    start)."""
+    program = DATA / "pcb2gcode_drill_start.ngc"
+    tmp = workdir / "pause"
+    ini = write_config(tmp, BASE_KP * KP_SI_PER_M_MIN_PER_MM, BASE_KF, owner=_owner(),
+                       home_mm={"z": 40.0})
+    job = {"program": str(program), "home": True, "runs": [{"timeout_s": 60}]}
+    st = run_session(ini, job, timeout_s=120).status
+    assert st["ok"] and st["auto_resume"], st.get("exception")
+    assert st["errors"] == []
+    assert any("Change tool bit" in m for _, m in st["messages"]), st["messages"]
+    (pause,) = st["runs"][0]["pauses"]
+    assert 1.0 < pause["at_s"] < st["runs"][0]["duration_s"] - 1.0, pause  # between the dwells
+    assert 0 <= pause["lasted_s"] < 1.0, pause
+    assert st["runs"][0]["tool"] == 0
+    with pytest.raises(LinuxcncError, match=r"paused \(M0 or M1\) .* auto_resume is off"):
+        run_session(ini, {**job, "auto_resume": False}, timeout_s=120)
+    print(f"{program.name}: M0 at {pause['at_s']:.3f} s resumed after "
+          f"{pause['lasted_s'] * 1e3:.1f} ms; "
+          f"the run took {st['runs'][0]['duration_s']:.2f} s")

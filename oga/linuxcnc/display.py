@@ -14,14 +14,23 @@ display: ``display.py -ini INIFILE``. The job is the JSON file named by ``[OGA] 
 - ``runs``: per run ``prepare`` (steps before the start, in order: ``{"setp": {pin:
   value}}``, ``{"mdi": "G0 X0"}`` (run and waited for), ``{"wait_pin": name}`` (until
   TRUE), ``{"sleep": s}``, ``{"back_to_start": {"X": k, ...}}`` (G53 G0 to the previous
-  run's first sampled positions, columns k)), ``actions`` (``{"after_s": t, "do":
+  run's first sampled positions, columns k), ``{"tool_of_run": j}`` (``M61 Q``: the tool in
+  the spindle at run j's start, set without a tool change: a program with ``M6`` then starts
+  every run as run j did)), ``actions`` (``{"after_s": t, "do":
   "feed_override" | "rapid_override" | "pause" | "resume" | "abort" | "estop" | "setp",
   "value": .., "name": ..}``, ``t`` seconds after the first motion), ``tail_s``,
   ``timeout_s``, ``retry`` (``{"column": k, "min_rows": m, "attempts": a}``: run again, up
   to ``a`` times in all, while fewer than ``m`` sampled rows have the bit column ``k``
   TRUE);
+- ``auto_resume`` (default TRUE): a pause the program itself makes (``M0``, or ``M1`` with
+  the optional stop on) is resumed (``AUTO_RESUME``) as soon as the task reports it, and
+  listed in the run's ``pauses`` (seconds after the start, how long it lasted); FALSE:
+  such a pause ends the session with an error saying when (a headless run has
+  no operator to press cycle start: it never waits for one). A ``pause`` action of the job
+  is the job's, never resumed but by its ``resume`` action;
 - ``out``: folder for ``run<i>.txt`` (one sampled row per servo period, exact values) and
-  ``status.json`` (what happened: errors of LinuxCNC's error channel, rows, overruns).
+  ``status.json`` (what happened: errors of LinuxCNC's error channel, the program's
+  messages to the operator, rows, overruns, pauses resumed).
 
 When it exits, LinuxCNC shuts down.
 """
@@ -49,7 +58,9 @@ class Display:
         self.s = linuxcnc.stat()
         self.c = linuxcnc.command()
         self.e = linuxcnc.error_channel()
-        self.errors = []
+        self.errors, self.messages = [], []
+        self.held = False  # paused by a "pause" action of the job
+        self.tools = {}  # per run, the tool in the spindle at its start
         self.comp = hal.component("oga-display")
         self.comp.ready()
         sm = job.get("sampler")
@@ -57,11 +68,14 @@ class Display:
             self.comp, hal.sampler_base + sm["channel"], sm["types"])
 
     def poll_errors(self):
+        """Errors apart from the program's messages to the operator (``(MSG, ...)``,
+        ``(DEBUG, ...)``: texts and displays, no fault), which go to ``messages``."""
         while True:
             m = self.e.poll()
             if not m:
                 return
-            self.errors.append([m[0], m[1]])
+            fault = m[0] in (linuxcnc.NML_ERROR, linuxcnc.OPERATOR_ERROR)
+            (self.errors if fault else self.messages).append([m[0], m[1]])
 
     def wait(self, cond, timeout, what):
         t0 = time.monotonic()
@@ -107,8 +121,10 @@ class Display:
         elif do == "rapid_override":
             c.rapidrate(float(a["value"]))
         elif do == "pause":
+            self.held = True
             c.auto(linuxcnc.AUTO_PAUSE)
         elif do == "resume":
+            self.held = False
             c.auto(linuxcnc.AUTO_RESUME)
         elif do == "abort":
             c.abort()
@@ -140,6 +156,8 @@ class Display:
             words = " ".join(f"{axis}{float(first[k])!r}"
                              for axis, k in step["back_to_start"].items())
             self.prepare({"mdi": f"G53 G0 {words}"})
+        elif "tool_of_run" in step:
+            self.prepare({"mdi": f"M61 Q{self.tools[int(step['tool_of_run'])]}"})
         elif "wait_pin" in step:
             self.wait(lambda: bool(hal.get_value(step["wait_pin"])), 60, step["wait_pin"])
         elif "sleep" in step:
@@ -154,6 +172,7 @@ class Display:
             self.machine_on()
         c.feedrate(1.0)
         c.rapidrate(1.0)
+        self.tools.setdefault(i, s.tool_in_spindle)  # a retry starts as the run's first try
         for step in spec.get("prepare", []):
             self.prepare(step)
         c.mode(linuxcnc.MODE_AUTO)
@@ -169,6 +188,8 @@ class Display:
         c.auto(linuxcnc.AUTO_RUN, 0)
         actions = sorted(spec.get("actions", []), key=lambda a: a["after_s"])
         done, t_motion, timeout = [], None, float(spec.get("timeout_s", 600))
+        pauses, pause = [], None  # the program's own M0/M1 pauses; the one under way
+        self.held = False
         while True:
             time.sleep(0.002)
             s.poll()
@@ -181,6 +202,17 @@ class Display:
                 a = actions.pop(0)
                 self.act(a)
                 done.append({**a, "at_s": now - t_motion})
+            if pause is None and s.task_paused and not self.held:  # M0, or M1
+                # (LinuxCNC's status names no line for it: the interpreter has read on)
+                if not job.get("auto_resume", True):
+                    raise RuntimeError(f"run {i}: the program paused (M0 or M1) {now - t0:.3f} s "
+                                       "after its start and auto_resume is off")
+                pause = {"at_s": now - t0}
+                c.auto(linuxcnc.AUTO_RESUME)
+            elif pause is not None and not s.task_paused:
+                pause["lasted_s"] = now - t0 - pause["at_s"]
+                pauses.append(pause)
+                pause = None
             if now - t0 > 0.1 and self.idle() and not actions:
                 break
             if now - t0 > timeout:
@@ -198,7 +230,8 @@ class Display:
                 f.write(" ".join(repr(v) for v in r) + "\n")
         c.feedrate(1.0)
         c.rapidrate(1.0)
-        return {"rows": len(rows), "actions": done, "duration_s": t_end - t0,
+        return {"rows": len(rows), "actions": done, "pauses": pauses, "tool": self.tools[i],
+                "duration_s": t_end - t0,
                 "motion_after_s": None if t_motion is None else t_motion - t0,
                 "overruns": None if self.stream is None else self.stream.num_overruns}
 
@@ -208,7 +241,8 @@ class Display:
 
     def main(self):
         job = self.job
-        status = {"version": getattr(linuxcnc, "version", ""), "runs": [], "read": {}}
+        status = {"version": getattr(linuxcnc, "version", ""), "runs": [], "read": {},
+                  "auto_resume": bool(job.get("auto_resume", True))}
         try:
             self.machine_on()
             if job.get("home", True):
@@ -235,7 +269,7 @@ class Display:
             status["exception"] = f"{type(err).__name__}: {err}"
             status["traceback"] = traceback.format_exc()
         self.poll_errors()
-        status["errors"] = self.errors
+        status["errors"], status["messages"] = self.errors, self.messages
         with open(os.path.join(job["out"], "status.json"), "w") as f:
             json.dump(status, f)
 

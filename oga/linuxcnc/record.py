@@ -215,7 +215,8 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
         raise OptionError(f"repeats: 1..10, got {repeats}")
     back = {"back_to_start": {a.upper(): 2 * i for i, a in enumerate(joints)}}
     runs = [{"timeout_s": run_timeout, "tail_s": 0.1}] + [
-        {"prepare": [back, {"sleep": 0.2}], "timeout_s": run_timeout, "tail_s": 0.1}
+        {"prepare": [{"tool_of_run": 0}, back, {"sleep": 0.2}], "timeout_s": run_timeout,
+         "tail_s": 0.1}
         for _ in range(repeats - 1)]
     job = {"program": str(program), "home": home,
            "sampler": {"channel": 0, "types": types}, "read_files": [_PIDS], "runs": runs}
@@ -248,6 +249,7 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
         f"units: {units}",
         "joints: " + " ".join(f"{a}={j}" for a, j in joints.items()),
         "error-previous-target: " + " ".join(f"{a}={int(ept[a])}" for a in joints),
+        "program-pauses: " + _pauses(res.status),
         "columns: " + " ".join(names),
     ]
     body = np.column_stack([np.arange(len(rows)), rows])
@@ -258,6 +260,13 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
                      last_motion_row=int(moved[-1]) + 1, units=units,
                      period_ns=period_ns, joints=joints, error_previous_target=ept,
                      errors=errors, seconds=res.seconds)
+
+
+def _pauses(status: dict) -> str:
+    """The program's own pauses (M0, M1) in the recorded run, which oga's display resumed at
+    once (its ``auto_resume``): how many, and their lines."""
+    p = status["runs"][0].get("pauses", [])
+    return f"{len(p)} (M0/M1, auto_resume)" + "".join(f" at={q['at_s']:.3f}s" for q in p)
 
 
 def _pids(text: str, joints: dict[str, int]) -> dict[str, bool]:

@@ -116,6 +116,8 @@ def rows_array(path: Path) -> np.ndarray:
         for line in f:
             out.append([1.0 if c == "True" else 0.0 if c == "False" else float(c)
                         for c in line.split()])
+    if not out:  # a run without sampler, or no row
+        return np.zeros((0, 0))
     return np.array(out, dtype=np.float64).reshape(len(out), -1)
 
 
