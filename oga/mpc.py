@@ -87,7 +87,7 @@ from numba import njit
 from oga.contour import ce2_at, contour_offset
 from oga.kinematics import eq2_excess
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
-from oga.search import apply_gains
+from oga.search import Gains, apply_gains
 from oga.simulate import run
 from oga.tangent import run_tangent
 
@@ -453,21 +453,6 @@ class Plants(NamedTuple):
     jmax: np.ndarray
     ferror_max: np.ndarray
     weights: np.ndarray
-
-
-class Gains(NamedTuple):
-    """The gains searched, per axis (3,): ``adj_kp``, ``adj_kf`` (bool) which are adjusted,
-    their bounds ``kp_lo .. kp_hi`` ((m/min)/mm) and ``kf_lo .. kf_hi``, and the baseline
-    ``kp_base``, ``kf_base`` the anchor pulls to."""
-
-    adj_kp: np.ndarray
-    adj_kf: np.ndarray
-    kp_lo: np.ndarray
-    kp_hi: np.ndarray
-    kf_lo: np.ndarray
-    kf_hi: np.ndarray
-    kp_base: np.ndarray
-    kf_base: np.ndarray
 
 
 class Settings(NamedTuple):
@@ -1097,7 +1082,7 @@ def _commit(k, k1, wk, prog, plants, cfg, work, carry):
                 kf[a] = work.plan_kf[a, i]
         for s in range(plants.params.shape[0]):
             apply_gains(k + i, carry.states[s], plants.params[s], prog.pdT, prog.vdT, kp, kf,
-                        carry.kp_out, carry.kf_out, carry.u_out[s], carry.u_hist[s])
+                        (carry.kp_out, carry.kf_out, carry.u_out[s]), carry.u_hist[s])
     sh = stride // work.kspace
     work.trial_points[:] = points
     nk = work.nk
@@ -1112,7 +1097,7 @@ def _commit(k, k1, wk, prog, plants, cfg, work, carry):
 def window_search(k0, k1, prog, plants, gains, cfg, carry):
     """Run the windowed full-mode search over samples k0 .. k1-1 in place, on S plants at
     once: :func:`mpc_multi_chunk` with its arguments packed (:class:`Program`,
-    :class:`Plants`, :class:`Gains`, :class:`Settings`, :class:`Carry`)."""
+    :class:`Plants`, :class:`oga.search.Gains`, :class:`Settings`, :class:`Carry`)."""
     if (k1 - k0) % cfg.commit != 0 and k1 < prog.pd.shape[0]:
         # a call ending inside a commit would carry the plan shifted by part of an interval
         raise ValueError("mpc_chunk: k1 - k0 must be a multiple of commit, except at the end")
