@@ -697,3 +697,33 @@ def contour_error_of(
 
 #: The path index of :func:`contour_error_of` per setpoints (while they live) and window.
 _INDEX: "weakref.WeakKeyDictionary[Setpoints, dict]" = weakref.WeakKeyDictionary()
+
+
+@njit(cache=True, inline="always")
+def contour_offset(pd, tree, lo, hi, k, ref, pos, hint, total):
+    """The linearised contour error of the point ``pos`` (3,) at sample ``k``: its offset from
+    the nearest path point and that segment's unit tangent.
+
+    The segment is the one the replay measures against (:func:`nearest_at` over ``lo..hi``,
+    ``hint`` as there); where the path stands still over the window (no segment), the offset
+    is from vertex ``ref`` (a vertex of that window) and the tangent zero. Returns
+    ``(j, total, dx, dy, dz, tx, ty, tz)``: the segment (-1: none), ``total`` plus the
+    squared distance (m^2), the offset (m) and the tangent. The window search
+    (:mod:`oga.mpc`) and the law's gradient (:mod:`oga.law.gradient`) share it.
+    """
+    j, t, d2 = nearest_at(pd, tree, lo, hi, k, pos[0], pos[1], pos[2], hint)
+    if j < 0:
+        dx = pos[0] - pd[ref, 0]
+        dy = pos[1] - pd[ref, 1]
+        dz = pos[2] - pd[ref, 2]
+        total += dx ** 2
+        total += dy ** 2
+        total += dz ** 2
+        return j, total, dx, dy, dz, 0.0, 0.0, 0.0
+    total += d2
+    sx = pd[j + 1, 0] - pd[j, 0]
+    sy = pd[j + 1, 1] - pd[j, 1]
+    sz = pd[j + 1, 2] - pd[j, 2]
+    inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
+    return (j, total, pos[0] - (pd[j, 0] + t * sx), pos[1] - (pd[j, 1] + t * sy),
+            pos[2] - (pd[j, 2] + t * sz), sx * inv, sy * inv, sz * inv)

@@ -103,8 +103,8 @@ def test_kp_candidates_keep_eq2_and_scale_the_stability_interval(e_um, vd, kp, d
     u2 = u1 - dd
     ulo, uhi = eq2_interval(u1, u2, vmax, amax, jmax, te)
     dkp, dkf = np.zeros(25), np.zeros(25)
-    n, fallback = _candidates(e, vd, kp, kf, 1.0, 2.7, 0.0, 1.0, True, False, ulo, uhi,
-                              A1, A2, dkp, dkf)
+    n, fallback = _candidates(e, vd, kp, kf, (1.0, 2.7, 0.0, 1.0), (True, False), (ulo, uhi),
+                              (A1, A2), dkp, dkf)
 
     def admissible(d, slack=1e-12):
         u = (kp + d) * C * e + kf * vd
@@ -141,7 +141,7 @@ def test_apply_gains_advances_every_axis_like_the_kernel(short, machine):
     kp, kf = np.array([1.6, 1.6, 2.2]), np.array([0.9, 0.9, 0.7])
     kp_out, kf_out, u_out = np.zeros((400, 3)), np.zeros((400, 3)), np.zeros((400, 3))
     u_hist = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
-    apply_gains(k, states, params, pdT, vdT, kp, kf, kp_out, kf_out, u_out, u_hist)
+    apply_gains(k, states, params, pdT, vdT, kp, kf, (kp_out, kf_out, u_out), u_hist)
     for a in range(3):
         u = step(ref[a], params[a], pdT[a, k], vdT[a, k], kp[a] * C, kf[a])
         assert u_out[k, a] == u and np.array_equal(states[a], ref[a])
@@ -168,18 +168,18 @@ def test_window_violation_is_eq2_on_the_rebuilt_commands(short, machine):
         up = np.concatenate([[us[-2], us[-1]], u])
         excess = max(np.max(np.abs(u)) / vmax, np.max(np.abs(np.diff(up)[1:])) / (amax * 1e-3),
                      np.max(np.abs(np.diff(up, 2))) / (jmax * 1e-6)) - 1.0
-        got = _window_violation(state[0], pred, zd, vz, k, n, kp * C, 0.9, us[-1], us[-2],
-                                vmax, amax, jmax, 1e-3, np.empty(n), np.ones(n, dtype=bool),
-                                np.inf)
+        got = _window_violation(state[0], pred, zd, vz, k, (kp * C, 0.9), (us[-1], us[-2]),
+                                (vmax, amax, jmax, 1e-3, np.inf), np.empty(n),
+                                np.ones(n, dtype=bool))
         assert got == pytest.approx(max(excess, 0.0), rel=1e-9, abs=1e-12)
         assert (got > 0.0) == (kp != 1.6)
         # a following-error limit below the predicted lag counts as the same kind of excess,
         # at the predicted samples (p_now is not the candidate's doing), rapids or not
         lag = np.abs(zd[k + 1:k + n] - pred[:-1])
         limit = 0.5 * lag.max()
-        got = _window_violation(state[0], pred, zd, vz, k, n, kp * C, 0.9, us[-1], us[-2],
-                                vmax, amax, jmax, 1e-3, np.empty(n), np.ones(n, dtype=bool),
-                                limit)
+        got = _window_violation(state[0], pred, zd, vz, k, (kp * C, 0.9), (us[-1], us[-2]),
+                                (vmax, amax, jmax, 1e-3, limit), np.empty(n),
+                                np.ones(n, dtype=bool))
         assert got == pytest.approx(max(excess, lag.max() / limit - 1.0), rel=1e-12)
 
 
@@ -234,17 +234,18 @@ def test_the_choice_is_the_least_cost_combination(short, machine, adjust):
                 ulo, uhi = eq2_interval(*hist[a], lim.vmax_m_s[a], lim.amax_m_s2[a],
                                         lim.jmax_m_s3[a], 1e-3)
                 dkp, dkf = np.zeros(25), np.zeros(25)
-                nc, _ = _candidates(ref[a][k] - state[a][0], vel[a][k], prev, 0.9, 1.0, 2.7,
-                                    0.0, 1.0, True, False, ulo, uhi, A1, A2, dkp, dkf)
+                nc, _ = _candidates(ref[a][k] - state[a][0], vel[a][k], prev, 0.9,
+                                    (1.0, 2.7, 0.0, 1.0), (True, False), (ulo, uhi), (A1, A2),
+                                    dkp, dkf)
                 rows = []
                 for d in dkp[:nc]:
                     pred = np.empty(n_pred)
                     window(state[a], par[a], ref[a], vel[a], k, n_pred, (prev + d) * C, 0.9, pred)
-                    viol = _window_violation(state[a][0], pred, ref[a], vel[a], k, n_pred,
-                                             (prev + d) * C, 0.9, *hist[a], lim.vmax_m_s[a],
-                                             lim.amax_m_s2[a], lim.jmax_m_s3[a], 1e-3,
-                                             np.empty(n_pred), np.ones(n_pred, dtype=bool),
-                                             np.inf)
+                    viol = _window_violation(state[a][0], pred, ref[a], vel[a], k,
+                                             ((prev + d) * C, 0.9), tuple(hist[a]),
+                                             (lim.vmax_m_s[a], lim.amax_m_s2[a],
+                                              lim.jmax_m_s3[a], 1e-3, np.inf),
+                                             np.empty(n_pred), np.ones(n_pred, dtype=bool))
                     rows.append((d, pred, viol))
                 least = min(max(v, 1e-9) for _, _, v in rows)
                 cands[a] = [(d, p) for d, p, v in rows if v <= least]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import nearest_at
+from oga.contour import contour_offset
 from oga.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.simulate import axis_params, rest_state
 from oga.tangent import run_tangent
@@ -44,22 +44,8 @@ def ce_offsets(pd, tree, win_lo, win_hi, feed, pos, dq, tang):
             tang[k, a] = 0.0
         if not feed[k]:
             continue
-        j, t, d2 = nearest_at(pd, tree, win_lo[k], win_hi[k], k, pos[k, 0], pos[k, 1],
-                              pos[k, 2], j)
-        if j < 0:
-            for a in range(3):
-                dq[k, a] = pos[k, a] - pd[win_lo[k], a]
-                total += dq[k, a] ** 2
-            continue
-        total += d2
-        sx = pd[j + 1, 0] - pd[j, 0]
-        sy = pd[j + 1, 1] - pd[j, 1]
-        sz = pd[j + 1, 2] - pd[j, 2]
-        inv = 1.0 / np.sqrt(sx * sx + sy * sy + sz * sz)
-        tang[k, 0], tang[k, 1], tang[k, 2] = sx * inv, sy * inv, sz * inv
-        dq[k, 0] = pos[k, 0] - (pd[j, 0] + t * sx)
-        dq[k, 1] = pos[k, 1] - (pd[j, 1] + t * sy)
-        dq[k, 2] = pos[k, 2] - (pd[j, 2] + t * sz)
+        j, total, dq[k, 0], dq[k, 1], dq[k, 2], tang[k, 0], tang[k, 1], tang[k, 2] = \
+            contour_offset(pd, tree, win_lo[k], win_hi[k], k, win_lo[k], pos[k], j, total)
     return total
 
 
