@@ -283,12 +283,17 @@ def _judged(ctx: _Context, found, active, reserve, last, report, span) -> _Round
     """The round of ``found``, certified on its screen (:func:`_screen`) and, where it passes
     there, on the rounds' whole set."""
     lo, step = span
-    keep = _screen(ctx.scenarios, last)
-    done = _Round(found, tuple(active), reserve, len(ctx.scenarios), keep,
-                  ctx.certify(found, keep, report.between(lo + 0.5 * step, lo + 0.75 * step)))
+    done = _screened(ctx, found, active, reserve, _screen(ctx.scenarios, last),
+                     report.between(lo + 0.5 * step, lo + 0.75 * step))
     if not done.fails_screen:
         done.complete(ctx, report.between(lo + 0.75 * step, lo + step))
     return done
+
+
+def _screened(ctx: _Context, found, active, reserve, keep, progress=None) -> _Round:
+    """The :class:`_Round` of ``found`` certified on the plants ``keep`` of the rounds' set."""
+    return _Round(found, tuple(active), reserve, len(ctx.scenarios), keep,
+                  ctx.certify(found, keep, progress))
 
 
 def _next(done, last, active, rejected, reserve, rounds):
