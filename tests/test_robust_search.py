@@ -15,7 +15,7 @@ from oga.pipeline import plan_toolpath
 from oga.robust.certificate import certify, plant_bounds
 from oga.robust.multi import multi_search
 from oga.robust.plants import perturbed_machine, scenario_set
-from oga.robust.search import PROGRESS_ROUNDS, _screen, _screened, robust_optimize
+from oga.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
 from oga.stability import stable_range
 from oga.verify import verify
 
@@ -115,7 +115,10 @@ def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
                          (1.0, 2.5), 1.0)
     keep = _screen(scen, None)
     assert set(range(12, len(scen))) <= set(keep) and len(keep) < len(scen)
-    done = _screened(sp, m, found, bkp, bkf, scen, bounds, base, (), 1.0, keep, None)
+    everyone = list(range(len(scen)))
+    ctx = _Context(sp, m, options_from_dict(None), nom, None, bkp, bkf, (1.0, 2.5), scen, bounds,
+                   everyone, scen, bounds, base, 1)
+    done = _screened(ctx, found, (), 1.0, keep)
     full = certify(sp, m, found.kp, found.kf, bkp, bkf, scen, bounds, base)
     np.testing.assert_array_equal(done.ratio[list(keep)], full.ratio[list(keep)])
     assert np.isnan(np.delete(done.ratio, keep)).all()
@@ -124,7 +127,7 @@ def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
     assert done.key[2] <= full.worst
     if done.fails_screen:
         assert full.worst > 0.9 or full.breaks("schedule-only")
-    done.complete(sp, m, bkp, bkf, scen, bounds, base)
+    done.complete(ctx)
     assert done.full and tuple(p.label for p in done.cert.plants) == scen.labels
     np.testing.assert_array_equal(done.cert.ratio, full.ratio)
     assert _screen(scen, done) == tuple(range(len(scen)))  # later rounds: the whole set

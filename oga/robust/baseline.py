@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -147,48 +148,69 @@ class _Candidate:
     total: float | None = None  # the sum over the screen, once complete
 
 
+class _Path(NamedTuple):
+    """The setpoints as the compiled replays take them (N samples, A moving axes)."""
+
+    cols: np.ndarray  # int64 (A,): the moving axes' columns
+    pos: np.ndarray  # (N, 3) setpoints, m
+    vel: np.ndarray  # (N, 3) velocity setpoints, m/s
+    pos_t: np.ndarray  # (3, N) the same by axis (contiguous rows)
+    vel_t: np.ndarray  # (3, N)
+    feed: np.ndarray  # bool (N,): feed samples
+    te: float  # sample period, s
+    tree: tuple  # the path's index (oga.contour.path_index)
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+class _Plant(NamedTuple):
+    """One plant as the compiled replays take it."""
+
+    params: np.ndarray  # (3, P) packed parameters of the moving axes (their columns)
+    fused: np.ndarray  # int64: the moving cascade axes' columns (simulated side by side)
+    limits: np.ndarray  # (A, 4) vmax, amax, jmax, following-error limit
+
+
 class _Packed:
-    """The setpoints and plants as the compiled replay takes them."""
+    """The setpoints and plants as the compiled replays take them."""
 
     def __init__(self, setpoints: Setpoints, plants: tuple[Machine, ...], threads: int = 1):
-        self.cols = np.array(setpoints.moving_axes, dtype=np.int64)
-        moving = [AXES[c] for c in self.cols]
-        self.pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
-        self.vel = np.ascontiguousarray(setpoints.vel, dtype=np.float64)
-        self.pos_t = np.ascontiguousarray(self.pos.T)
-        self.vel_t = np.ascontiguousarray(self.vel.T)
-        self.feed = np.ascontiguousarray(~setpoints.rapid)
-        self.te = float(setpoints.dt)
-        self.tree, self.lo, self.hi = path_index(self.pos, defaults.CE_WINDOW_SAMPLES)
+        cols = np.array(setpoints.moving_axes, dtype=np.int64)
+        moving = [AXES[c] for c in cols]
+        pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
+        vel = np.ascontiguousarray(setpoints.vel, dtype=np.float64)
+        self.path = _Path(cols, pos, vel, np.ascontiguousarray(pos.T),
+                          np.ascontiguousarray(vel.T), np.ascontiguousarray(~setpoints.rapid),
+                          float(setpoints.dt), *path_index(pos, defaults.CE_WINDOW_SAMPLES))
+        self.cols = cols
 
         def pack(plant):
             prm = np.zeros((3, axis_params(plant, moving[0]).size))
-            for c, a in zip(self.cols, moving):
+            for c, a in zip(cols, moving):
                 prm[c] = axis_params(plant, a)
             lim = plant.axis_limits()
-            return (prm, np.ascontiguousarray(np.column_stack(
-                [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3, plant.ferror_limits()])[self.cols]),
-                np.array([c for c, a in zip(self.cols, moving)
-                          if plant.axis(a).kind == "cascade"], dtype=np.int64))
+            return _Plant(prm, np.array([c for c, a in zip(cols, moving)
+                                         if plant.axis(a).kind == "cascade"], dtype=np.int64),
+                          np.ascontiguousarray(np.column_stack(
+                              [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3,
+                               plant.ferror_limits()])[cols]))
 
-        self.params, self.limits, self.fused = zip(*thread_map(pack, plants, threads))
+        self.plants = thread_map(pack, plants, threads)
 
     def replay(self, q: int, kp: float, kf: float, bound: float, with_ce: bool):
         """:func:`_replay` of plant ``q``: ``(outcome, sum)``."""
         peaks = np.zeros((self.cols.size, 4))
-        return _replay(self.params[q], self.fused[q], self.cols, self.pos, self.vel, self.feed,
-                       self.te, kp * KP_SI_PER_M_MIN_PER_MM, kf, self.limits[q], self.tree,
-                       self.lo, self.hi, bound, with_ce, peaks)
+        return _replay(self.plants[q], self.path, kp * KP_SI_PER_M_MIN_PER_MM, kf, bound,
+                       with_ce, peaks)
 
     def tangent(self, q: int, kp: float, kf: float, with_ce: bool):
         """:func:`_tangent_replay` of plant ``q``: ``(holds, ratios (A, 4), slopes (A, 4, 2),
         model (6,))``, the ratios and slopes over the limits (0 where none is set)."""
         peaks, slopes, model = np.zeros((self.cols.size, 4)), np.zeros((self.cols.size, 4, 2)), \
             np.zeros(6)
-        _tangent_replay(self.params[q], self.cols, self.pos_t, self.vel_t, self.pos, self.feed,
-                        self.te, kp * KP_SI_PER_M_MIN_PER_MM, kf, self.tree, self.lo, self.hi,
+        _tangent_replay(self.plants[q].params, self.path, kp * KP_SI_PER_M_MIN_PER_MM, kf,
                         with_ce, peaks, slopes, model)
-        lim = self.limits[q]
+        lim = self.plants[q].limits
         holds = all(_holds(*peaks[a], lim[a]) for a in range(self.cols.size))
         finite = np.isfinite(lim)
         scale = np.where(finite, 1.0 / np.where(finite, lim, 1.0), 0.0)
@@ -196,8 +218,7 @@ class _Packed:
 
 
 @njit(cache=True, nogil=True)
-def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo, hi, bound,
-            with_ce, peaks):
+def _replay(plant, path, kp_si, kf, bound, with_ce, peaks):
     """Replay equal fixed gains on one plant from rest, checking eq. 2 and the following-error
     limit chunk by chunk and (``with_ce``) summing the squared contour error of the feed
     samples in time order.
@@ -206,6 +227,18 @@ def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo
     others :func:`oga.simulate.run`), the checks :func:`oga.ranges._checked`, the contour
     error :func:`oga.contour.ce2_at`: the figures of :func:`oga.verify.verify` (its
     squared contour error to 2 ulp per sample).
+
+    Parameters
+    ----------
+    plant : _Plant
+    path : _Path
+    kp_si, kf : float
+        The gains (1/s, factor).
+    bound : float
+        Abandon where the sum exceeds it, m^2.
+    with_ce : bool
+    peaks : ndarray, shape (A, 4)
+        Receives the peaks the checks saw (:func:`oga.ranges._checked`).
 
     Returns
     -------
@@ -216,6 +249,8 @@ def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo
     sum : float
         The sum of squared contour errors so far, m^2 (0 without ``with_ce``).
     """
+    params, fused, limits = plant.params, plant.fused, plant.limits
+    cols, pos, vel = path.cols, path.pos, path.vel
     n_ax, n = cols.size, pos.shape[0]
     p_act = pos.copy()  # the axes not simulated hold their setpoints
     u = np.empty((n, 3))
@@ -240,14 +275,14 @@ def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo
             if alone[c]:
                 run(states[c], params[c], pos[k0:k1, c], vel[k0:k1, c], kp_k[:m, c],
                     kf_k[:m, c], p_act[k0:k1, c], u[k0:k1, c])
-            if not _checked(pos[:, c], p_act[:, c], u[:, c], te, limits[a], k0, k1, check,
+            if not _checked(pos[:, c], p_act[:, c], u[:, c], path.te, limits[a], k0, k1, check,
                             peaks[a]):
                 return _BROKE, s
         if with_ce:
             for k in range(k0, k1):
-                if feed[k]:
-                    ce2, near = ce2_at(pos, tree, lo[k], hi[k], k, p_act[k, 0], p_act[k, 1],
-                                       p_act[k, 2], near)
+                if path.feed[k]:
+                    ce2, near = ce2_at(pos, path.tree, path.lo[k], path.hi[k], k, p_act[k, 0],
+                                       p_act[k, 1], p_act[k, 2], near)
                     s += ce2
             if s > bound:
                 return _ABANDONED, s
@@ -255,8 +290,7 @@ def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo
 
 
 @njit(cache=True, nogil=True)
-def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, lo, hi,
-                    with_ce, peaks, slopes, model):
+def _tangent_replay(params, path, kp_si, kf, with_ce, peaks, slopes, model):
     """Replay equal fixed gains on one plant from rest with the derivatives of every position
     and command along Kp ((m/min)/mm) and Kf (:func:`oga.tangent.run_tangent`: the same
     positions and commands as :func:`oga.simulate.run`, to the last bit).
@@ -265,18 +299,9 @@ def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, 
     ----------
     params : ndarray, shape (3, P)
         Packed parameters of the moving axes (their columns).
-    cols : ndarray of int64, shape (A,)
-        The moving axes' columns.
-    pos_t, vel_t : ndarray, shape (3, N)
-        Setpoints by axis (contiguous rows).
-    pos : ndarray, shape (N, 3)
-        Setpoints (the path).
-    feed : ndarray of bool, shape (N,)
-    te : float
+    path : _Path
     kp_si, kf : float
         The gains (1/s, factor).
-    tree, lo, hi
-        The path's index.
     with_ce : bool
         Sum the contour error's model (else ``model`` is zero).
     peaks : ndarray, shape (A, 4)
@@ -286,12 +311,9 @@ def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, 
     slopes : ndarray, shape (A, 4, 2)
         Receives their derivatives along Kp and Kf (at the sample of the peak).
     model : ndarray, shape (6,)
-        Receives the sum of squared contour errors over the feed samples (the numbers of
-        :func:`_replay`) and its Gauss-Newton model: ``g`` (2) and ``H`` (2x2, ``h00, h01,
-        h11``) with ``sum(d) ~ sum + 2 g.d + d'H d``: the residual is the vector from the
-        nearest path point to the actual one, its derivative the positions' with the
-        path's direction there taken out (the nearest point slides along the path).
+        Receives :func:`_ce_model` (zero without ``with_ce``).
     """
+    cols, pos, pos_t, vel_t = path.cols, path.pos, path.pos_t, path.vel_t
     n = pos.shape[0]
     p_act = pos.copy()
     sp = np.zeros((n, 3, 2))
@@ -313,13 +335,24 @@ def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, 
             p_act[k, c] = pa[k]
             sp[k, c, 0] = spa[k, 0]
             sp[k, c, 1] = spa[k, 1]
-        _peak_slopes(ua, sua, pa, spa, pos_t[c], te, peaks[a], slopes[a])
+        _peak_slopes(ua, sua, pa, spa, pos_t[c], path.te, peaks[a], slopes[a])
     model[:] = 0.0
-    if not with_ce:
-        return
+    if with_ce:
+        _ce_model(path, p_act, sp, model)
+
+
+@njit(cache=True, nogil=True)
+def _ce_model(path, p_act, sp, model):
+    """Add to ``model`` (6,) the sum of squared contour errors over the feed samples (the
+    numbers of :func:`_replay`) and its Gauss-Newton model: ``g`` (2) and ``H`` (2x2, ``h00,
+    h01, h11``) with ``sum(d) ~ sum + 2 g.d + d'H d``: the residual is the vector from the
+    nearest path point to the actual one ``p_act`` (N, 3), its derivative the positions'
+    ``sp`` (N, 3, 2) with the path's direction there taken out (the nearest point slides
+    along the path)."""
+    pos, tree, lo, hi = path.pos, path.tree, path.lo, path.hi
     near = -1
-    for k in range(n):
-        if not feed[k]:
+    for k in range(pos.shape[0]):
+        if not path.feed[k]:
             continue
         x, y, z = p_act[k, 0], p_act[k, 1], p_act[k, 2]
         bi, bt, d2 = nearest_at(pos, tree, lo[k], hi[k], k, x, y, z, near)
@@ -624,9 +657,53 @@ def robust_baseline(
         ``status "none"`` with a message naming the gains tried last, the plants they
         break and a remedy, when none keep every plant's checks.
     """
+    threads = resolve_threads(threads)
+    report = progress or (lambda f: None)
+    search, all_plants, all_bounds = _prepare(setpoints, machine, plants, bounds, kp_range,
+                                              threads)
+    g = machine.gains
+    kp_lo, kp_hi = search.kp_box
+    grids = (decimal_grid(kp_lo, kp_hi, 2 * g.kp_step_m_min_per_mm),
+             decimal_grid(*g.kf_range, 2 * g.kf_step))
+    steps = (g.kp_step_m_min_per_mm, g.kf_step)
+
+    def confirm(x: _Point) -> list[Verification]:
+        n = len(setpoints)
+        kp_t, kf_t = np.full((n, 3), x.kp), np.full((n, 3), x.kf)
+        return thread_map(lambda i: verify(setpoints, all_plants[i], kp_t, kf_t, all_bounds[i]),
+                          range(len(all_plants)), threads)
+
+    confirmations, x = 0, None
+    while True:
+        report(min(0.9, 0.3 * confirmations + 0.05))
+        if x is None or not x.holds:  # (again) from the grid's best
+            x = _from_grid(search, grids, steps, plants, confirmations == 0)
+            if isinstance(x, tuple):  # none on the grid: the closest, named
+                return _none(plants, search.objective, (x[0], confirm(x[0])), search, *x[1:])
+        x = search.refine(x, steps, search.objective)
+        if not x.holds:
+            continue
+        replays = confirm(x)
+        confirmations += 1
+        broke = [i for i, v in enumerate(replays) if not v.ok]
+        if not broke:
+            break
+        if confirmations == defaults.ROBUST_BASELINE_CONFIRMATIONS:
+            return _none(plants, search.objective, (x, replays), search,
+                         f"no equal fixed gains found keep the limits on every plant of the "
+                         f"uncertainty set in {confirmations} tries", "the last tried")
+        search.critical += [i for i in broke if i not in search.critical]
+        x = search.point(x.kp, x.kf, search.objective)  # it breaks a limit there: restored next
+    report(1.0)
+    return _found(plants, search, x, replays, confirmations)
+
+
+def _prepare(setpoints, machine, plants, bounds, kp_range, threads):
+    """The :class:`_Search` of :func:`robust_baseline` (its Kp box the range stable on every
+    plant and the nominal one), the plants replayed (the set's, then the nominal one) and
+    their stable ranges."""
     from oga.robust.certificate import plant_bounds
 
-    threads = resolve_threads(threads)
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")
@@ -637,63 +714,45 @@ def robust_baseline(
     if kp_range is None:
         kp_range = (max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving),
                     min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving))
-    report = progress or (lambda f: None)
     all_plants = tuple(plants.plants) + (nominal,)  # packed index len(set): the nominal one
     packed = _Packed(setpoints, all_plants, threads)
     objective = tuple(range(min(defaults.ROBUST_BASELINE_PLANTS, plants.n_monte_carlo)
                             or len(plants)))
     screen = objective[:defaults.ROBUST_BASELINE_GRID_PLANTS]
-    g = machine.gains
     kp_lo, kp_hi = kp_range
-    search = _Search(packed, screen, objective, (kp_lo, kp_hi), tuple(g.kf_range), threads)
+    search = _Search(packed, screen, objective, (kp_lo, kp_hi), tuple(machine.gains.kf_range),
+                     threads)
     if not kp_lo <= kp_hi:
         raise OptionError(f"baseline: no Kp is stable on every plant of the uncertainty set "
                           f"(common range {kp_lo}..{kp_hi} (m/min)/mm): narrow its "
                           "[axes.*.uncertainty], or search the nominal model only (--nominal)")
-    kp_grid = decimal_grid(kp_lo, kp_hi, 2 * g.kp_step_m_min_per_mm)
-    kf_grid = decimal_grid(*g.kf_range, 2 * g.kf_step)
-    n = len(setpoints)
-    steps = (g.kp_step_m_min_per_mm, g.kf_step)
+    return search, all_plants, bounds + (nominal_bounds,)
 
-    def confirm(x: _Point) -> list[Verification]:
-        kp_t, kf_t = np.full((n, 3), x.kp), np.full((n, 3), x.kf)
-        return thread_map(lambda i: verify(setpoints, all_plants[i], kp_t, kf_t,
-                                           (bounds + (nominal_bounds,))[i]),
-                          range(len(all_plants)), threads)
 
-    confirmations, x = 0, None
-    while True:
-        report(min(0.9, 0.3 * confirmations + 0.05))
-        if x is None or not x.holds:  # (again) from the grid's best
-            best = search.grid(kp_grid, kf_grid)
-            if best is None:  # name the gains closest to keeping the limits on the screen
-                mid = ((kp_lo + kp_hi) / 2, sum(g.kf_range) / 2)
-                x = min((search.point(kp, kf, screen) for kp in (kp_lo, mid[0], kp_hi)
-                         for kf in (g.kf_range[0], mid[1], g.kf_range[1])), key=_excess_of)
-                x = search.refine(x, steps, screen)
-                return _none(plants, objective, (x, confirm(x)), search,
-                             "no equal fixed gains keep the limits on every plant of the "
-                             "uncertainty set", "the closest to keeping them")
-            if confirmations == 0:  # the corners near a limit there: critical from the start
-                search.seed(best, range(plants.n_monte_carlo, len(all_plants)))
-            # the screen's optimum first (cheap), then the aggregate's from there
-            x = search.refine(search.point(best.kp, best.kf, screen), steps, screen)
-            x = search.point(x.kp, x.kf, objective)
-        x = search.refine(x, steps, objective)
-        if not x.holds:
-            continue
-        replays = confirm(x)
-        confirmations += 1
-        broke = [i for i, v in enumerate(replays) if not v.ok]
-        if not broke:
-            break
-        if confirmations == defaults.ROBUST_BASELINE_CONFIRMATIONS:
-            return _none(plants, objective, (x, replays), search,
-                         f"no equal fixed gains found keep the limits on every plant of the "
-                         f"uncertainty set in {confirmations} tries", "the last tried")
-        search.critical += [i for i in broke if i not in search.critical]
-        x = search.point(x.kp, x.kf, objective)  # it breaks a limit there: restored next
-    report(1.0)
+def _from_grid(search, grids, steps, plants, first):
+    """Steps 1 and 2 from the grid's best: the screen's optimum (cheap), then the point of the
+    objective plants there; on the ``first`` pass the corners near a limit at the grid's best
+    become critical. Where no grid point holds: ``(closest point, why, which)``, the gains
+    that come closest to keeping the limits on the screen."""
+    best = search.grid(*grids)
+    screen = search.screen
+    if best is None:
+        (kp_lo, kp_hi), kf_range = search.kp_box, search.kf_box
+        mid = ((kp_lo + kp_hi) / 2, sum(kf_range) / 2)
+        x = min((search.point(kp, kf, screen) for kp in (kp_lo, mid[0], kp_hi)
+                 for kf in (kf_range[0], mid[1], kf_range[1])), key=_excess_of)
+        return (search.refine(x, steps, screen), "no equal fixed gains keep the limits on every "
+                "plant of the uncertainty set", "the closest to keeping them")
+    if first:  # the corners near a limit there: critical from the start
+        search.seed(best, range(plants.n_monte_carlo, len(search.packed.plants)))
+    x = search.refine(search.point(best.kp, best.kf, screen), steps, screen)
+    return search.point(x.kp, x.kf, search.objective)
+
+
+def _found(plants, search, x, replays, confirmations) -> BaselineResult:
+    """The result of a search whose point ``x`` was confirmed by ``replays`` (every plant of
+    the set, then the nominal one)."""
+    objective = search.objective
     mse = np.array([replays[i].metrics.mse_m2 for i in objective])
     return BaselineResult(
         status="ok", kp=x.kp, kf=x.kf, mse_m2=float(np.exp(np.mean(np.log(mse)))),

@@ -289,12 +289,25 @@ def certify(
                       if baseline_replays is None else baseline_replays[i]),
         )
 
+    replays = _batched(replay, len(scenarios), progress, threads)
+    return _verdict(replays, scenarios)
+
+
+def _batched(replay, n, progress, threads) -> list:
+    """``replay(i)`` for ``i < n`` on ``threads`` threads, ``progress`` told the share done
+    after every batch."""
     replays = []
-    for start in range(0, len(scenarios), _PROGRESS_BATCH * threads):  # progress per batch
-        replays += thread_map(replay, range(start, min(start + _PROGRESS_BATCH * threads,
-                                                       len(scenarios))), threads)
+    for start in range(0, n, _PROGRESS_BATCH * threads):
+        replays += thread_map(replay, range(start, min(start + _PROGRESS_BATCH * threads, n)),
+                              threads)
         if progress is not None:
-            progress(len(replays) / len(scenarios))
+            progress(len(replays) / n)
+    return replays
+
+
+def _verdict(replays, scenarios) -> Certificate:
+    """The :class:`Certificate` of the plants' ``replays``: failed where the schedule is worse
+    than the baseline on a plant, or breaks a check there that the baseline keeps."""
     ratio = np.array([p.ratio for p in replays])
     reasons = []
     if ratio.max() > 1.0:

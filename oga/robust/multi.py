@@ -142,62 +142,28 @@ def multi_search(
     MultiSearch
     """
     t0 = time.perf_counter()
-    n = len(setpoints)
+    n, n_s = len(setpoints), len(plants)
     te = setpoints.dt
     moving_names = tuple(AXES[i] for i in setpoints.moving_axes)
     adjusted = moving_names if options.adjust is None else tuple(options.adjust)
     nominal = plants[0]
     pd = np.ascontiguousarray(setpoints.pos)
-    pdT = np.ascontiguousarray(setpoints.pos.T)
-    vdT = np.ascontiguousarray(setpoints.vel.T)
-    present = [a for a in AXES if a in nominal.axes]
-    params = np.stack([np.stack([axis_params(m, a if a in m.axes else present[0]) for a in AXES])
-                       for m in plants])
-    # plants of more dead time have longer states: every one padded to the longest (a shorter
-    # state leaves its tail zero, as the axes of one machine do)
-    rest = [[rest_state(params[p, i], pd[0, i]) for i in range(3)] for p in range(len(plants))]
-    states = np.zeros((len(plants), 3, max(r.size for rs in rest for r in rs)))
-    for p, rs in enumerate(rest):
-        for i, r in enumerate(rs):
-            states[p, i, :r.size] = r
-    u_hist = np.zeros((len(plants), 3, 2))
-    kp0 = np.full(3, float(base_kp))
-    kf0 = np.full(3, float(base_kf))
+    params, states = _packed_plants(plants, pd[0])
+    u_hist = np.zeros((n_s, 3, 2))
+    kp0, kf0 = np.full(3, float(base_kp)), np.full(3, float(base_kf))
     adj = np.array([a in adjusted for a in AXES])
     adj_kp = adj & ("kp" in options.gains)
     adj_kf = adj & ("kf" in options.gains)
     is_moving = np.array([a in moving_names for a in AXES])
-    kp_lo = np.where(is_moving, kp_bounds[0], kp0)
-    kp_hi = np.where(is_moving, kp_bounds[1], kp0)
-    kf_lo = np.full(3, nominal.gains.kf_range[0])
-    kf_hi = np.full(3, nominal.gains.kf_range[1])
-    lim = nominal.axis_limits()
-    limits = np.stack([np.asarray(lim.vmax_m_s, dtype=np.float64),
-                       np.asarray(lim.amax_m_s2, dtype=np.float64),
-                       np.asarray(lim.jmax_m_s3, dtype=np.float64), nominal.ferror_limits()])
-    share = np.array([1.0, reserve, reserve, reserve])[:, None]
-    # per plant (S, 3): limit x max(share, a share of the baseline's peak ratio there)
-    floor = defaults.ROBUST_BASELINE_FLOOR
-    vmax, amax, jmax, ferror_max = (np.ascontiguousarray(x) for x in np.stack([
-        limits * np.maximum(share, floor * np.vstack([b.command_ratio.T,
-                                                      np.nan_to_num(b.ferror_ratio)]))
-        for b in baselines], axis=1))
+    kp_lo, kp_hi = (np.where(is_moving, v, kp0) for v in kp_bounds)
+    kf_lo, kf_hi = (np.full(3, v) for v in nominal.gains.kf_range)
+    vmax, amax, jmax, ferror_max = _plant_limits(nominal, baselines, reserve)
     wlen, kspace = options.np_value, options.knot_value
     commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
-    pad = wlen + defaults.MPC_SETTLE_TAIL + 1
-    pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
-    vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-    feed = ~setpoints.rapid
-    feed_pad = np.concatenate([feed, np.zeros(pad, dtype=bool)])
-    live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
+    pdT_pad, vdT_pad, feed_pad, live_pad = _padded(setpoints, wlen + defaults.MPC_SETTLE_TAIL + 1)
     tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
     points = np.repeat(np.stack([kp0, kf0], axis=1)[:, :, None], wlen // kspace, axis=2)
-    n_s = len(plants)
-    weights = np.empty(n_s)
-    weights[0] = defaults.ROBUST_NOMINAL_WEIGHT if n_s > 1 else 1.0
-    base_mse = np.array([b.metrics.mse_m2 for b in baselines])
-    weights[1:] = (1.0 - defaults.ROBUST_NOMINAL_WEIGHT) / max(n_s - 1, 1) * (
-        base_mse[0] / base_mse[1:])
+    weights = _weights(baselines)
     kp, kf = kp0.copy(), kf0.copy()
     kp_out, kf_out = np.empty((n, 3)), np.empty((n, 3))
     u_out = np.empty((n_s, n, 3))
@@ -214,3 +180,60 @@ def multi_search(
     return MultiSearch(kp=kp_out, kf=kf_out, fallbacks=int(stats[STAT_FALLBACK]),
                        windows=int(stats[STAT_WINDOWS]),
                        time_s=time.perf_counter() - t0)
+
+
+def _packed_plants(plants, p0):
+    """Every plant's packed parameters (S, 3, P) and rest state at ``p0`` (3,) (S, 3, L):
+    plants of more dead time have longer states, every one padded to the longest (a shorter
+    state leaves its tail zero, as the axes of one machine do)."""
+    present = [a for a in AXES if a in plants[0].axes]
+    params = np.stack([np.stack([axis_params(m, a if a in m.axes else present[0]) for a in AXES])
+                       for m in plants])
+    rest = [[rest_state(params[p, i], p0[i]) for i in range(3)] for p in range(len(plants))]
+    states = np.zeros((len(plants), 3, max(r.size for rs in rest for r in rs)))
+    for p, rs in enumerate(rest):
+        for i, r in enumerate(rs):
+            states[p, i, :r.size] = r
+    return params, states
+
+
+def _plant_limits(nominal, baselines, reserve):
+    """The nominal machine's limits per plant, ``(vmax, amax, jmax, ferror_max)`` each (S, 3):
+    limit x max(share, a share of the baseline's peak ratio there) (``multi_search``'s
+    ``reserve``)."""
+    lim = nominal.axis_limits()
+    limits = np.stack([np.asarray(lim.vmax_m_s, dtype=np.float64),
+                       np.asarray(lim.amax_m_s2, dtype=np.float64),
+                       np.asarray(lim.jmax_m_s3, dtype=np.float64), nominal.ferror_limits()])
+    share = np.array([1.0, reserve, reserve, reserve])[:, None]
+    floor = defaults.ROBUST_BASELINE_FLOOR
+    return (np.ascontiguousarray(x) for x in np.stack([
+        limits * np.maximum(share, floor * np.vstack([b.command_ratio.T,
+                                                      np.nan_to_num(b.ferror_ratio)]))
+        for b in baselines], axis=1))
+
+
+def _padded(setpoints, pad):
+    """The setpoints by axis padded by ``pad`` samples at rest at the end (positions (3, N+pad),
+    velocities (3, N+pad)), and the feed and live masks (N+pad,)."""
+    n = len(setpoints)
+    pdT = np.ascontiguousarray(setpoints.pos.T)
+    vdT = np.ascontiguousarray(setpoints.vel.T)
+    pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
+    vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
+    feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+    live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
+    return pdT_pad, vdT_pad, feed_pad, live_pad
+
+
+def _weights(baselines):
+    """Each plant's weight in the cost (S,): the nominal one (first)
+    :data:`oga.defaults.ROBUST_NOMINAL_WEIGHT` (1 alone), the others share the rest, each over
+    its baseline MSE relative to the nominal one's."""
+    n_s = len(baselines)
+    weights = np.empty(n_s)
+    weights[0] = defaults.ROBUST_NOMINAL_WEIGHT if n_s > 1 else 1.0
+    base_mse = np.array([b.metrics.mse_m2 for b in baselines])
+    weights[1:] = (1.0 - defaults.ROBUST_NOMINAL_WEIGHT) / max(n_s - 1, 1) * (
+        base_mse[0] / base_mse[1:])
+    return weights

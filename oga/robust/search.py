@@ -164,29 +164,92 @@ def robust_optimize(
     report = _Progress(progress)
     threads = resolve_threads(options.threads if threads is None else threads)
     bounds = plant_bounds(scenarios, moving, threads)
-    nominal = perturbed_machine(machine, {}, 0, machine.name)
-    nominal_bounds = plant_bounds(ScenarioSet(
-        status="nominal-only", nominal=machine, plants=(nominal,), labels=("nominal",),
-        draws=(({}, 0),), seed=0, n_monte_carlo=0, n_corners=0), moving)[0]
-    kp_lo = max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving)
-    kp_hi = min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving)
-    n = len(setpoints)
+    kp_lo, kp_hi = _common_kp_range(machine, bounds, moving)
     report(PROGRESS_BOUNDS)
     base = robust_baseline(setpoints, machine, scenarios, bounds, (kp_lo, kp_hi), threads=threads,
                            progress=report.between(PROGRESS_BOUNDS, PROGRESS_BASELINE))
     if not base.ok:
         raise OptionError(base.message)
-    kp0, kf0 = base.kp, base.kf
-    # the rounds search and judge on the set's first Monte Carlo plants and its corners; the
-    # kept table is certified on the whole set (module doc)
-    full, full_bounds, keep = scenarios, bounds, _search_plants(scenarios)
-    scenarios, bounds = _subset(full, full_bounds, keep)
-    base_replays = tuple(base.replays[i] for i in keep)
-    bkp, bkf = np.full((n, 3), kp0), np.full((n, 3), kf0)
-    for arr in (bkp, bkf):
-        arr.flags.writeable = False
-    kp_bounds = {a: (kp_lo, kp_hi) for a in moving}
-    base_nominal = base.nominal  # its figures (the stability check is not read)
+    ctx = _Context.of(setpoints, machine, options, scenarios, bounds, base, (kp_lo, kp_hi),
+                      threads)
+    kept, rounds = _rounds(ctx, report)
+    found, cert = kept.found, _certified_on_all(ctx, kept)
+    report(PROGRESS_ROUNDS)
+    searched_schedule = GainSchedule(kp_m_min_per_mm=found.kp, kf=found.kf)
+    alpha = (1.0, 1.0)
+    if cert.status != "ok":
+        alpha, cert = _shrink(setpoints, machine, searched_schedule, ctx.bkp, ctx.bkf, scenarios,
+                              bounds, cert, base.replays, threads)
+    result = _result(ctx, _shrunk(searched_schedule, ctx.bkp, ctx.bkf, alpha), cert, moving,
+                     found, t0)
+    return RobustResult(status="failed" if result.kept_baseline else "ok",
+                        schedule=result.schedule, result=result, certificate=cert,
+                        reserve=kept.reserve, kp_max=kp_hi, rounds=rounds, alpha=alpha,
+                        baseline=base,
+                        active=tuple(ctx.scenarios.labels[i] for i in kept.active))
+
+
+def _common_kp_range(machine, bounds, moving) -> tuple[float, float]:
+    """The Kp range stable on every plant (their ``bounds``) and the nominal one."""
+    nominal = perturbed_machine(machine, {}, 0, machine.name)
+    nominal_bounds = plant_bounds(ScenarioSet(
+        status="nominal-only", nominal=machine, plants=(nominal,), labels=("nominal",),
+        draws=(({}, 0),), seed=0, n_monte_carlo=0, n_corners=0), moving)[0]
+    return (max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving),
+            min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving))
+
+
+@dataclass(frozen=True, eq=False)
+class _Context:
+    """What every round of :func:`robust_optimize` shares: the rounds search and judge on the
+    set's first Monte Carlo plants and its corners (``scenarios``, ``bounds`` and the
+    baseline's ``base_replays`` there, indices ``keep`` of the whole set ``full``); the kept
+    table is certified on the whole set (module doc)."""
+
+    setpoints: Setpoints
+    machine: Machine
+    options: OptimizeOptions
+    nominal: Machine
+    base: BaselineResult
+    bkp: np.ndarray  # (N, 3) the baseline's gains, read-only
+    bkf: np.ndarray
+    kp_range: tuple[float, float]
+    full: ScenarioSet
+    full_bounds: tuple
+    keep: list
+    scenarios: ScenarioSet
+    bounds: tuple
+    base_replays: tuple
+    threads: int
+
+    @classmethod
+    def of(cls, setpoints, machine, options, full, full_bounds, base, kp_range, threads):
+        keep = _search_plants(full)
+        scenarios, bounds = _subset(full, full_bounds, keep)
+        n = len(setpoints)
+        bkp, bkf = np.full((n, 3), base.kp), np.full((n, 3), base.kf)
+        for arr in (bkp, bkf):
+            arr.flags.writeable = False
+        return cls(setpoints, machine, options, perturbed_machine(machine, {}, 0, machine.name),
+                   base, bkp, bkf, kp_range, full, full_bounds, keep, scenarios, bounds,
+                   tuple(base.replays[i] for i in keep), threads)
+
+    def certify(self, found, keep, progress=None, schedule_replays=None) -> Certificate:
+        """``found``'s certificate on the plants ``keep`` of the rounds' set."""
+        if len(keep) == len(self.scenarios):
+            sub, sub_bounds, sub_base = self.scenarios, self.bounds, self.base_replays
+        else:
+            sub, sub_bounds = _subset(self.scenarios, self.bounds, keep)
+            sub_base = tuple(self.base_replays[i] for i in keep)
+        return certify(self.setpoints, self.machine, found.kp, found.kf, self.bkp, self.bkf,
+                       sub, sub_bounds, sub_base, schedule_replays=schedule_replays,
+                       progress=progress, threads=self.threads)
+
+
+def _rounds(ctx: _Context, report) -> tuple[_Round, int]:
+    """The rounds (module doc, step 3): each searches (:func:`_search`), is certified
+    (:func:`_judged`), and chooses the next round's plants and reserve (:func:`_next`).
+    Returns the kept round (:func:`_kept`) and the rounds run."""
     active: list[int] = []  # plants of the set searched on besides the nominal one
     rejected: set[int] = set()  # plants whose joining made the schedule worse
     reserve, last = 1.0, None
@@ -195,69 +258,106 @@ def robust_optimize(
     for rounds in range(1, defaults.ROBUST_ROUNDS + 1):
         lo = PROGRESS_BASELINE + step * (rounds - 1)
         report(lo)
-        found = multi_search(setpoints, (nominal,) + tuple(scenarios.plants[i] for i in active),
-                             (base_nominal,) + tuple(base_replays[i] for i in active), options,
-                             kp0, kf0, (kp_lo, kp_hi), reserve)
+        found = _search(ctx, active, reserve)
         report(lo + 0.5 * step)
-        done = _screened(setpoints, machine, found, bkp, bkf, scenarios, bounds, base_replays,
-                         active, reserve, _screen(scenarios, last),
-                         report.between(lo + 0.5 * step, lo + 0.75 * step), threads)
-        if not done.fails_screen:
-            done.complete(setpoints, machine, bkp, bkf, scenarios, bounds, base_replays,
-                          report.between(lo + 0.75 * step, lo + step), threads)
+        done = _judged(ctx, found, active, reserve, last, report, (lo, step))
         tried.append(done)
         if done.key[:2] == (False, 0):
             break
-        ratio = done.ratio
-        if last is not None and active and _median_jump(ratio, last.ratio):
-            # the plant that joined last made the typical plants much worse (the window
-            # search then pulls the gains far from the baseline and off both plants'
-            # optimum: measured on freeform_xz, module doc): it leaves for good
-            rejected.add(active.pop())
+        active, reserve = _next(done, last, active, rejected, reserve, rounds)
         last = done
-        only = [p for p in done.cert.plants if p.schedule_only_break]
-        if only:  # more limit reserve (the prototype's rule for the baseline)
-            over = max(_excess(p.schedule for p in only), 1.0)
-            reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
-        order = [int(i) for i in np.argsort(-np.nan_to_num(ratio, nan=-np.inf), kind="stable")]
-        worst = next((i for i in order if i not in rejected and not np.isnan(ratio[i])), None)
-        if worst is not None and worst not in active:  # the worst plant joins the search
-            active = (active + [worst])[-(defaults.ROBUST_ACTIVE - 1):]
         if (tuple(active), reserve) == (done.active, done.reserve):
             break  # the same plants and limits: the next round's search would repeat this one
-    while True:  # the best round (the first of the least key), certified on the whole set
+    return _kept(ctx, tried), rounds
+
+
+def _search(ctx: _Context, active, reserve):
+    """One round's multi-plant search: the nominal plant and the ``active`` ones."""
+    return multi_search(ctx.setpoints,
+                        (ctx.nominal,) + tuple(ctx.scenarios.plants[i] for i in active),
+                        (ctx.base.nominal,) + tuple(ctx.base_replays[i] for i in active),
+                        ctx.options, ctx.base.kp, ctx.base.kf, ctx.kp_range, reserve)
+
+
+def _judged(ctx: _Context, found, active, reserve, last, report, span) -> _Round:
+    """The round of ``found``, certified on its screen (:func:`_screen`) and, where it passes
+    there, on the rounds' whole set."""
+    lo, step = span
+    done = _screened(ctx, found, active, reserve, _screen(ctx.scenarios, last),
+                     report.between(lo + 0.5 * step, lo + 0.75 * step))
+    if not done.fails_screen:
+        done.complete(ctx, report.between(lo + 0.75 * step, lo + step))
+    return done
+
+
+def _screened(ctx: _Context, found, active, reserve, keep, progress=None) -> _Round:
+    """The :class:`_Round` of ``found`` certified on the plants ``keep`` of the rounds' set."""
+    return _Round(found, tuple(active), reserve, len(ctx.scenarios), keep,
+                  ctx.certify(found, keep, progress))
+
+
+def _next(done, last, active, rejected, reserve, rounds):
+    """The next round's plants and reserve after ``done``: a plant whose joining doubled the
+    median ratio leaves for good; the reserve is cut where the schedule alone broke a check;
+    the plant of largest ratio (not rejected) joins, the oldest leaving. Updates
+    ``rejected``; returns ``(active, reserve)``."""
+    ratio = done.ratio
+    active = list(active)
+    if last is not None and active and _median_jump(ratio, last.ratio):
+        # the plant that joined last made the typical plants much worse (the window
+        # search then pulls the gains far from the baseline and off both plants'
+        # optimum: measured on freeform_xz, module doc): it leaves for good
+        rejected.add(active.pop())
+    only = [p for p in done.cert.plants if p.schedule_only_break]
+    if only:  # more limit reserve (the prototype's rule for the baseline)
+        over = max(_excess(p.schedule for p in only), 1.0)
+        reserve /= over * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
+    order = [int(i) for i in np.argsort(-np.nan_to_num(ratio, nan=-np.inf), kind="stable")]
+    worst = next((i for i in order if i not in rejected and not np.isnan(ratio[i])), None)
+    if worst is not None and worst not in active:  # the worst plant joins the search
+        active = (active + [worst])[-(defaults.ROBUST_ACTIVE - 1):]
+    return active, reserve
+
+
+def _kept(ctx: _Context, tried) -> _Round:
+    """The best round (the first of the least key), certified on the rounds' whole set."""
+    while True:
         kept = min(tried, key=lambda r: r.key)
         if kept.full:
-            break
-        kept.complete(setpoints, machine, bkp, bkf, scenarios, bounds, base_replays,
-                      threads=threads)
-    found, cert, active, reserve = kept.found, kept.cert, kept.active, kept.reserve
-    labels = tuple(scenarios.labels[i] for i in active)
-    if len(keep) < len(full):  # the whole set's certificate, the rounds' replays reused
-        cert = certify(setpoints, machine, found.kp, found.kf, bkp, bkf, full, full_bounds,
-                       base.replays, schedule_replays={keep[j]: p.schedule
-                                                       for j, p in enumerate(cert.plants)},
-                       threads=threads)
-    scenarios, bounds, base_replays = full, full_bounds, base.replays
-    report(PROGRESS_ROUNDS)
-    searched_schedule = GainSchedule(kp_m_min_per_mm=found.kp, kf=found.kf)
-    alpha = (1.0, 1.0)
-    if cert.status != "ok":
-        alpha, cert = _shrink(setpoints, machine, searched_schedule, bkp, bkf, scenarios, bounds,
-                              cert, base_replays, threads)
-    kp, kf = _shrunk(searched_schedule, bkp, bkf, alpha)
+            return kept
+        kept.complete(ctx)
+
+
+def _certified_on_all(ctx: _Context, kept: _Round) -> Certificate:
+    """The kept round's certificate on the whole set, the rounds' replays reused."""
+    if len(ctx.keep) == len(ctx.full):
+        return kept.cert
+    return certify(ctx.setpoints, ctx.machine, kept.found.kp, kept.found.kf, ctx.bkp, ctx.bkf,
+                   ctx.full, ctx.full_bounds, ctx.base.replays,
+                   schedule_replays={ctx.keep[j]: p.schedule
+                                     for j, p in enumerate(kept.cert.plants)},
+                   threads=ctx.threads)
+
+
+def _result(ctx: _Context, gains, cert, moving, found, t0) -> OptimizeResult:
+    """The :class:`OptimizeResult` of the shrunk schedule ``gains`` (Kp, Kf) with its
+    certificate ``cert``: the schedule where its certificate and its replay on the machine
+    itself pass, else the baseline."""
+    setpoints, machine, options = ctx.setpoints, ctx.machine, ctx.options
+    kp, kf = gains
+    kp_bounds = {a: ctx.kp_range for a in moving}
     # the result's nominal figures on the machine itself: the exact kernel (the plants, the
     # nominal one included, take the linear friction map at standstill: oga.robust.plants)
     searched = verify(setpoints, machine, kp, kf, kp_bounds)
-    base_exact = verify(setpoints, machine, bkp, bkf, kp_bounds)
+    base_exact = verify(setpoints, machine, ctx.bkp, ctx.bkf, kp_bounds)
     ok = cert.status == "ok" and searched.ok
     if not ok:
-        kp, kf = bkp, bkf
-    schedule = GainSchedule(kp_m_min_per_mm=kp, kf=kf)
-    result = OptimizeResult(
+        kp, kf = ctx.bkp, ctx.bkf
+    return OptimizeResult(
         status=searched.status if ok else base_exact.status,
-        setpoints=setpoints, machine=machine, options=options, schedule=schedule,
-        baseline_kp={a: kp0 for a in AXES}, baseline_kf={a: kf0 for a in AXES},
+        setpoints=setpoints, machine=machine, options=options,
+        schedule=GainSchedule(kp_m_min_per_mm=kp, kf=kf),
+        baseline_kp={a: ctx.base.kp for a in AXES}, baseline_kf={a: ctx.base.kf for a in AXES},
         baseline=base_exact, optimized=searched if ok else base_exact,
         searched_schedule=GainSchedule(kp_m_min_per_mm=_frozen(kp), kf=_frozen(kf)),
         searched=searched, kept_baseline=not ok,
@@ -265,10 +365,6 @@ def robust_optimize(
         kp_bounds=kp_bounds, optimize_time_s=time.perf_counter() - t0,
         fallbacks=found.fallbacks, windows=found.windows,
     )
-    return RobustResult(status="ok" if ok else "failed", schedule=schedule, result=result,
-                        certificate=cert, reserve=reserve, kp_max=kp_hi, rounds=rounds,
-                        alpha=alpha, baseline=base,
-                        active=labels)
 
 
 #: Progress fractions at the end of the stable ranges, of the baseline and of the rounds
@@ -344,16 +440,12 @@ class _Round:
         out[list(self.keep)] = self.cert.ratio
         return out
 
-    def complete(self, setpoints, machine, bkp, bkf, scenarios, bounds, base_replays,
-                 progress=None, threads=1) -> None:
-        """Certify on the whole set, the screen's replays reused."""
+    def complete(self, ctx: _Context, progress=None) -> None:
+        """Certify on the rounds' whole set, the screen's replays reused."""
         if self.full:
             return
-        self.cert = certify(setpoints, machine, self.found.kp, self.found.kf, bkp, bkf,
-                            scenarios, bounds, base_replays,
-                            schedule_replays={i: p.schedule
-                                              for i, p in zip(self.keep, self.cert.plants)},
-                            progress=progress, threads=threads)
+        self.cert = ctx.certify(self.found, range(self.n_plants), progress,
+                                {i: p.schedule for i, p in zip(self.keep, self.cert.plants)})
         self.keep, self.full = tuple(range(self.n_plants)), True
 
 
@@ -372,19 +464,6 @@ def _screen(scenarios: ScenarioSet, last: _Round | None) -> tuple[int, ...]:
         return tuple(range(len(scenarios)))
     return tuple(sorted({*range(min(defaults.ROBUST_SUBSET, scenarios.n_monte_carlo)),
                          *range(scenarios.n_monte_carlo, len(scenarios))}))
-
-
-def _screened(setpoints, machine, found, bkp, bkf, scenarios, bounds, base_replays, active,
-              reserve, keep, progress, threads=1) -> _Round:
-    """The :class:`_Round` of ``found`` certified on the plants ``keep`` of the set."""
-    if len(keep) == len(scenarios):
-        cert = certify(setpoints, machine, found.kp, found.kf, bkp, bkf, scenarios, bounds,
-                       base_replays, progress=progress, threads=threads)
-    else:
-        sub, sub_bounds = _subset(scenarios, bounds, keep)
-        cert = certify(setpoints, machine, found.kp, found.kf, bkp, bkf, sub, sub_bounds,
-                       tuple(base_replays[i] for i in keep), progress=progress, threads=threads)
-    return _Round(found, tuple(active), reserve, len(scenarios), keep, cert)
 
 
 def _median_jump(ratio: np.ndarray, last: np.ndarray) -> bool:
