@@ -55,7 +55,6 @@ __all__ = [
     "TUNE_GRID",
     "Prepared",
     "Track",
-    "KP", "KF", "KC", "KI_TE",
     "baseline_gains",
     "add_coupling",
     "prepare",
