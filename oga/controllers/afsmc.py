@@ -33,6 +33,8 @@ compensation are off during rapids.
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,19 +120,30 @@ class AfsmcTrace:
     parameters: dict
 
 
+#: The loop's inputs packed for :func:`_loop`: ``pd``, ``vd``, ``load`` (N, 3) (m, m/s, N),
+#: ``speed`` (N,) the setpoint path speed (m/s), ``feed`` (N,) bool, ``present``, ``ctrl``
+#: (3,) bool (axis exists, axis in the contour plane), ``kp_base`` (1/s), ``kf_base`` (3,).
+Inputs = namedtuple("Inputs", ["pd", "vd", "load", "speed", "feed", "present", "ctrl",
+                               "kp_base", "kf_base"])
+
+#: Offsets in the law array of :func:`_loop`: kf, Kp_c (1/s), 1/error scale (1/m),
+#: 1/rate scale (s/m), gamma (1/s^2), dead zone (m), 1/programmed feed (s/m), Te (s).
+KF, KP_C, INV_ES, INV_RS, GAMMA, DEAD_ZONE, INV_VPROG, TE = range(8)
+
+
 @njit(cache=True)
-def _loop(pd, vd, speed, feed, params, states, present, ctrl, kp_base, kf_base, kf, kp_c,
-          inv_es, inv_rs, theta, gamma, dead_zone, inv_vprog, te, load, out_p, out_u,
-          out_comp, out_adapt):
+def _loop(params, states, inputs, law, theta, out_p, out_u, out_comp, out_adapt):
     """The per-sample loop over all axes (see the module docstring for the law).
 
-    ``pd, vd, load, out_p, out_u`` are (N, 3) (m, m/s, N, m, m/s); ``speed`` (N,) the
-    setpoint path speed (m/s); ``feed`` (N,) bool; ``params, states`` from
-    :func:`oga.simulate.axis_arrays` (advanced in place); ``present, ctrl`` (3,) bool
-    (axis exists, axis in the contour plane); ``kp_base`` (1/s), ``kf_base`` (3,);
-    ``theta`` (3, 7, 7) rule singletons (m/s), adapted in place; ``out_comp,
-    out_adapt`` (N,) bool.
+    ``params, states`` from :func:`oga.simulate.axis_arrays` (advanced in place);
+    ``inputs`` an :data:`Inputs`; ``law`` the constants at :data:`KF` ... :data:`TE`;
+    ``theta`` (3, 7, 7) rule singletons (m/s), adapted in place; ``out_p, out_u`` (N, 3)
+    (m, m/s), ``out_comp, out_adapt`` (N,) bool.
     """
+    pd, vd, speed, feed, load = inputs.pd, inputs.vd, inputs.speed, inputs.feed, inputs.load
+    present, ctrl, kp_base, kf_base = inputs.present, inputs.ctrl, inputs.kp_base, inputs.kf_base
+    kf, kp_c, inv_es, inv_rs = law[KF], law[KP_C], law[INV_ES], law[INV_RS]
+    gamma, dead_zone, inv_vprog, te = law[GAMMA], law[DEAD_ZONE], law[INV_VPROG], law[TE]
     n = pd.shape[0]
     e = np.zeros(3)
     e_prev = np.zeros(3)
@@ -219,12 +232,13 @@ def _simulate(setpoints, machine, base_kp, base_kf, p: dict, load) -> AfsmcTrace
     theta = theta0.copy()
     pos, u = np.empty((n, 3)), np.empty((n, 3))
     comp, adapt = np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_)
-    _loop(np.ascontiguousarray(setpoints.pos), np.ascontiguousarray(setpoints.vel),
-          np.linalg.norm(setpoints.vel, axis=1), np.ascontiguousarray(~setpoints.rapid),
-          params, states, present, ctrl, base_kp, base_kf, float(p["kf"]), float(p["kp_1_s"]),
-          1.0 / p["error_scale_m"], 1.0 / p["rate_scale_m_s"], theta, float(p["gamma_1_s2"]),
-          float(p["dead_zone_m"]), 1.0 / p["prog_feed_m_s"], setpoints.dt, load, pos, u, comp,
-          adapt)
+    inputs = Inputs(np.ascontiguousarray(setpoints.pos), np.ascontiguousarray(setpoints.vel),
+                    load, np.linalg.norm(setpoints.vel, axis=1),
+                    np.ascontiguousarray(~setpoints.rapid), present, ctrl, base_kp, base_kf)
+    law = np.array([p["kf"], p["kp_1_s"], 1.0 / p["error_scale_m"], 1.0 / p["rate_scale_m_s"],
+                    p["gamma_1_s2"], p["dead_zone_m"], 1.0 / p["prog_feed_m_s"], setpoints.dt],
+                   dtype=np.float64)
+    _loop(params, states, inputs, law, theta, pos, u, comp, adapt)
     return AfsmcTrace(pos=pos, u=u, theta0=theta0, theta=theta, compensated=comp, adapted=adapt,
                       parameters=dict(p))
 

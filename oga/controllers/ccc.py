@@ -27,6 +27,7 @@ The shared pieces of the cross-coupled laws (:func:`baseline_gains`,
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +54,7 @@ __all__ = [
     "DEFAULTS",
     "TUNE_GRID",
     "Prepared",
+    "Track",
     "baseline_gains",
     "add_coupling",
     "prepare",
@@ -67,6 +69,16 @@ PARAMETERS = ("kp_m_min_per_mm", "kf", "cc_gain_1_s", "cc_integral_1_s2")
 #: Design defaults and tuning grid (:mod:`oga.defaults`, where their reasons are given).
 DEFAULTS = defaults.CCC_DEFAULTS
 TUNE_GRID = defaults.CCC_TUNE_GRID
+
+#: The path a cross-coupled loop follows, packed for compiled code: ``present`` (3,) bool,
+#: ``pd``, ``vd`` (N, 3) setpoint positions (m) and velocities (m/s), ``rapid`` (N,) bool,
+#: ``tangent`` (N, 2), ``kappa`` (N,) signed curvature (1/m), ``load`` (N, 3) force (N),
+#: ``e1``, ``e2`` the plane axis columns (see :class:`Prepared`).
+Track = namedtuple("Track", ["present", "pd", "vd", "rapid", "tangent", "kappa", "load",
+                             "e1", "e2"])
+
+#: Offsets in the gain array of a cross-coupled loop: Kp (1/s), Kf, Kc (1/s), Ki Te (1/s).
+KP, KF, KC, KI_TE = 0, 1, 2, 3
 
 
 def baseline_gains(setpoints: Setpoints, machine: Machine, given: dict) -> tuple[float, float]:
@@ -127,6 +139,18 @@ class Prepared:
     load_n: np.ndarray
     kp_si: float
     kf: float
+
+    @property
+    def track(self) -> Track:
+        """The path arrays as one :data:`Track` for a compiled loop."""
+        return Track(self.present, self.pd, self.vd, self.rapid, self.tangent,
+                     self.curvature_1_m, self.load_n, self.e1, self.e2)
+
+    def gains(self, te: float, cc_gain_1_s: float, cc_integral_1_s2: float, *extra) -> np.ndarray:
+        """The gain array (offsets :data:`KP`, :data:`KF`, :data:`KC`, :data:`KI_TE`, then
+        ``extra``) of a compiled loop."""
+        return np.array([self.kp_si, self.kf, float(cc_gain_1_s),
+                         float(cc_integral_1_s2) * te, *extra], dtype=np.float64)
 
 
 def prepare(
@@ -211,29 +235,33 @@ def cc_correction(err1, err2, cos_t, sin_t, kappa, kc, ki_te, integ):
 
 
 @njit(cache=True)
-def add_coupling(u, k, pd, out_p, present, rapid, e1, e2, tangent, kappa, kc, ki_te, integ):
+def add_coupling(u, k, track, out_p, gains, integ):
     """Add the cross-coupled correction of sample ``k`` to the commands ``u`` (3,), in place.
 
-    :func:`cc_correction` on the plane axes' errors ``pd[k] - out_p[k]``; during a rapid
-    there is none and the compensator's integral restarts. Returns the integral state.
+    :func:`cc_correction` on the plane axes' errors ``pd[k] - out_p[k]`` of the
+    :data:`Track` ``track``, with ``gains[KC]`` and ``gains[KI_TE]``; during a rapid there is
+    none and the compensator's integral restarts. Returns the integral state.
     """
-    if rapid[k]:
+    if track.rapid[k]:
         return 0.0
+    e1, e2, pd = track.e1, track.e2, track.pd
     d1, d2, _, integ = cc_correction(
         pd[k, e1] - out_p[k, e1], pd[k, e2] - out_p[k, e2],
-        tangent[k, 0], tangent[k, 1], kappa[k], kc, ki_te, integ,
+        track.tangent[k, 0], track.tangent[k, 1], track.kappa[k], gains[KC], gains[KI_TE],
+        integ,
     )
-    if present[e1]:
+    if track.present[e1]:
         u[e1] += d1
-    if present[e2]:
+    if track.present[e2]:
         u[e2] += d2
     return integ
 
 
 @njit(cache=True)
-def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2,
-          kp, kf, kc, ki_te, load, out_p, out_u):
+def _loop(params, states, track, gains, out_p, out_u):
     """Simulate all axes jointly with P + FFW and the cross-coupled correction."""
+    present, pd, vd, load = track.present, track.pd, track.vd, track.load
+    kp, kf = gains[KP], gains[KF]
     n = pd.shape[0]
     u = np.zeros(3)
     integ = 0.0
@@ -241,8 +269,7 @@ def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2,
         for a in range(3):
             out_p[k, a] = states[a, 0] if present[a] else pd[k, a]
             u[a] = kp * (pd[k, a] - out_p[k, a]) + kf * vd[k, a] if present[a] else 0.0
-        integ = add_coupling(u, k, pd, out_p, present, rapid, e1, e2, tangent, kappa, kc, ki_te,
-                             integ)
+        integ = add_coupling(u, k, track, out_p, gains, integ)
         for a in range(3):
             if present[a]:
                 drive(states[a], params[a], u[a], load[k, a])
@@ -253,9 +280,8 @@ def _simulate(prep: Prepared, te: float, cc_gain_1_s: float, cc_integral_1_s2: f
     n = prep.pd.shape[0]
     pos = np.empty((n, 3))
     u = np.empty((n, 3))
-    _loop(prep.params, prep.states.copy(), prep.present, prep.pd, prep.vd, prep.rapid,
-          prep.tangent, prep.curvature_1_m, prep.e1, prep.e2, prep.kp_si, prep.kf,
-          float(cc_gain_1_s), float(cc_integral_1_s2) * te, prep.load_n, pos, u)
+    _loop(prep.params, prep.states.copy(), prep.track,
+          prep.gains(te, cc_gain_1_s, cc_integral_1_s2), pos, u)
     return pos, u
 
 

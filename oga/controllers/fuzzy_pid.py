@@ -24,6 +24,8 @@ K'd = 0.05 (the PD zero at 20 K'p, above the crossover), kf the best fixed Kf.
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
 
@@ -100,13 +102,22 @@ def law_inputs(setpoints: Setpoints, load_n) -> tuple[np.ndarray, ...]:
     )
 
 
+#: The loop's inputs packed for :func:`_simulate`: ``present``, ``law`` (3,) bool, ``pd``,
+#: ``vd`` (N, 3) setpoints (m, m/s), ``rapid`` (N,) bool, ``load`` (N, 3) force (N), and the
+#: baseline ``kp_b`` (1/s), ``kf_b`` (3,) of the other axes and the rapids.
+Inputs = namedtuple("Inputs", ["present", "law", "pd", "vd", "rapid", "load", "kp_b", "kf_b"])
+
+
 @njit(cache=True)
-def _simulate(params, states, present, pd, vd, rapid, law, load, gains, kp_b, kf_b, te, pos, u):
+def _simulate(params, states, inputs, gains, te, pos, u):
     """The fuzzy PID on the ``law`` axes, P + FFW elsewhere and on rapids.
 
-    ``gains`` (9,): K'p, K'i, K'd, kf, 6/e_range, 6/ec_range, dKp_max/6, dKi_max/6,
-    dKd_max/6. Fills ``pos`` and ``u`` (N, 3).
+    ``inputs`` an :data:`Inputs`; ``gains`` (9,): K'p, K'i, K'd, kf, 6/e_range,
+    6/ec_range, dKp_max/6, dKi_max/6, dKd_max/6. Fills ``pos`` and ``u`` (N, 3).
     """
+    present, pd, vd, rapid, law, load = (inputs.present, inputs.pd, inputs.vd, inputs.rapid,
+                                         inputs.law, inputs.load)
+    kp_b, kf_b = inputs.kp_b, inputs.kf_b
     n = pd.shape[0]
     e_prev = np.zeros(3)
     integ = np.zeros(3)
@@ -152,6 +163,59 @@ def _values(given: dict, kp_b: np.ndarray, kf_b: np.ndarray) -> dict:
     return out
 
 
+_NOTES = (
+    "Velocity feed-forward kf vd added to the paper's PID (kf = 0 gives the paper's law).",
+    "Gains in SI: u = Kp e + Ki Te sum(e) + Kd de/dt; increments dK = ratio K' mamdani/6 "
+    "with the paper's ratios 6 k / K'.",
+    "Initial PID: K'p best fixed Kp, K'i = K'p^2/10, K'd = 0.05; other axes and rapids: "
+    "P + FFW at the baseline gains.",
+)
+
+
+def _gain_array(values: dict) -> np.ndarray:
+    """The ``gains`` (9,) of :func:`_simulate` from the parameter values."""
+    return np.array(
+        [
+            values["kp_1_s"],
+            values["ki_1_s2"],
+            values["kd"],
+            values["kf"],
+            UNIVERSE / values["e_range_m"],
+            UNIVERSE / values["ec_range_m_s"],
+            values["dkp_ratio"] * values["kp_1_s"] / UNIVERSE,
+            values["dki_ratio"] * values["ki_1_s2"] / UNIVERSE,
+            values["dkd_ratio"] * values["kd"] / UNIVERSE,
+        ]
+    )
+
+
+def _grid_values(values: dict, given: dict, choice: dict) -> dict:
+    """The values at a point ``choice`` of the tuning grid (factors on ``values``; the
+    ranges ``given`` are kept)."""
+    v = dict(values)
+    v["kp_1_s"] = values["kp_1_s"] * choice.get("kp_factor", 1.0)
+    if "ki_per_kp2" in choice:
+        v["ki_1_s2"] = choice["ki_per_kp2"] * v["kp_1_s"] ** 2
+    for name in _TUNES["range_factor"]:
+        if name not in given:
+            v[name] = values[name] * choice.get("range_factor", 1.0)
+    return v
+
+
+def _tune(simulate, setpoints: Setpoints, machine: Machine, values: dict, given: dict,
+          notes: list) -> dict:
+    """The values tuned on :data:`TUNE_GRID` (the grid's parameters not ``given``); a note
+    appended to ``notes``."""
+    grid = {k: list(v) for k, v in TUNE_GRID.items() if not set(_TUNES[k]) <= set(given)}
+    if not grid:
+        return values
+    choice, _, n_ok = grid_tune(
+        lambda c: simulate(_grid_values(values, given, c)), setpoints, machine, grid
+    )
+    notes.append(f"Tuned on this toolpath: {n_ok} feasible grid points, chose {choice}.")
+    return _grid_values(values, given, choice)
+
+
 def run(
     setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool = True, **parameters
 ) -> ControllerRun:
@@ -189,55 +253,18 @@ def run(
         kp_b, kf_b = baseline_si(setpoints, machine)
     pd, vd, _, rapid, law, load = law_inputs(setpoints, load_n)
     params, states0, present = axis_arrays(machine, pd[0] if len(pd) else np.zeros(3))
-    te = machine.te
+    inputs = Inputs(present, law, pd, vd, rapid, load, kp_b, kf_b)
 
     def simulate(values: dict) -> tuple[np.ndarray, np.ndarray]:
-        g = np.array(
-            [
-                values["kp_1_s"],
-                values["ki_1_s2"],
-                values["kd"],
-                values["kf"],
-                UNIVERSE / values["e_range_m"],
-                UNIVERSE / values["ec_range_m_s"],
-                values["dkp_ratio"] * values["kp_1_s"] / UNIVERSE,
-                values["dki_ratio"] * values["ki_1_s2"] / UNIVERSE,
-                values["dkd_ratio"] * values["kd"] / UNIVERSE,
-            ]
-        )
         pos = np.empty_like(pd)
         u = np.zeros_like(pd)
-        _simulate(params, states0.copy(), present, pd, vd, rapid, law, load, g,
-                  kp_b, kf_b, te, pos, u)
+        _simulate(params, states0.copy(), inputs, _gain_array(values), machine.te, pos, u)
         return pos, u
 
-    notes = [
-        "Velocity feed-forward kf vd added to the paper's PID (kf = 0 gives the paper's law).",
-        "Gains in SI: u = Kp e + Ki Te sum(e) + Kd de/dt; increments dK = ratio K' mamdani/6 "
-        "with the paper's ratios 6 k / K'.",
-        "Initial PID: K'p best fixed Kp, K'i = K'p^2/10, K'd = 0.05; other axes and rapids: "
-        "P + FFW at the baseline gains.",
-    ]
+    notes = list(_NOTES)
     values = _values(parameters, kp_b, kf_b)
     if tune:
-        grid = {k: list(v) for k, v in TUNE_GRID.items() if not set(_TUNES[k]) <= set(parameters)}
-        if grid:
-
-            def grid_values(choice: dict) -> dict:
-                v = dict(values)
-                v["kp_1_s"] = values["kp_1_s"] * choice.get("kp_factor", 1.0)
-                if "ki_per_kp2" in choice:
-                    v["ki_1_s2"] = choice["ki_per_kp2"] * v["kp_1_s"] ** 2
-                for name in _TUNES["range_factor"]:
-                    if name not in parameters:
-                        v[name] = values[name] * choice.get("range_factor", 1.0)
-                return v
-
-            choice, _, n_ok = grid_tune(
-                lambda c: simulate(grid_values(c)), setpoints, machine, grid
-            )
-            values = grid_values(choice)
-            notes.append(f"Tuned on this toolpath: {n_ok} feasible grid points, chose {choice}.")
+        values = _tune(simulate, setpoints, machine, values, parameters, notes)
     pos, u = simulate(values)
     values["kp_base_1_s"] = float(kp_b[0])
     values["kf_base"] = float(kf_b[0])

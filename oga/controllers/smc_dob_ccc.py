@@ -50,6 +50,8 @@ gains near twice their initial values while ``|eps|`` is about ``eps_range``).
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
 
@@ -161,16 +163,31 @@ def _fuzzy_gain(theta, ie, te, ic, tc):
     )
 
 
+#: The path the law follows, packed for :func:`_simulate`: ``present``, ``law`` (3,) bool,
+#: ``pd``, ``vd``, ``ad`` (N, 3) setpoints (m, m/s, m/s^2), ``rapid`` (N,) bool, ``load``
+#: (N, 3) force (N), ``tangent``, ``normal`` (N, 2), ``kappa`` (N,) 1/m, ``e1``, ``e2`` plane
+#: axis columns.
+Path = namedtuple("Path", ["present", "law", "pd", "vd", "ad", "rapid", "load", "tangent",
+                           "normal", "kappa", "e1", "e2"])
+
+#: Per-axis constants packed for :func:`_simulate`: velocity-loop ``lag`` (s), ``dead`` time
+#: (whole samples, int), baseline ``kp_b`` (1/s) and ``kf_b`` (all shape (3,)).
+AxisConstants = namedtuple("AxisConstants", ["lag", "dead", "kp_b", "kf_b"])
+
+
 @njit(cache=True)
-def _simulate(params, states, present, pd, vd, ad, rapid, law, load, tangent, normal, kappa,
-              e1, e2, g, lag, dead, kp_b, kf_b, theta0, te_s, pos, u):
+def _simulate(params, states, path, axc, g, theta0, te_s, pos, u):
     """Sliding mode + DOB on the ``law`` axes, adaptive fuzzy PID CCC on the plane.
 
-    ``g``: c, eta, k, phi, dob (0/1), L, ccc (0/1), 6/eps_range, 6/eps_rate_range,
-    gamma, sigma, then the adaptation normalisers 1/(eps_range r_g) for p, i, d and the
-    initial gains K0_p, K0_i, K0_d. ``theta0`` (3, 7, 7): initial rule consequents.
-    Fills ``pos`` and ``u`` (N, 3).
+    ``path`` a :data:`Path`, ``axc`` an :data:`AxisConstants`. ``g``: c, eta, k, phi,
+    dob (0/1), L, ccc (0/1), 6/eps_range, 6/eps_rate_range, gamma, sigma, then the
+    adaptation normalisers 1/(eps_range r_g) for p, i, d and the initial gains K0_p, K0_i,
+    K0_d. ``theta0`` (3, 7, 7): initial rule consequents. Fills ``pos`` and ``u`` (N, 3).
     """
+    present, pd, vd, ad, rapid, law, load = (path.present, path.pd, path.vd, path.ad,
+                                             path.rapid, path.law, path.load)
+    tangent, normal, kappa, e1, e2 = path.tangent, path.normal, path.kappa, path.e1, path.e2
+    lag, dead, kp_b, kf_b = axc.lag, axc.dead, axc.kp_b, axc.kf_b
     n = pd.shape[0]
     c, eta, ksw, inv_phi = g[0], g[1], g[2], 1.0 / g[3]
     use_dob, ell, use_ccc = g[4] != 0.0, g[5], g[6] != 0.0
@@ -237,6 +254,86 @@ def _simulate(params, states, present, pd, vd, ad, rapid, law, load, tangent, no
             drive(states[a], params[a], cmd, load[k, a])
 
 
+_NOTES = (
+    "Plant seen from the velocity command: x'' = (u(t - d Te) - x') / T - dist, T the "
+    "63 % rise time of the lifted velocity loop; the SMC law ignores the dead time, "
+    "the observer uses the delayed command.",
+    "Velocity measured by the backward difference of the position samples.",
+    "Contour error: Yeh-Hsu tangent estimate plus the curvature (osculating-circle) term.",
+    "The paper's CCC rule base and adaptation law were lost: classic self-tuning tables "
+    "as initial consequents, gradient adaptation of eps^2/2 with sigma-leakage.",
+    "Other axes and rapids: P + FFW at the baseline gains.",
+)
+
+
+def _values(setpoints: Setpoints, machine: Machine, parameters: dict):
+    """The run's parameter values (defaults, baseline gains, given) and the baseline gains
+    per axis ``(values, kp_b, kf_b)``; refuses a non-positive scale."""
+    check_parameters(NAME, parameters, PARAMETERS)
+    if "kp_base_1_s" in parameters and "kf_base" in parameters:
+        kp_b = np.full(3, float(parameters["kp_base_1_s"]))
+        kf_b = np.full(3, float(parameters["kf_base"]))
+    else:
+        kp_b, kf_b = baseline_si(setpoints, machine)
+    values = {**DEFAULTS, "kp_base_1_s": float(kp_b[0]), "kf_base": float(kf_b[0])}
+    values.update(parameters)
+    for name in ("phi_m_s", "eps_range_m", "eps_rate_range_m_s", "c_1_s"):
+        if not float(values[name]) > 0.0:
+            raise OptionError(f"{NAME}: {name} must be positive, got {values[name]}")
+    return values, kp_b, kf_b
+
+
+def _prepare(setpoints: Setpoints, machine: Machine, load_n, kp_b, kf_b):
+    """``(params, states0, path, axis_constants)`` of :func:`_simulate`."""
+    pd, vd, ad, rapid, law, load = law_inputs(setpoints, load_n)
+    tangent, normal, kappa, e1, e2 = path_frame(setpoints)
+    params, states0, present = axis_arrays(machine, pd[0] if len(pd) else np.zeros(3))
+    law &= present
+    lag = np.array([velocity_lag_s(machine, a) if law[c] else 1.0
+                    for c, a in enumerate(("x", "y", "z"))])
+    # each axis's dead time, whole samples (a fractional one rounded: the law's own model)
+    dead = np.array([round(machine.dead_time_samples_of(a)) if a in machine.axes else 0
+                     for a in ("x", "y", "z")], dtype=np.int64)
+    path = Path(present, law, pd, vd, ad, rapid, load, tangent, normal, kappa, e1, e2)
+    return params, states0, path, AxisConstants(lag, dead, kp_b, kf_b)
+
+
+def _law_arrays(v: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(g, theta0)`` of :func:`_simulate` from the parameter values ``v``."""
+    k0 = np.array([v["kcp_1_s"], v["kci_1_s2"], v["kcd"]], dtype=np.float64)
+    ratios = np.array([PAPER_RATIOS[r] for r in ("dkp_ratio", "dki_ratio", "dkd_ratio")])
+    theta0 = k0[:, None, None] * (1.0 + ratios[:, None, None] * 2.0 * RULES / UNIVERSE)
+    er, rr = float(v["eps_range_m"]), float(v["eps_rate_range_m_s"])
+    g = np.array([
+        v["c_1_s"], v["eta_1_s"], v["k_switch_m_s2"], v["phi_m_s"], float(bool(v["dob"])),
+        v["l_dob_1_s"], float(bool(v["ccc"])), UNIVERSE / er, UNIVERSE / rr,
+        v["gamma_1_s"], v["sigma_1_s"],
+        1.0 / (er * er), 1.0 / (er * er * _I_TIME_S), 1.0 / (er * rr),
+        *k0,
+    ], dtype=np.float64)
+    return g, theta0
+
+
+def _tune(simulate, setpoints: Setpoints, machine: Machine, values: dict, parameters: dict,
+          notes: list) -> None:
+    """Tune the grid's parameters not given on this toolpath: ``values`` and ``notes``
+    updated in place."""
+    grid = {k: vals for k, vals in TUNE_GRID.items() if k not in parameters}
+    if not grid:
+        return
+    try:
+        choice, _, n_ok = grid_tune(lambda c: simulate({**values, **c}), setpoints, machine, grid)
+    except TuneError as err:
+        raise TuneError(
+            f"{NAME}: {err}. The law's model-based feed-forward T * (setpoint "
+            "acceleration) alone breaks the jerk limit of paper eq. 2 when the plan "
+            "runs at that limit (its velocity command needs the setpoint snap); run "
+            "with tune=False to see the command ratios"
+        ) from None
+    values.update(choice)
+    notes.append(f"Tuned on this toolpath: {n_ok} feasible grid points, chose {choice}.")
+
+
 def run(
     setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool = True, **parameters
 ) -> ControllerRun:
@@ -268,75 +365,23 @@ def run(
     OptionError
         Unknown parameter, bad value, or no tuned combination meets the limits.
     """
-    check_parameters(NAME, parameters, PARAMETERS)
-    if "kp_base_1_s" in parameters and "kf_base" in parameters:
-        kp_b = np.full(3, float(parameters["kp_base_1_s"]))
-        kf_b = np.full(3, float(parameters["kf_base"]))
-    else:
-        kp_b, kf_b = baseline_si(setpoints, machine)
-    values = {**DEFAULTS, "kp_base_1_s": float(kp_b[0]), "kf_base": float(kf_b[0])}
-    values.update(parameters)
-    for name in ("phi_m_s", "eps_range_m", "eps_rate_range_m_s", "c_1_s"):
-        if not float(values[name]) > 0.0:
-            raise OptionError(f"{NAME}: {name} must be positive, got {values[name]}")
-    pd, vd, ad, rapid, law, load = law_inputs(setpoints, load_n)
-    tangent, normal, kappa, e1, e2 = path_frame(setpoints)
-    params, states0, present = axis_arrays(machine, pd[0] if len(pd) else np.zeros(3))
-    law &= present
-    lag = np.array([velocity_lag_s(machine, a) if law[c] else 1.0
-                    for c, a in enumerate(("x", "y", "z"))])
-    # each axis's dead time, whole samples (a fractional one rounded: the law's own model)
-    dead = np.array([round(machine.dead_time_samples_of(a)) if a in machine.axes else 0
-                     for a in ("x", "y", "z")], dtype=np.int64)
-    n = len(pd)
+    values, kp_b, kf_b = _values(setpoints, machine, parameters)
+    params, states0, path, axc = _prepare(setpoints, machine, load_n, kp_b, kf_b)
+    n = len(path.pd)
 
     def simulate(v: dict) -> tuple[np.ndarray, np.ndarray]:
-        k0 = np.array([v["kcp_1_s"], v["kci_1_s2"], v["kcd"]], dtype=np.float64)
-        ratios = np.array([PAPER_RATIOS[r] for r in ("dkp_ratio", "dki_ratio", "dkd_ratio")])
-        theta0 = k0[:, None, None] * (1.0 + ratios[:, None, None] * 2.0 * RULES / UNIVERSE)
-        er, rr = float(v["eps_range_m"]), float(v["eps_rate_range_m_s"])
-        g = np.array([
-            v["c_1_s"], v["eta_1_s"], v["k_switch_m_s2"], v["phi_m_s"], float(bool(v["dob"])),
-            v["l_dob_1_s"], float(bool(v["ccc"])), UNIVERSE / er, UNIVERSE / rr,
-            v["gamma_1_s"], v["sigma_1_s"],
-            1.0 / (er * er), 1.0 / (er * er * _I_TIME_S), 1.0 / (er * rr),
-            *k0,
-        ], dtype=np.float64)
+        g, theta0 = _law_arrays(v)
         pos = np.empty((n, 3))
         u = np.zeros((n, 3))
-        _simulate(params, states0.copy(), present, pd, vd, ad, rapid, law, load, tangent,
-                  normal, kappa, e1, e2, g, lag, dead, kp_b, kf_b, theta0, machine.te,
-                  pos, u)
+        _simulate(params, states0.copy(), path, axc, g, theta0, machine.te, pos, u)
         return pos, u
 
-    notes = [
-        "Plant seen from the velocity command: x'' = (u(t - d Te) - x') / T - dist, T the "
-        "63 % rise time of the lifted velocity loop; the SMC law ignores the dead time, "
-        "the observer uses the delayed command.",
-        "Velocity measured by the backward difference of the position samples.",
-        "Contour error: Yeh-Hsu tangent estimate plus the curvature (osculating-circle) term.",
-        "The paper's CCC rule base and adaptation law were lost: classic self-tuning tables "
-        "as initial consequents, gradient adaptation of eps^2/2 with sigma-leakage.",
-        "Other axes and rapids: P + FFW at the baseline gains.",
-    ]
+    notes = list(_NOTES)
     if tune:
-        grid = {k: vals for k, vals in TUNE_GRID.items() if k not in parameters}
-        if grid:
-            try:
-                choice, _, n_ok = grid_tune(
-                    lambda c: simulate({**values, **c}), setpoints, machine, grid
-                )
-            except TuneError as err:
-                raise TuneError(
-                    f"{NAME}: {err}. The law's model-based feed-forward T * (setpoint "
-                    "acceleration) alone breaks the jerk limit of paper eq. 2 when the plan "
-                    "runs at that limit (its velocity command needs the setpoint snap); run "
-                    "with tune=False to see the command ratios"
-                ) from None
-            values.update(choice)
-            notes.append(f"Tuned on this toolpath: {n_ok} feasible grid points, chose {choice}.")
+        _tune(simulate, setpoints, machine, values, parameters, notes)
     pos, u = simulate(values)
-    values["lag_s"] = {a: float(lag[c]) for c, a in enumerate(("x", "y", "z")) if law[c]}
+    values["lag_s"] = {a: float(axc.lag[c]) for c, a in enumerate(("x", "y", "z"))
+                       if path.law[c]}
     return ControllerRun(
         name=NAME,
         pos=pos,

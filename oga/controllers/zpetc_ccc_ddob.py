@@ -35,6 +35,7 @@ observer and the friction compensation stay active on the plane axes throughout.
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +45,7 @@ from scipy import signal
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.controllers.base import ControllerRun, check_parameters, grid_tune, score
-from oga.controllers.ccc import Prepared, add_coupling, baseline_gains, prepare
+from oga.controllers.ccc import KF, KP, Prepared, add_coupling, baseline_gains, prepare
 from oga.errors import OptionError, TuneError
 from oga.linear import position_open_loop
 from oga.machine import Machine
@@ -226,10 +227,27 @@ def _filter_step(b, a, x_hist, y_hist, x):
     return y
 
 
+#: Offset of the plane axes' feed-forward factor in the gain array, after the CCC gains.
+KF_PLANE = 4
+
+#: The plane axes' design packed for :func:`_loop`: ``ref`` (N, 3) ZPETC references (m),
+#: observer rows ``dn``, ``nn``, ``qb``, ``qa`` (3, W), ``v_fric`` (N, 3) the velocity the
+#: friction compensation sees (m/s), ``viscous``, ``beta`` (3,).
+Plane = namedtuple("Plane", ["ref", "dn", "nn", "qb", "qa", "v_fric", "viscous", "beta"])
+
+
 @njit(cache=True)
-def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2, kp, kf, kc, ki_te,
-          ref, kf_plane, dob, dn, nn, qb, qa, fric, v_fric, viscous, beta, load, out_p, out_u):
-    """All axes jointly: ZPETC reference, CCC, observer and friction compensation."""
+def _loop(params, states, track, gains, plane, dob, fric, out_p, out_u):
+    """All axes jointly: ZPETC reference, CCC, observer and friction compensation.
+
+    ``track`` a :data:`oga.controllers.ccc.Track`, ``gains`` the CCC gain array with the
+    plane's feed-forward factor at :data:`KF_PLANE`, ``plane`` a :data:`Plane`.
+    """
+    present, pd, vd, rapid, load = track.present, track.pd, track.vd, track.rapid, track.load
+    e1, e2 = track.e1, track.e2
+    kp, kf, kf_plane = gains[KP], gains[KF], gains[KF_PLANE]
+    ref, dn, nn, qb, qa = plane.ref, plane.dn, plane.nn, plane.qb, plane.qa
+    v_fric, viscous, beta = plane.v_fric, plane.viscous, plane.beta
     n = pd.shape[0]
     width = dn.shape[1]
     p_hist = np.zeros((3, width))
@@ -251,8 +269,7 @@ def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2, kp, kf
                 u[a] = kp * (pd[k, a] - out_p[k, a]) + kf * vd[k, a]
             else:
                 u[a] = kp * (ref[k, a] - out_p[k, a]) + kf_plane * vd[k, a]
-        integ = add_coupling(u, k, pd, out_p, present, rapid, e1, e2, tangent, kappa, kc, ki_te,
-                             integ)
+        integ = add_coupling(u, k, track, out_p, gains, integ)
         for a in (e1, e2):
             if not present[a]:
                 continue
@@ -284,17 +301,11 @@ def _loop(params, states, present, pd, vd, rapid, tangent, kappa, e1, e2, kp, kf
 
 @dataclass(frozen=True, eq=False)
 class _Design:
-    """The offline design of the plane axes, packed for :func:`_loop`."""
+    """The offline design of the plane axes: the arrays of :func:`_loop`, the plane's
+    feed-forward factor and the ZPETC preview per axis (samples)."""
 
-    ref: np.ndarray
+    plane: Plane
     kf_plane: float
-    dn: np.ndarray
-    nn: np.ndarray
-    qb: np.ndarray
-    qa: np.ndarray
-    v_fric: np.ndarray
-    viscous: np.ndarray
-    beta: np.ndarray
     lead: dict
 
 
@@ -340,12 +351,9 @@ def _design(prep: Prepared, machine: Machine, values: dict) -> _Design:
             dead = round(machine.dead_time_samples_of(a))
             v_fric[:, c] = prep.vd[np.minimum(np.arange(n) + dead, n - 1), c]
     return _Design(
-        ref=ref,
+        plane=Plane(ref=ref, **rows, v_fric=np.ascontiguousarray(v_fric), viscous=viscous,
+                    beta=beta),
         kf_plane=0.0 if values["zpetc"] else prep.kf,
-        **rows,
-        v_fric=np.ascontiguousarray(v_fric),
-        viscous=viscous,
-        beta=beta,
         lead=lead,
     )
 
@@ -355,11 +363,10 @@ def _simulate(prep: Prepared, machine: Machine, values: dict):
     n = prep.pd.shape[0]
     pos = np.empty((n, 3))
     u = np.empty((n, 3))
-    _loop(prep.params, prep.states.copy(), prep.present, prep.pd, prep.vd, prep.rapid,
-          prep.tangent, prep.curvature_1_m, prep.e1, prep.e2, prep.kp_si, prep.kf,
-          float(values["cc_gain_1_s"]), float(values["cc_integral_1_s2"]) * machine.te,
-          des.ref, des.kf_plane, bool(values["dob"]), des.dn, des.nn, des.qb, des.qa,
-          bool(values["friction"]), des.v_fric, des.viscous, des.beta, prep.load_n, pos, u)
+    gains = prep.gains(machine.te, values["cc_gain_1_s"], values["cc_integral_1_s2"],
+                       des.kf_plane)
+    _loop(prep.params, prep.states.copy(), prep.track, gains, des.plane, bool(values["dob"]),
+          bool(values["friction"]), pos, u)
     return pos, u, des
 
 

@@ -72,6 +72,20 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
         Unknown, repeated or non-cascade axis, travel out of (1, 10000] mm, a pass not in
         (0, 60] s or a sweep frequency not in (0, 100] Hz.
     """
+    _check(machine, axes, travel_mm, pass_s, sweep_hz)
+    lim = machine.planning_limits()
+    out = [f"(oga excite: identification program for {machine.name}, axes {','.join(axes)}, "
+           f"travel {travel_mm:g} mm)", "G21 G90 G94 G17", "G1 " + " ".join(f"{a.upper()}0" for a in axes)
+           + f" {_feed(0.01)}"]
+    for a in axes:
+        out += _axis_section(machine, lim, a, travel_mm, pass_s, sweep_hz)
+    out += _circle_sections(lim, axes, travel_mm)
+    out += ["G17", "M2"]
+    return "\n".join(out) + "\n"
+
+
+def _check(machine: Machine, axes, travel_mm, pass_s, sweep_hz) -> None:
+    """Refuse the arguments of :func:`excite_program` it names (OptionError)."""
     if not axes or len(set(axes)) != len(axes):
         raise OptionError(f"--axes: give distinct axes, got {','.join(axes)}")
     for a in axes:
@@ -85,36 +99,42 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
         raise OptionError(f"pass_s must be in (0, 60] s, got {pass_s}")
     if not sweep_hz or not all(0.0 < f <= 100.0 for f in sweep_hz):
         raise OptionError(f"sweep_hz: give frequencies in (0, 100] Hz, got {list(sweep_hz)}")
-    lim = machine.planning_limits()
-    out = [f"(oga excite: identification program for {machine.name}, axes {','.join(axes)}, "
-           f"travel {travel_mm:g} mm)", "G21 G90 G94 G17", "G1 " + " ".join(f"{a.upper()}0" for a in axes)
-           + f" {_feed(0.01)}"]
-    for a in axes:
-        c = AXES.index(a)
-        vmax, amax = float(lim.vmax_m_s[c]), float(lim.amax_m_s2[c])
-        vs = machine.axis(a).cascade.stribeck_m_s
-        speeds = sorted({m * vs for m in EXCITE_STRIBECK_MULTIPLES}
-                        | {f * vmax for f in EXCITE_VMAX_FRACTIONS})
-        L = a.upper()
-        out.append(f"(axis {a}: constant-speed passes, both directions)")
-        for v in speeds:
-            length = min(travel_mm, v * 1e3 * pass_s)
-            out += [f"G1 {L}{length:.4f} {_feed(v)}", f"G1 {L}0"]
-        out.append(f"(axis {a}: velocity steps)")
-        steps = [f * vmax for f in EXCITE_VMAX_FRACTIONS[1:]]
-        for k, v in enumerate(steps):
-            out.append(f"G1 {L}{travel_mm * (k + 1) / len(steps):.4f} {_feed(v)}")
-        for k, v in enumerate(steps):
-            out.append(f"G1 {L}{travel_mm * (len(steps) - k - 1) / len(steps):.4f} {_feed(v)}")
-        out.append(f"(axis {a}: swept frequency)")
-        mid = travel_mm / 2
-        for f in sweep_hz:
-            amp_mm = min(travel_mm / 10, 0.5 * amax / (2 * math.pi * f) ** 2 * 1e3)
-            v = min(vmax, 4 * amp_mm * 1e-3 * f)
-            out.append(f"G1 {L}{mid:.4f} {_feed(vmax / 4)}")
-            for _ in range(_SWEEP_CYCLES):
-                out += [f"G1 {L}{mid + amp_mm:.4f} {_feed(v)}", f"G1 {L}{mid - amp_mm:.4f}"]
-        out.append(f"G1 {L}0 {_feed(vmax / 4)}")
+
+
+def _axis_section(machine: Machine, lim, a: str, travel_mm, pass_s, sweep_hz) -> list[str]:
+    """The lines of axis ``a``: constant-speed passes, velocity steps, a swept frequency."""
+    out = []
+    c = AXES.index(a)
+    vmax, amax = float(lim.vmax_m_s[c]), float(lim.amax_m_s2[c])
+    vs = machine.axis(a).cascade.stribeck_m_s
+    speeds = sorted({m * vs for m in EXCITE_STRIBECK_MULTIPLES}
+                    | {f * vmax for f in EXCITE_VMAX_FRACTIONS})
+    L = a.upper()
+    out.append(f"(axis {a}: constant-speed passes, both directions)")
+    for v in speeds:
+        length = min(travel_mm, v * 1e3 * pass_s)
+        out += [f"G1 {L}{length:.4f} {_feed(v)}", f"G1 {L}0"]
+    out.append(f"(axis {a}: velocity steps)")
+    steps = [f * vmax for f in EXCITE_VMAX_FRACTIONS[1:]]
+    for k, v in enumerate(steps):
+        out.append(f"G1 {L}{travel_mm * (k + 1) / len(steps):.4f} {_feed(v)}")
+    for k, v in enumerate(steps):
+        out.append(f"G1 {L}{travel_mm * (len(steps) - k - 1) / len(steps):.4f} {_feed(v)}")
+    out.append(f"(axis {a}: swept frequency)")
+    mid = travel_mm / 2
+    for f in sweep_hz:
+        amp_mm = min(travel_mm / 10, 0.5 * amax / (2 * math.pi * f) ** 2 * 1e3)
+        v = min(vmax, 4 * amp_mm * 1e-3 * f)
+        out.append(f"G1 {L}{mid:.4f} {_feed(vmax / 4)}")
+        for _ in range(_SWEEP_CYCLES):
+            out += [f"G1 {L}{mid + amp_mm:.4f} {_feed(v)}", f"G1 {L}{mid - amp_mm:.4f}"]
+    out.append(f"G1 {L}0 {_feed(vmax / 4)}")
+    return out
+
+
+def _circle_sections(lim, axes, travel_mm) -> list[str]:
+    """A circle test in each plane of two identified axes, at 5 and 20 % of the speed limit."""
+    out = []
     for pair, (g, i1, i2) in _PLANES.items():
         if pair[0] in axes and pair[1] in axes:
             r = travel_mm / 4
@@ -126,5 +146,4 @@ def excite_program(machine: Machine, axes: list[str], travel_mm: float = EXCITE_
             for v in (0.05 * vmax, 0.2 * vmax):
                 out.append(f"{g} G2 {a1}0 {a2}{r:.4f} {i1}{r:.4f} {i2}0 {_feed(v)}")
             out.append(f"G1 {a1}0 {a2}0")
-    out += ["G17", "M2"]
-    return "\n".join(out) + "\n"
+    return out

@@ -583,58 +583,61 @@ def fit_axis(base: Machine, axis: str, tr: AxisTrace, dt: float, *,
     return fit
 
 
-def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFit:
-    """:func:`fit_axis` inside one BLAS thread."""
-    from scipy.optimize import least_squares
-    from scipy.stats import norm
+class _Solver:
+    """Bounded least-squares solves of one axis's :class:`_Model` (each counted in the
+    progress ``done``)."""
 
-    check_fit_input(base, axis, tr, dt)
-    cas0 = base.axis(axis).cascade
-    mass0 = cas0.mass_kg
-    model = _Model(base, axis, tr, dt, mass0, use_force=True)
-    lo, hi = _bounds(cas0, mass0)
-    x_base = _x0(cas0)
-    reg = friction_from_force(model.meas, model.force, dt) if model.force is not None else None
-    if model.force is not None:  # x[7]: the force's scale, the mass over the base's
-        lo = np.append(lo, math.log(IDENT_BOUNDS["mass_ratio"][0]))
-        hi = np.append(hi, math.log(IDENT_BOUNDS["mass_ratio"][1]))
-        x_base = np.append(x_base, math.log(reg[0] / mass0) if reg is not None else 0.0)
-    x_base = np.clip(x_base, lo, hi)
-    # solves: two per dead time searched, the two best refined, the further starts, the
-    # fractional dead time
-    done = _Progress(progress, 2 * (max_dead + 1) + 2 + max(starts - 1, 0) + 1)
+    def __init__(self, model, axis: str, lo, hi, done: _Progress):
+        self.model, self.axis, self.lo, self.hi, self.done = model, axis, lo, hi, done
 
-    def residual(x, dead, lag, frac):
-        done.tick()
-        return model.residual(x, dead, lag, frac)
+    def _residual(self, x, dead, lag, frac):
+        self.done.tick()
+        return self.model.residual(x, dead, lag, frac)
 
-    def jacobian(x, dead, lag, frac):
-        done.tick()
-        return model.jacobian(x, dead, lag, frac)
+    def _jacobian(self, x, dead, lag, frac):
+        self.done.tick()
+        return self.model.jacobian(x, dead, lag, frac)
 
-    def solve(x0, dead, lag, nfev, frac=False):
-        done.start(2 * nfev)  # each evaluation and its Jacobian
+    def solve(self, x0, dead, lag, nfev, frac=False):
+        """The solve from ``x0`` at a dead time and lag (``frac``: its fraction appended to x)."""
+        from scipy.optimize import least_squares
+
+        self.done.start(2 * nfev)  # each evaluation and its Jacobian
+        lo, hi = self.lo, self.hi
         lo_f, hi_f = (np.append(lo, _FRAC_BOUNDS[0]), np.append(hi, _FRAC_BOUNDS[1])) if frac \
             else (lo, hi)
         try:
-            r = least_squares(residual, np.clip(x0, lo_f + 1e-9, hi_f - 1e-9), jac=jacobian,
-                              args=(dead, lag, frac), bounds=(lo_f, hi_f), x_scale="jac",
-                              method="trf", max_nfev=nfev)
+            r = least_squares(self._residual, np.clip(x0, lo_f + 1e-9, hi_f - 1e-9),
+                              jac=self._jacobian, args=(dead, lag, frac), bounds=(lo_f, hi_f),
+                              x_scale="jac", method="trf", max_nfev=nfev)
         except (ValueError, np.linalg.LinAlgError) as err:
-            raise IdentifyError(f"axis {axis}: the fit failed: {err}") from None
-        done.solved()
+            raise IdentifyError(f"axis {self.axis}: the fit failed: {err}") from None
+        self.done.solved()
         return r
 
-    # the logging lag from the steady following error; the dead time upwards from 0, each fit
-    # from the base values (a warm start carries a force lag that stands in for dead time),
-    # until the residual clearly rises twice; then multi-start over the Stribeck velocity
-    lag = logging_lag(model.cmd, model.ff, model.kp, model.kf, model.meas, dt)
-    # two starts per dead time: the base's friction and 4 times it (the fit is not convex in
-    # the friction level, and a real axis may have much more than its base)
-    # where the force is recorded, the friction's level and the velocity loop from it instead
-    # (regressions: :func:`friction_from_force`, :func:`velocity_loop_from_force`), in the
-    # fit's units (scaled to the base mass): on high friction and a slow loop the base's and 4x
-    # its friction both stop in a low-friction minimum (bench draws 30, 48)
+
+def _start_bounds(model, cas0, mass0, reg):
+    """``(lo, hi, x_base)``: the bounds and the base's start, with the force's scale (the
+    mass over the base's, x[7]) where a force is recorded."""
+    lo, hi = _bounds(cas0, mass0)
+    x_base = _x0(cas0)
+    if model.force is not None:
+        lo = np.append(lo, math.log(IDENT_BOUNDS["mass_ratio"][0]))
+        hi = np.append(hi, math.log(IDENT_BOUNDS["mass_ratio"][1]))
+        x_base = np.append(x_base, math.log(reg[0] / mass0) if reg is not None else 0.0)
+    return lo, hi, np.clip(x_base, lo, hi)
+
+
+def _high_start(model, cas0, mass0, reg, x_base, lo, hi, force_n, dt, max_dead):
+    """The second start of each dead time: 4 times the base's friction, or, where the force
+    is recorded, the friction's level and the velocity loop from it.
+
+    Two starts per dead time: the fit is not convex in the friction level, and a real axis
+    may have much more than its base. From the force (regressions:
+    :func:`friction_from_force`, :func:`velocity_loop_from_force`) in the fit's units (scaled
+    to the base mass): on high friction and a slow loop the base's and 4x its friction both
+    stop in a low-friction minimum (bench draws 30, 48).
+    """
     x_high = x_base.copy()
     x_high[[3, 4, 6]] *= _FRICTION_START
     if reg is not None:
@@ -642,24 +645,36 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
         x_high[3], x_high[6] = fc_reg * mass0 / m_reg, b_reg * mass0 / m_reg
         x_high[4] = x_high[3] * (cas0.static_n / cas0.coulomb_n - 1.0) if cas0.coulomb_n > 0 else 0.0
         u = model.kp * (model.cmd - model.meas) + model.kf * model.ff
-        loop = velocity_loop_from_force(u, model.meas, tr.force_n, dt, max_dead)
+        loop = velocity_loop_from_force(u, model.meas, force_n, dt, max_dead)
         if loop is not None:
             x_high[0], x_high[1] = math.log(loop[0] * mass0 / m_reg), math.log(loop[1])
-    x_high = np.clip(x_high, lo, hi)
+    return np.clip(x_high, lo, hi)
+
+
+def _search_dead_times(solver: _Solver, starts_x, lag, max_dead) -> dict:
+    """Short fits per dead time upwards from 0, each from the starts ``starts_x`` (a warm
+    start carries a force lag that stands in for dead time), until the residual clearly
+    rises twice (without a force channel). Returns ``{(dead, lag): result}``."""
     tried = {}
     for dead in range(max_dead + 1):
-        tried[(dead, lag)] = min((solve(x0, dead, lag, _SEARCH_NFEV) for x0 in (x_base, x_high)),
+        tried[(dead, lag)] = min((solver.solve(x0, dead, lag, _SEARCH_NFEV) for x0 in starts_x),
                                  key=lambda r: r.cost)
         (d_best, _), r_best = min(tried.items(), key=lambda kv: kv[1].cost)
         # with a force channel every dead time is tried: its residual is not monotone in the
         # dead time (bench draw 0 of the recovery test: d = 0 < 1 < 2 > 3, the truth)
-        if (model.force is None and dead > d_best + 1
+        if (solver.model.force is None and dead > d_best + 1
                 and tried[(dead, lag)].cost > 1.5 * r_best.cost):
             break
-    # the two best pairs fitted to convergence (a short search fit may stop early)
+    return tried
+
+
+def _refine(solver: _Solver, tried: dict, starts: int):
+    """``(result, dead, lag)``: the two best pairs of ``tried`` fitted to convergence (a short
+    search fit may stop early; ``tried`` updated), then the multi-start over the Stribeck
+    velocity."""
     best = None
     for (dead, lag), r in sorted(tried.items(), key=lambda kv: kv[1].cost)[:2]:
-        r_f = solve(r.x, dead, lag, _FINAL_NFEV)
+        r_f = solver.solve(r.x, dead, lag, _FINAL_NFEV)
         tried[(dead, lag)] = r_f
         if best is None or r_f.cost < best[0].cost:
             best = (r_f, dead, lag)
@@ -667,21 +682,17 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     for k in range(1, max(1, starts)):
         x0 = r.x.copy()
         x0[5] += math.log(3.0) * (1 if k % 2 else -1) * ((k + 1) // 2)
-        r_k = solve(x0, dead, lag, _FINAL_NFEV)
+        r_k = solver.solve(x0, dead, lag, _FINAL_NFEV)
         if r_k.cost < best[0].cost:
             best = (r_k, dead, lag)
-    r, dead, lag = best
-    n = model.meas.size - lag  # the position residual leads r.fun (the force's follows)
+    return best
 
-    def pos_rms(t):  # every fit tried has the one logging lag
-        return float(np.sqrt(np.mean(t.fun[:n] ** 2))) * 1e-6
 
-    # a fractional dead time, in the sample towards the better of the whole neighbours, started
-    # next to the whole one: kept where its position residual's mean square is measurably
-    # below the whole one's (not tried where the whole one is at the noise already: nothing
-    # could be measurably better)
-    frac = False
-    noise = _noise_rms(model.meas)
+def _fractional(solver: _Solver, tried: dict, r, dead, lag, max_dead, noise, pos_rms):
+    """``(result, frac, dead)``: a fractional dead time, in the sample towards the better of
+    the whole neighbours, started next to the whole one: kept where its position residual's
+    mean square is measurably below the whole one's (not tried where the whole one is at the
+    noise already: nothing could be measurably better). ``tried`` updated."""
 
     def cost_of(d):
         return tried[(d, lag)].cost if (d, lag) in tried else math.inf
@@ -689,41 +700,56 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     d0, f0 = ((dead, 0.1) if dead == 0 or cost_of(dead + 1) <= cost_of(dead - 1)
               else (dead - 1, 0.9))
     if d0 + 1 <= max_dead and (1.0 - IDENT_FRACTION_MIN_GAIN) * pos_rms(r) ** 2 > noise ** 2:
-        r_f = solve(np.append(r.x, f0), d0, lag, _FINAL_NFEV, frac=True)
+        r_f = solver.solve(np.append(r.x, f0), d0, lag, _FINAL_NFEV, frac=True)
         tried[(d0 + float(r_f.x[-1]), lag)] = r_f
         if pos_rms(r_f) ** 2 < (1.0 - IDENT_FRACTION_MIN_GAIN) * pos_rms(r) ** 2:
-            r, frac, dead = r_f, True, d0 + float(r_f.x[-1])
+            return r_f, True, d0 + float(r_f.x[-1])
+    return r, False, dead
 
-    candidates = [(d, lg, pos_rms(t)) for (d, lg), t in sorted(tried.items())]
+
+def _covariance(r, n):
+    """``(cov, tau)``: the parameters' covariance (x per um^2) and the residual's correlation
+    time, samples. A residual that is not white holds fewer independent samples than its
+    length: the variance widened by its correlation time."""
     dof = max(r.fun.size - r.x.size, 1)
     s2 = 2 * r.cost / dof
-    z = float(norm.ppf(0.5 + IDENT_CONFIDENCE / 2))
-    # a residual that is not white holds fewer independent samples than its length: the
-    # intervals widened by the square root of its correlation time (the variance by it)
     tau = correlation_samples(r.fun[:n])
     try:
         cov = np.linalg.pinv(r.jac.T @ r.jac) * s2 * tau  # x per um^2: s2 in um^2
     except np.linalg.LinAlgError:
         cov = np.full((r.x.size, r.x.size), np.inf)
+    return cov, tau
+
+
+def _force_scale(model, x, dead, lag, n, force_n, mass0, axis):
+    """``(mass, mass_sd, f_rms, ratio, f_meas)``: the mass from the force channel (the force
+    is linear in the common scale factor); the base's mass without one."""
+    mass, mass_sd, f_rms, ratio, f_meas = mass0, 0.0, None, 1.0, None
+    if force_n is None:
+        return mass, mass_sd, f_rms, ratio, f_meas
+    _, f_unit = model.simulate(x, dead)
+    f_unit = f_unit[: n]
+    f_meas = np.asarray(force_n, dtype=np.float64)[lag:]
+    den = float(f_unit @ f_unit)
+    if den > 0:
+        ratio = float(f_unit @ f_meas) / den
+        if not ratio > 0:  # a force recorded with the opposite sign, or unrelated
+            raise TraceError(f"column {axis}_force_n: the recorded force opposes the force "
+                             f"the fit needs (scale {ratio:.3g}); record it with the sign "
+                             f"of the axis's motion")
+        res = f_meas - ratio * f_unit
+        f_rms = float(np.sqrt(np.mean(res ** 2)))
+        ratio_sd = math.sqrt(float(res @ res) / max(n - 1, 1) / den)
+        mass, mass_sd = mass0 * ratio, mass0 * ratio_sd
+    return mass, mass_sd, f_rms, ratio, f_meas
+
+
+def _intervals(x, cov, mass, mass_sd, ratio):
+    """``(values, low, high)`` of every parameter at the confidence ``IDENT_CONFIDENCE``."""
+    from scipy.stats import norm
+
+    z = float(norm.ppf(0.5 + IDENT_CONFIDENCE / 2))
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    x = r.x
-    # mass from the force channel (the force is linear in the common scale factor)
-    mass, mass_sd, f_rms, ratio = mass0, 0.0, None, 1.0
-    if tr.force_n is not None:
-        _, f_unit = model.simulate(x, dead)
-        f_unit = f_unit[: n]
-        f_meas = np.asarray(tr.force_n, dtype=np.float64)[lag:]
-        den = float(f_unit @ f_unit)
-        if den > 0:
-            ratio = float(f_unit @ f_meas) / den
-            if not ratio > 0:  # a force recorded with the opposite sign, or unrelated
-                raise TraceError(f"column {axis}_force_n: the recorded force opposes the force "
-                                 f"the fit needs (scale {ratio:.3g}); record it with the sign "
-                                 f"of the axis's motion")
-            res = f_meas - ratio * f_unit
-            f_rms = float(np.sqrt(np.mean(res ** 2)))
-            ratio_sd = math.sqrt(float(res @ res) / max(n - 1, 1) / den)
-            mass, mass_sd = mass0 * ratio, mass0 * ratio_sd
     rel_m = mass_sd / mass if mass > 0 else 0.0
     vals, los, his = {}, {}, {}
 
@@ -747,6 +773,51 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     log_param("kv_n_s_m", 0, True)
     log_param("tn_s", 1, False)
     log_param("force_lag_s", 2, False)
+    return vals, los, his
+
+
+def _status(rms, noise, share, f_rms, f_meas, ends) -> str:
+    """``poor``, ``model-error`` or ``ok`` (see :class:`AxisFit`)."""
+    f_level = float(np.sqrt(np.mean(f_meas ** 2))) if f_rms is not None else 0.0
+    if (rms > IDENT_POOR_NOISE_RATIO * max(noise, 1e-9) or share > IDENT_MODEL_ERROR_MAX_SHARE
+            or (f_rms is not None and f_rms > IDENT_POOR_FORCE_SHARE * f_level)):
+        return "poor"
+    if rms > IDENT_MODEL_ERROR_NOISE_RATIO * max(noise, 1e-9) or ends:
+        return "model-error"
+    return "ok"
+
+
+def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFit:
+    """:func:`fit_axis` inside one BLAS thread."""
+    check_fit_input(base, axis, tr, dt)
+    cas0 = base.axis(axis).cascade
+    mass0 = cas0.mass_kg
+    model = _Model(base, axis, tr, dt, mass0, use_force=True)
+    reg = friction_from_force(model.meas, model.force, dt) if model.force is not None else None
+    lo, hi, x_base = _start_bounds(model, cas0, mass0, reg)
+    # solves: two per dead time searched, the two best refined, the further starts, the
+    # fractional dead time
+    done = _Progress(progress, 2 * (max_dead + 1) + 2 + max(starts - 1, 0) + 1)
+    solver = _Solver(model, axis, lo, hi, done)
+    # the logging lag from the steady following error; the dead time upwards from 0; then
+    # multi-start over the Stribeck velocity
+    lag = logging_lag(model.cmd, model.ff, model.kp, model.kf, model.meas, dt)
+    x_high = _high_start(model, cas0, mass0, reg, x_base, lo, hi, tr.force_n, dt, max_dead)
+    tried = _search_dead_times(solver, (x_base, x_high), lag, max_dead)
+    r, dead, lag = _refine(solver, tried, starts)
+    n = model.meas.size - lag  # the position residual leads r.fun (the force's follows)
+
+    def pos_rms(t):  # every fit tried has the one logging lag
+        return float(np.sqrt(np.mean(t.fun[:n] ** 2))) * 1e-6
+
+    noise = _noise_rms(model.meas)
+    r, frac, dead = _fractional(solver, tried, r, dead, lag, max_dead, noise, pos_rms)
+    candidates = [(d, lg, pos_rms(t)) for (d, lg), t in sorted(tried.items())]
+    cov, tau = _covariance(r, n)
+    x = r.x
+    mass, mass_sd, f_rms, ratio, f_meas = _force_scale(model, x, dead, lag, n, tr.force_n,
+                                                       mass0, axis)
+    vals, los, his = _intervals(x, cov, mass, mass_sd, ratio)
     cas = model.cascade(x).model_copy(update={
         "mass_kg": mass, "kv_n_s_m": vals["kv_n_s_m"], "coulomb_n": vals["coulomb_n"],
         "static_n": max(vals["static_n"], vals["coulomb_n"]), "viscous_n_s_m": vals["viscous_n_s_m"],
@@ -764,15 +835,8 @@ def _fit_axis(base, axis, tr, dt, max_dead, starts, t_start, progress) -> AxisFi
     ends = _at_bounds(r.x[: r.x.size - frac], lo, hi)
     equivalent = _equivalent_changes(model, r, n, math.sqrt(max(rms ** 2 - noise ** 2, 0.0)),
                                      dead, lag, frac)
-    f_level = float(np.sqrt(np.mean(f_meas ** 2))) if f_rms is not None else 0.0
-    if (rms > IDENT_POOR_NOISE_RATIO * max(noise, 1e-9) or share > IDENT_MODEL_ERROR_MAX_SHARE
-            or (f_rms is not None and f_rms > IDENT_POOR_FORCE_SHARE * f_level)):
-        status = "poor"
-    elif rms > IDENT_MODEL_ERROR_NOISE_RATIO * max(noise, 1e-9) or ends:
-        status = "model-error"
-    else:
-        status = "ok"
-    return AxisFit(status=status, cascade=cas, dead_time_samples=dead, lag_samples=lag,
+    return AxisFit(status=_status(rms, noise, share, f_rms, f_meas, ends), cascade=cas,
+                   dead_time_samples=dead, lag_samples=lag,
                    values=vals, ci_low=los, ci_high=his, mass_identified=tr.force_n is not None,
                    residual_rms_m=rms, noise_rms_m=noise, force_residual_rms_n=f_rms,
                    candidates=candidates, fit_time_s=time.process_time() - t_start, n_samples=n,

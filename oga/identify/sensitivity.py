@@ -18,6 +18,7 @@ see :func:`_advance_sens`).
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
@@ -61,11 +62,23 @@ def _friction_terms(params, v):
     return s, s * ex, -2.0 * r * v * params[_DFS] * s * ex
 
 
+#: The setpoints of one axis for :func:`_run_sens`: ``pd``, ``vd``, ``kp_si``, ``kf`` (N,)
+#: (m, m/s, 1/s, factor), float64, contiguous.
+Command = namedtuple("Command", ["pd", "vd", "kp_si", "kf"])
+
+#: The outputs :func:`_run_sens` fills: ``p`` (N,) positions (m), ``dp`` (N, D), ``f`` (N,)
+#: forces (N), ``df`` (N, D).
+Sensitivities = namedtuple("Sensitivities", ["p", "dp", "f", "df"])
+
+
 @njit(cache=True)
-def _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud):
-    """:func:`oga.simulate._advance` (no load) of one Te, the tangents ``dp, dv, df, di`` (D,)
-    advanced in place; ``dud`` (D,) the derivatives of the command ``ud``; ``dc`` (D, 10)
-    the directions' :func:`oga.simulate._substep_coefs`."""
+def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
+    """:func:`oga.simulate._advance` (no load) of one Te from ``state`` ``(p, v, f, i)``;
+    the tangents ``tangents`` (4, D) (rows p, v, f, i) advanced in place; ``dud`` (D,) the
+    derivatives of the command ``ud``; ``dc`` (D, 10) the directions'
+    :func:`oga.simulate._substep_coefs`. Returns the next state."""
+    p, v, f, i = state
+    dp, dv, df, di = tangents[0], tangents[1], tangents[2], tangents[3]
     nd = dpar.shape[0]
     if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
         return p, v, f, i  # at rest and not driven: nothing moves (as the simulator)
@@ -123,7 +136,12 @@ def _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud):
 
 
 @njit(cache=True)
-def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp, out_f, out_df):
+def _run_sens(params, dpar, p0, cmd, out):
+    """Simulate one axis from rest at ``p0`` on the :data:`Command` ``cmd`` with the
+    tangents along the directions ``dpar`` (D, P); fills the :data:`Sensitivities` ``out``."""
+    pd, vd, kp_si, kf = cmd.pd, cmd.vd, cmd.kp_si, cmd.kf
+    out_p, out_dp, out_f, out_df = out.p, out.dp, out.f, out.df
+    dead = int(params[_DEAD])
     n = pd.shape[0]
     nd = dpar.shape[0]
     dc = np.empty((nd, 10))
@@ -134,10 +152,12 @@ def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp, out_f, o
     frac = params[_FRAC]
     u_hist = np.empty(n)
     du_hist = np.empty((n, nd))
-    dp, dv, df, di = np.zeros(nd), np.zeros(nd), np.zeros(nd), np.zeros(nd)
+    tangents = np.zeros((4, nd))
+    dp, df = tangents[0], tangents[2]
     dud = np.zeros(nd)
-    p, v, f, i = p0, 0.0, 0.0, 0.0
+    state = (p0, 0.0, 0.0, 0.0)
     for k in range(n):
+        p, f = state[0], state[2]
         out_p[k] = p
         out_f[k] = f
         u_hist[k] = kp_si[k] * (pd[k] - p) + kf[k] * vd[k]
@@ -155,7 +175,7 @@ def _run_sens(params, dpar, p0, pd, vd, kp_si, kf, dead, out_p, out_dp, out_f, o
                 dnewer = du_hist[m + 1, d] if m + 1 >= 0 else 0.0
                 dud[d] = frac * dud[d] + (1.0 - frac) * dnewer + dpar[d, _FRAC] * (ud - newer)
             ud = _delayed(params, ud, newer)
-        p, v, f, i = _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud)
+        state = _advance_sens(params, dpar, dc, state, ud, tangents, dud)
 
 
 def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: float, pd, vd,
@@ -198,6 +218,6 @@ def forces_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: float,
     n, nd = pd.shape[0], dparams.shape[0]
     out_p, out_dp = np.empty(n), np.empty((n, nd))
     out_f, out_df = np.empty(n), np.empty((n, nd))
-    _run_sens(params, np.ascontiguousarray(dparams, dtype=np.float64), float(p0), pd, vd, kp_si,
-              kf, int(params[_DEAD]), out_p, out_dp, out_f, out_df)
+    _run_sens(params, np.ascontiguousarray(dparams, dtype=np.float64), float(p0),
+              Command(pd, vd, kp_si, kf), Sensitivities(out_p, out_dp, out_f, out_df))
     return out_p, out_dp, out_f, out_df

@@ -301,19 +301,85 @@ def search_law(
     """
     t_start = time.process_time()
     n_pts = check_kind(kind, points)
+    overrides = _check_programs(programs)
+    if scenarios is None:
+        scenarios = scenario_set(machine)
+    report = progress or (lambda f: None)
+    threads = resolve_threads(threads)
+    plants = _Plants(machine, scenarios)
+    baselines, bounds_of, moving_all = _baselines(programs, machine, scenarios,
+                                                  dict(baselines or {}), threads)
+    report(0.1)
+    law_axes = tuple(AXES[i] for i in sorted(moving_all))
+    (kp_lo, kp_hi), (kf_lo, kf_hi) = (_common_range(programs, machine, scenarios, bounds_of),
+                                      machine.gains.kf_range)
+    first = baselines[programs[0].name]
+    fixed_kp = {a: first.kp for a in AXES if a not in law_axes}
+    fixed_kf = {a: first.kf for a in AXES if a not in law_axes}
+    # support points over every case; the start: of the programs' baselines, the constant
+    # law that keeps the limits (then of least cost) on the nominal plant
+    start_law = _start_law(kind, n_pts, programs, law_axes, first.kp, first.kf,
+                           fixed_kp, fixed_kf)
+    layout = _Layout(kind, start_law.axes)
+    cases = _cases(programs, overrides, law_axes, start_law, baselines)
+    lo, hi = layout.constant(kp_lo, kf_lo), layout.constant(kp_hi, kf_hi)
+    ctx = _Context(cases, plants, layout, lo, hi, fixed_kp, fixed_kf, bounds_of)
+    theta0 = min((layout.constant(b.kp, b.kf) for b in baselines.values()),
+                 key=ctx.start_key)
+    run = _Rounds(search_s=time.process_time() - t_start)
+    _search_rounds(run, ctx, theta0, machine, scenarios, report)
+    status, reason, alpha, law, cert, reserve_kept, active_kept = _chosen(run, ctx, theta0)
+    report(1.0)
+    return LawResult(status=status, law=law, certificate=cert, baselines=baselines,
+                     rounds=run.rounds, reserve=reserve_kept,
+                     active=tuple(plants.label(i) for i in active_kept), alpha=alpha,
+                     nominal_ratio=_nominal_ratios(ctx, law), search_s=run.search_s,
+                     certify_s=run.certify_s, iterations=run.iterations, reason=reason)
+
+
+def _chosen(run: _Rounds, ctx: "_Context", theta0):
+    """``(status, reason, alpha, law, certificate, reserve, active)``: of the certified laws,
+    the least mean median ratio over the cases; none: the start law, failed, with the first
+    failed certificate."""
+    if run.certified:
+        _m, _r, alpha, law, cert, reserve, active = min(run.certified, key=lambda t: t[0])
+        return "ok", "", alpha, law, cert, reserve, active
+    law = quantized(ctx.layout.law(theta0, ctx.fixed_kp, ctx.fixed_kf))
+    return ("failed", "; ".join(run.first_failed.reasons), 0.0, law, run.first_failed,
+            run.reserve, tuple(run.active))
+
+
+def _nominal_ratios(ctx: "_Context", law: Law) -> dict[tuple[str, float], float]:
+    """The law's MSE over the baseline's on the nominal plant, per (program, override)."""
+    out = {}
+    for c in ctx.cases:
+        kp, kf = law_gains(law, c.sp)
+        out[(c.program, c.override)] = ctx.exact(c, -1, kp, kf)[0] / ctx.base_mse(c, -1)
+    return out
+
+
+def _common_range(programs, machine, scenarios, bounds_of) -> tuple[float, float]:
+    """The Kp range (lo, hi) common to every program's plants."""
+    ranges = [common_kp_range(machine, scenarios, bounds_of[p.name],
+                              tuple(AXES[i] for i in p.setpoints[1.0].moving_axes))
+              for p in programs]
+    return max(r[0] for r in ranges), min(r[1] for r in ranges)
+
+
+def _check_programs(programs: list[Program]) -> tuple[float, ...]:
+    """The overrides common to every program (1.0 among them), else OptionError."""
     if not programs:
         raise OptionError("programs: a law needs at least one program")
     overrides = tuple(sorted(programs[0].setpoints))
     if any(tuple(sorted(p.setpoints)) != overrides for p in programs) or 1.0 not in overrides:
         raise OptionError("overrides: every program needs its setpoints at the same overrides, "
                           "1.0 among them")
-    if scenarios is None:
-        scenarios = scenario_set(machine)
-    report = progress or (lambda f: None)
-    threads = resolve_threads(threads)
-    plants = _Plants(machine, scenarios)
-    baselines = dict(baselines or {})
-    cases: list[_Case] = []
+    return overrides
+
+
+def _baselines(programs, machine, scenarios, baselines: dict, threads):
+    """``(baselines, bounds_of, moving_all)``: each program's robust baseline (those not in
+    ``baselines`` searched), its plants' bounds, and the axes any program moves."""
     bounds_of: dict[str, tuple] = {}
     moving_all: set[int] = set()
     for p in programs:
@@ -327,21 +393,13 @@ def search_law(
             baselines[p.name] = program_baseline(p.name, sp1, machine, scenarios,
                                                  bounds_of[p.name], threads=threads)
         moving_all.update(moving)
-    report(0.1)
-    law_axes = tuple(AXES[i] for i in sorted(moving_all))
-    ranges = [common_kp_range(machine, scenarios, bounds_of[p.name],
-                              tuple(AXES[i] for i in p.setpoints[1.0].moving_axes))
-              for p in programs]
-    kp_lo, kp_hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
-    kf_lo, kf_hi = machine.gains.kf_range
-    first = baselines[programs[0].name]
-    fixed_kp = {a: first.kp for a in AXES if a not in law_axes}
-    fixed_kf = {a: first.kf for a in AXES if a not in law_axes}
-    # support points over every case; the start: of the programs' baselines, the constant
-    # law that keeps the limits (then of least cost) on the nominal plant
-    start_law = _start_law(kind, n_pts, programs, law_axes, first.kp, first.kf,
-                           fixed_kp, fixed_kf)
-    layout = _Layout(kind, start_law.axes)
+    return baselines, bounds_of, moving_all
+
+
+def _cases(programs, overrides, law_axes, start_law: Law, baselines) -> list[_Case]:
+    """One case per program and override: its setpoints, baseline, and the law's basis
+    weights of its moving law axes."""
+    cases: list[_Case] = []
     for p in programs:
         for o in overrides:
             sp = p.setpoints[o]
@@ -362,66 +420,62 @@ def search_law(
                 case.base_replays.update(enumerate(base.replays))
                 case.base_replays[-1] = base.nominal
             cases.append(case)
-    lo, hi = layout.constant(kp_lo, kf_lo), layout.constant(kp_hi, kf_hi)
-    ctx = _Context(cases, plants, layout, lo, hi, fixed_kp, fixed_kf, bounds_of)
-    theta0 = min((layout.constant(b.kp, b.kf) for b in baselines.values()),
-                 key=ctx.start_key)
-    reserve = 1.0  # the rounds' limit reserve starts where the robust table's does
+    return cases
+
+
+@dataclass
+class _Rounds:
+    """The state of the search's rounds (:func:`_search_rounds`)."""
+
+    search_s: float
+    certify_s: float = 0.0
+    iterations: int = 0
+    rounds: int = 0
+    reserve: float = 1.0  # the rounds' limit reserve starts where the robust table's does
+    active: list = field(default_factory=list)
+    certified: list = field(default_factory=list)  # (mean median, round, alpha, law, cert,
+    #                                                reserve, active)
+    first_failed: object = None
+
+
+def _search_rounds(run: _Rounds, ctx: "_Context", theta0, machine, scenarios, report) -> None:
+    """Search and certify round by round (``run`` updated): each round's law, else its
+    shrinks towards ``theta0``, certified on the whole set; a round that fails adds limit
+    reserve and the worst plant to the active ones."""
     # the first round searches the nominal plant and the first Monte Carlo plants (typical
     # ones: the nominal plant alone is not the set's median plant)
-    active: list[int] = list(range(min(defaults.LAW_TYPICAL_PLANTS, scenarios.n_monte_carlo)))
-    iterations = 0
-    search_s = certify_s = 0.0
-    t_phase = time.process_time()
-    search_s += t_phase - t_start
-    info = [(c.program, c.override, c.sp, c.base, c.base_replays, bounds_of[c.program])
-            for c in cases]
-    certified = []  # (mean median, round, alpha, law, cert, reserve, active)
-    first_failed = None
+    run.active = list(range(min(defaults.LAW_TYPICAL_PLANTS, scenarios.n_monte_carlo)))
+    layout, fixed_kp, fixed_kf = ctx.layout, ctx.fixed_kp, ctx.fixed_kf
+    info = [(c.program, c.override, c.sp, c.base, c.base_replays, ctx.bounds_of[c.program])
+            for c in ctx.cases]
     for rounds in range(1, defaults.LAW_ROUNDS + 1):
+        run.rounds = rounds
         t0 = time.process_time()
-        theta, its = ctx.search(theta0, (-1, *active), reserve)
-        iterations += its
+        theta, its = ctx.search(theta0, (-1, *run.active), run.reserve)
+        run.iterations += its
         t1 = time.process_time()
-        search_s += t1 - t0
+        run.search_s += t1 - t0
         cert = None
         for a in (1.0, *defaults.LAW_ALPHAS):  # the round's law, else its shrinks
             law = quantized(layout.law(theta0 + a * (theta - theta0), fixed_kp, fixed_kf))
             c = certify_law(law, info, machine, scenarios)
             cert = cert or c
             if c.status == "ok":
-                certified.append((float(np.mean([x.median for x in c.cases.values()])), rounds,
-                                  a, law, c, reserve, tuple(active)))
+                run.certified.append((float(np.mean([x.median for x in c.cases.values()])),
+                                      rounds, a, law, c, run.reserve, tuple(run.active)))
                 break
-        certify_s += time.process_time() - t1
-        first_failed = first_failed or (cert if cert.status != "ok" else None)
+        run.certify_s += time.process_time() - t1
+        run.first_failed = run.first_failed or (cert if cert.status != "ok" else None)
         report(0.1 + 0.8 * rounds / defaults.LAW_ROUNDS)
         if cert.status == "ok":  # the round's own law certified: more plants only cost
             break
         only = cert.schedule_only_excess()
         if only > 1.0:  # more limit reserve
-            reserve /= only * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
+            run.reserve /= only * (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
         worst = cert.worst_plants()
-        new = next((i for i in worst if i not in active), None)
+        new = next((i for i in worst if i not in run.active), None)
         if new is not None:
-            active = (active + [new])[-(defaults.ROBUST_ACTIVE - 1):]
-    status, reason = "ok", ""
-    if certified:  # of the certified laws, the least mean median ratio over the cases
-        _m, _r, alpha, law, cert, reserve_kept, active_kept = min(certified, key=lambda t: t[0])
-    else:
-        status, reason = "failed", "; ".join(first_failed.reasons)
-        alpha, cert, reserve_kept, active_kept = 0.0, first_failed, reserve, tuple(active)
-        law = quantized(layout.law(theta0, fixed_kp, fixed_kf))
-    report(1.0)
-    nominal_ratio = {}
-    for c in cases:
-        kp, kf = law_gains(law, c.sp)
-        nominal_ratio[(c.program, c.override)] = ctx.exact(c, -1, kp, kf)[0] / ctx.base_mse(c, -1)
-    return LawResult(status=status, law=law, certificate=cert, baselines=baselines,
-                     rounds=rounds, reserve=reserve_kept,
-                     active=tuple(plants.label(i) for i in active_kept), alpha=alpha,
-                     nominal_ratio=nominal_ratio, search_s=search_s, certify_s=certify_s,
-                     iterations=iterations, reason=reason)
+            run.active = (run.active + [new])[-(defaults.ROBUST_ACTIVE - 1):]
 
 
 class _Context:
