@@ -13,6 +13,7 @@ the planner's check-and-slow-down loop.
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,8 +46,12 @@ _NEAR = 2
 #: Largest distance of the first/last sample from the programmed start/end, metres.
 _END_TOL_M = 1e-9
 
+#: The programmed moves as arrays (:func:`segment_table`); a tuple, so compiled code takes it
+#: as one argument.
+SegmentTable = namedtuple("SegmentTable", "kind a b c ax geo rapid sphere groups ahead behind")
 
-def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
+
+def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> SegmentTable:
     """The programmed moves as arrays for :func:`deviation_m` (build once, measure often).
 
     Parameters
@@ -55,7 +60,7 @@ def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
 
     Returns
     -------
-    tuple of ndarray
+    SegmentTable
         kind (n,) 0 line / 1 arc; start, end, centre (n, 3) m; plane axes (n, 3);
         radius m, start angle rad, sweep rad, rise m (n, 4); rapid flags (n,);
         a ball holding each move, centre and radius m (n, 4); balls holding groups of
@@ -90,7 +95,7 @@ def segment_table(segments: tuple[Segment, ...] | list[Segment]) -> tuple:
     groups = _group_balls(sphere, use)
     ahead = _window_balls(sphere, use, _NEAR + 1, _SEARCH_WINDOW)
     behind = _window_balls(sphere, use, -_SEARCH_WINDOW, -_NEAR - 1)
-    return kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind
+    return SegmentTable(kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind)
 
 
 @njit(cache=True)
@@ -211,7 +216,10 @@ def _far(pos, k, balls, i, best):
 
 
 @njit(cache=True)
-def _track(pos, skip, hint, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind, window):
+def _track(pos, skip, hint, table, use, window):
+    """:func:`deviation_m` of a :class:`SegmentTable` (``use``: its feed moves)."""
+    kind, a, b, c, ax, geo = table.kind, table.a, table.b, table.c, table.ax, table.geo
+    sphere, groups, ahead, behind = table.sphere, table.groups, table.ahead, table.behind
     n_pts, n_seg = pos.shape[0], kind.shape[0]
     # no arcs: the distance of lines alone (with the arc's code beside it, the compiled loop
     # computes parts of it for every line too: 15x slower)
@@ -289,7 +297,7 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None,
     ----------
     pos : ndarray, shape (N, 3)
         Points in path order, metres.
-    table : tuple
+    table : SegmentTable
         :func:`segment_table` of the programmed moves (rapids are not distance targets).
     skip : ndarray of bool, shape (N,), optional
         Points not measured (distance 0), e.g. rapid samples.
@@ -309,16 +317,14 @@ def deviation_m(pos: np.ndarray, table: tuple, skip: np.ndarray | None = None,
         point's move unless another is nearer by more than 1 nm, moves ahead
         tried first, so that a retraced stretch does not pull the tracking back.
     """
-    kind, a, b, c, ax, geo, rapid, sphere, groups, ahead, behind = table
     skip = np.zeros(len(pos), np.bool_) if skip is None else np.asarray(skip, np.bool_)
     hint = (np.full(len(pos), -1, np.int64) if hint is None
             else np.ascontiguousarray(hint, dtype=np.int64))
-    use = ~rapid
+    use = ~table.rapid
     if not use.any():
         return np.zeros(len(pos)), np.zeros(len(pos), np.int64)
     pos = np.ascontiguousarray(pos, dtype=np.float64)
-    return _track(pos, skip, hint, kind, a, b, c, ax, geo, use, sphere, groups, ahead, behind,
-                  _SEARCH_WINDOW)
+    return _track(pos, skip, hint, table, use, _SEARCH_WINDOW)
 
 
 def move_hint(block: np.ndarray, rapid: np.ndarray, segments) -> np.ndarray:
@@ -483,6 +489,33 @@ def _ratio(value: np.ndarray, limit: np.ndarray) -> np.ndarray:
         return np.where(limit > 0, value / np.where(limit > 0, limit, 1.0), moving_absent)
 
 
+def _feed_and_geometry(sp: Setpoints, path: Path, vel: np.ndarray, feed_m_s):
+    """Largest path speed over the feed of each sample's move, largest distance of a feed
+    sample to the programmed geometry (m), and the measured moves (longer than 1 pm)."""
+    pos = sp.pos
+    segs = [s for s in path.segments if s.length > 1e-12]
+    table = segment_table(segs)
+    hint = move_hint(sp.block, sp.rapid, segs)
+    dist, near = deviation_m(pos, table, skip=sp.rapid, hint=hint)
+    feed = np.array([np.inf if s.rapid else (feed_m_s or s.feed_m_s) for s in segs] or [np.inf])
+    speed = np.linalg.norm(vel[: len(pos)], axis=1)
+    fs = ~sp.rapid
+    allowed = _sample_feeds(pos, table, dist, near, hint, feed)
+    speed_ratio = float((speed[fs] / allowed[fs]).max()) if fs.any() else 0.0
+    max_dev = float(dist[fs].max()) if fs.any() else 0.0
+    return speed_ratio, max_dev, segs
+
+
+def _limit_violations(ratios, maxima) -> list[str]:
+    """A sentence per axis and quantity (velocity, acceleration, jerk) above its limit."""
+    bad: list[str] = []
+    for name, r, m, unit in zip(("velocity", "acceleration", "jerk"), ratios, maxima,
+                                ("m/s", "m/s^2", "m/s^3")):
+        for k in np.flatnonzero(r > 1.0):
+            bad.append(f"axis {AXES[k]} {name} {m[k]:.6g} {unit} is {r[k]:.4f} x its limit")
+    return bad
+
+
 def check_setpoints(
     sp: Setpoints,
     path: Path,
@@ -516,29 +549,12 @@ def check_setpoints(
     rv = _ratio(mv, limits.vmax_m_s)
     ra = _ratio(ma, limits.amax_m_s2)
     rj = _ratio(mj, limits.jmax_m_s3)
-    segs = [s for s in path.segments if s.length > 1e-12]
-    table = segment_table(segs)
-    hint = move_hint(sp.block, sp.rapid, segs)
-    dist, near = deviation_m(pos, table, skip=sp.rapid, hint=hint)
-    feed = np.array([np.inf if s.rapid else (feed_m_s or s.feed_m_s) for s in segs] or [np.inf])
-    speed = np.linalg.norm(vel[: len(pos)], axis=1)
-    fs = ~sp.rapid
-    allowed = _sample_feeds(pos, table, dist, near, hint, feed)
-    speed_ratio = float((speed[fs] / allowed[fs]).max()) if fs.any() else 0.0
-    max_dev = float(dist[fs].max()) if fs.any() else 0.0
+    speed_ratio, max_dev, segs = _feed_and_geometry(sp, path, vel, feed_m_s)
     end = segs[-1].end if segs else path.start
     start_err = float(np.linalg.norm(pos[0] - path.start))
     end_err = float(np.linalg.norm(pos[-1] - end))
     at_rest = bool(len(pos) >= 3 and np.all(pos[-3:] == pos[-1]))
-
-    bad: list[str] = []
-    for name, r, m, unit in (
-        ("velocity", rv, mv, "m/s"),
-        ("acceleration", ra, ma, "m/s^2"),
-        ("jerk", rj, mj, "m/s^3"),
-    ):
-        for k in np.flatnonzero(r > 1.0):
-            bad.append(f"axis {AXES[k]} {name} {m[k]:.6g} {unit} is {r[k]:.4f} x its limit")
+    bad = _limit_violations((rv, ra, rj), (mv, ma, mj))
     if speed_ratio > 1.0 + SPEED_MARGIN:
         bad.append(f"path speed reaches {speed_ratio:.4f} x the programmed feed")
     if max_dev > tol_m:

@@ -634,24 +634,27 @@ def _near(nodes: np.ndarray, u: float, reach: float) -> np.ndarray:
     return lo + np.flatnonzero(np.abs(nodes[lo:hi] - u) <= reach)
 
 
-def _plan_feed(
-    block: Block,
-    path: Path,
-    limits: AxisLimits,
-    feeds: np.ndarray,
-    tol_m: float,
-    dt: float,
-    budget: int,
-    progress: Callable[[float], None],
-):
-    """Samples of a feed block: positions (n, 3) m and source lines (n,).
+@dataclass(frozen=True, eq=False)
+class _Reach:
+    """What a feed block's geometry allows, before any filter length is chosen."""
 
-    ``budget`` is the number of samples left; ``progress`` gets the fraction of the
-    block's variants tried.
-    """
+    ceil: np.ndarray  # speed ceiling at each node, (G,) m/s
+    tan: np.ndarray  # unit tangent, (G, 3)
+    kappa: np.ndarray  # curvature, (G,) 1/m
+    curv: np.ndarray  # curvature vector's components, (G, 3) 1/m
+    j_path: np.ndarray  # path jerk the axes allow along the tangent, (G,) m/s^3
+    a_path: np.ndarray  # path acceleration left by the centripetal one, (G,) m/s^2
+    v_top: float  # fastest speed the block reaches, m/s
+    t_opt: float  # filter length from it, s
+    dev_node: np.ndarray  # the geometry's own deviation (fits, blends) at each node, (G,) m
+
+
+def _feed_block(block: Block, path: Path, limits: AxisLimits, feeds: np.ndarray, tol_m: float,
+                dt: float, budget: int) -> _Feed:
+    """The planning rounds' view of a feed block (:class:`_Feed`)."""
     segs = [path.segments[i] for i in block.segments]
     nodes, spacing = _grid(block)
-    fb = _Feed(
+    return _Feed(
         block=block,
         first=segs[0].start,
         last=segs[-1].end,
@@ -665,7 +668,12 @@ def _plan_feed(
         budget=budget,
         spacing=spacing,
     )
+
+
+def _reach(fb: _Feed) -> _Reach:
+    """The block's speed ceiling, path acceleration and jerk, top speed and filter length."""
     ceil0, tan, kappa, _, curv = _static_limits(fb)
+    limits = fb.limits
     ax = limits.present
     jmax, amax = limits.jmax_m_s3[ax], limits.amax_m_s2[ax]
     # each axis's acceleration left by the centripetal one at the ceiling (a bound of it at
@@ -679,59 +687,95 @@ def _plan_feed(
         a_path = np.min(spare / tan[:, ax], axis=1)
     moving = np.any(tan[:, ax] > 1e-12, axis=0)
     # the filter's length from the speed the block can reach, not from the programmed feed
-    v_top = float(np.max(_forward_backward(nodes, ceil0, np.minimum(a_path[:-1], a_path[1:]))))
+    v_top = float(np.max(_forward_backward(fb.nodes, ceil0,
+                                           np.minimum(a_path[:-1], a_path[1:]))))
     t_opt = math.sqrt(v_top / float(np.min(jmax[moving])))
-    u_jump, d_kappa, u_kink, d_tan = _joints(block.curve)
-    # the geometry's own deviation (fits, blends) at each node, the rest left to the filter
-    piece = np.clip(np.searchsorted(block.curve.u0, nodes, side="right") - 1, 0,
-                    len(block.curve.dev) - 1)
-    dev_node = block.curve.dev[piece]
+    curve = fb.block.curve
+    piece = np.clip(np.searchsorted(curve.u0, fb.nodes, side="right") - 1, 0,
+                    len(curve.dev) - 1)
+    return _Reach(ceil=ceil0, tan=tan, kappa=kappa, curv=curv, j_path=j_path, a_path=a_path,
+                  v_top=v_top, t_opt=t_opt, dev_node=curve.dev[piece])
+
+
+def _variant_limits(fb: _Feed, r: _Reach, joints, m: int, share: float, compensate: bool):
+    """Speed ceiling (G,) m/s and tangential acceleration (G - 1,) m/s^2 for filter length
+    ``m`` samples and rounding ``share`` of the tolerance, or None where this variant would
+    plan as the first one did (its rounding bounds no speed)."""
+    dt, tol_m, spacing = fb.dt, fb.tol_m, fb.spacing
+    ax = fb.limits.present
+    jmax = fb.limits.jmax_m_s3[ax]
+    u_jump, d_kappa, u_kink, d_tan = joints
+    T = m * dt
+    rounding_m = (tol_m - r.dev_node) * share
+    with np.errstate(divide="ignore"):
+        v_round = np.sqrt(24.0 * rounding_m / (r.kappa * T * T))
+    if (share, compensate) != _VARIANTS[0] and np.all(
+        v_round >= r.ceil * math.sqrt(share / _VARIANTS[0][0])
+    ):
+        return None  # the filter's rounding bounds no speed even at the least share: as tried
+    ceil = np.minimum(r.ceil, v_round)
+    # per axis, the filtered jerk of A_t: its change over T along the tangent, and the
+    # change of the centripetal acceleration v^2 d2r/du2 while the speed changes,
+    # 2 v A_t |d2r/du2| at the ceiling
+    v_c = np.where(np.isfinite(ceil), ceil, r.v_top)
+    with np.errstate(divide="ignore"):  # an axis neither moving nor turning
+        a_jerk = np.min(_AT_SHARE * jmax / (r.tan[:, ax] / T + 2.0 * v_c[:, None] * r.curv[:, ax]),
+                        axis=1)
+    acc_node = np.minimum(a_jerk, r.a_path)
+    reach = r.v_top * T  # the filter window around a jump
+    for ub, d in zip(u_jump, d_kappa):
+        near = _near(fb.nodes, ub, reach)
+        step = np.max(np.abs(d[ax]) / (jmax * T))  # jerk share per (m/s)^2 crossing it
+        with np.errstate(divide="ignore"):  # a jump on no axis that moves: no ceiling
+            ceil[near] = np.minimum(ceil[near], np.sqrt((1.0 - _JUMP_AT_SHARE) / step))
+        # what the step leaves of the jerk at the fastest crossing the ceiling allows
+        at_share = max(_JUMP_AT_SHARE, 1.0 - step * float(np.max(ceil[near], initial=0.0)) ** 2)
+        acc_node[near] = np.minimum(acc_node[near], min(at_share, _AT_SHARE) * r.j_path[near] * T)
+    for uk, d in zip(u_kink, d_tan):
+        near = _near(fb.nodes, uk, spacing)  # the speed while crossing it
+        with np.errstate(divide="ignore"):
+            v_jerk = np.min(jmax * T * dt / np.abs(d[ax]))
+        v_cut = 8.0 * tol_m / (T * np.linalg.norm(d))  # corner cut ~ v T |dt| / 8
+        ceil[near] = np.minimum(ceil[near], min(v_jerk, v_cut))
+    return ceil, np.minimum(acc_node[:-1], acc_node[1:])
+
+
+def _plan_feed(
+    block: Block,
+    path: Path,
+    limits: AxisLimits,
+    feeds: np.ndarray,
+    tol_m: float,
+    dt: float,
+    budget: int,
+    progress: Callable[[float], None],
+):
+    """Samples of a feed block: positions (n, 3) m and source lines (n,).
+
+    Every filter length and rounding variant is tried (:func:`_variant_limits`, then the
+    check-and-slow-down rounds of :func:`_converge`); the fastest clean one is kept.
+    ``budget`` is the number of samples left; ``progress`` gets the fraction of the
+    block's variants tried.
+    """
+    fb = _feed_block(block, path, limits, feeds, tol_m, dt, budget)
+    r = _reach(fb)
+    joints = _joints(block.curve)
     best = None
-    lengths = sorted({max(1, round(t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
+    lengths = sorted({max(1, round(r.t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
     variants = list(itertools.product(lengths, _VARIANTS))
     for tried, (m, (share, compensate)) in enumerate(variants):
         progress(tried / len(variants))
-        T = m * dt
-        rounding_m = (tol_m - dev_node) * share
-        with np.errstate(divide="ignore"):
-            v_round = np.sqrt(24.0 * rounding_m / (kappa * T * T))
-        if (share, compensate) != _VARIANTS[0] and np.all(
-            v_round >= ceil0 * math.sqrt(share / _VARIANTS[0][0])
-        ):
-            continue  # the filter's rounding bounds no speed even at the least share: as tried
-        ceil = np.minimum(ceil0, v_round)
-        # per axis, the filtered jerk of A_t: its change over T along the tangent, and the
-        # change of the centripetal acceleration v^2 d2r/du2 while the speed changes,
-        # 2 v A_t |d2r/du2| at the ceiling
-        v_c = np.where(np.isfinite(ceil), ceil, v_top)
-        with np.errstate(divide="ignore"):  # an axis neither moving nor turning
-            a_jerk = np.min(_AT_SHARE * jmax / (tan[:, ax] / T + 2.0 * v_c[:, None] * curv[:, ax]),
-                            axis=1)
-        acc_node = np.minimum(a_jerk, a_path)
-        reach = v_top * T  # the filter window around a jump
-        for ub, d in zip(u_jump, d_kappa):
-            near = _near(fb.nodes, ub, reach)
-            step = np.max(np.abs(d[ax]) / (jmax * T))  # jerk share per (m/s)^2 crossing it
-            with np.errstate(divide="ignore"):  # a jump on no axis that moves: no ceiling
-                ceil[near] = np.minimum(ceil[near], np.sqrt((1.0 - _JUMP_AT_SHARE) / step))
-            # what the step leaves of the jerk at the fastest crossing the ceiling allows
-            at_share = max(_JUMP_AT_SHARE, 1.0 - step * float(np.max(ceil[near], initial=0.0)) ** 2)
-            acc_node[near] = np.minimum(acc_node[near], min(at_share, _AT_SHARE) * j_path[near] * T)
-        for uk, d in zip(u_kink, d_tan):
-            near = _near(fb.nodes, uk, spacing)  # the speed while crossing it
-            with np.errstate(divide="ignore"):
-                v_jerk = np.min(jmax * T * dt / np.abs(d[ax]))
-            v_cut = 8.0 * tol_m / (T * np.linalg.norm(d))  # corner cut ~ v T |dt| / 8
-            ceil[near] = np.minimum(ceil[near], min(v_jerk, v_cut))
-        acc_t = np.minimum(acc_node[:-1], acc_node[1:])
+        bounds = _variant_limits(fb, r, joints, m, share, compensate)
+        if bounds is None:
+            continue
         beat = math.inf if best is None else best.duration
-        att = _converge(fb, ceil, acc_t, m, compensate, beat)
+        att = _converge(fb, *bounds, m, compensate, beat)
         if att is not None:
             best = att
     if best is None:
         raise PlanError(
-            f"line {segs[0].line}: no plan within the limits and the tolerance "
-            f"after {_ROUNDS} slow-down rounds"
+            f"line {path.segments[block.segments[0]].line}: no plan within the limits and "
+            f"the tolerance after {_ROUNDS} slow-down rounds"
         )
     return best.pos, _lines(fb, best)
 
@@ -954,6 +998,33 @@ def derivatives(pos: np.ndarray, dt: float):
     return vel, acc, jerk
 
 
+def _plan_blocks(blocks, path: Path, limits: AxisLimits, seg_feed: np.ndarray,
+                 seg_time: np.ndarray, tol_m: float, dt: float, progress):
+    """Each block planned from rest to rest, joined: positions (N, 3) m, source lines (N,),
+    rapid flags (N,), the first sample on ``path.start``; ``progress`` by ``seg_time``."""
+    budget = int(min(MAX_SAMPLES, MAX_MOTION_S / dt))
+    done, whole = 0.0, float(np.sum(seg_time))
+    report = progress if progress is not None else (lambda fraction: None)
+    pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]
+    used = 1
+    for blk in blocks:
+        share = float(np.sum(seg_time[blk.segments]))
+        if _one_line(blk, seg_feed):  # ruckig's profile along the line
+            p, ln = _straight_run(blk, path, limits, dt, budget - used, seg_feed)
+        else:
+            p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt, budget - used,
+                               lambda f: report(min((done + f * share) / whole, 1.0)))
+        pos.append(p[1:])  # p[0] is where the previous block ended, at rest
+        line.append(ln[1:])
+        rapid.append(np.full(len(p) - 1, blk.rapid))
+        used += len(p) - 1
+        done += share
+        report(min(done / whole, 1.0))
+    if blocks:  # the first sample belongs to the first move
+        line[0][0], rapid[0][0] = line[1][0], rapid[1][0]
+    return np.concatenate(pos), np.concatenate(line), np.concatenate(rapid)
+
+
 def plan(
     path: Path,
     limits: AxisLimits,
@@ -1010,33 +1081,13 @@ def plan(
     _validate(path, limits, feed_m_s, tol_m, dt)
     seg_feed, allowed, warnings = _feeds(path, limits, feed_m_s)
     seg_time = _estimate(path, seg_feed, allowed, dt)
-    budget = int(min(MAX_SAMPLES, MAX_MOTION_S / dt))
     given, tol_m = tol_m, program_tolerance_m(path, tol_m)
     if tol_m != given:
         warnings.append(f"the program's G64 P sets the tolerance to {tol_m * 1e3:.6g} mm "
                         f"(instead of {given * 1e3:.6g} mm)")
     blocks = blocks_of(path, tol_m * FIT_TOL_FRACTION, Blending(tol_m * BLEND_TOL_FRACTION,
                                                                limits, seg_feed))
-    done, whole = 0.0, float(np.sum(seg_time))
-    report = progress if progress is not None else (lambda fraction: None)
-    pos, line, rapid = [path.start[None, :]], [np.zeros(1, np.int64)], [np.zeros(1, bool)]
-    used = 1
-    for blk in blocks:
-        share = float(np.sum(seg_time[blk.segments]))
-        if _one_line(blk, seg_feed):  # ruckig's profile along the line
-            p, ln = _straight_run(blk, path, limits, dt, budget - used, seg_feed)
-        else:
-            p, ln = _plan_feed(blk, path, limits, seg_feed, tol_m, dt, budget - used,
-                               lambda f: report(min((done + f * share) / whole, 1.0)))
-        pos.append(p[1:])  # p[0] is where the previous block ended, at rest
-        line.append(ln[1:])
-        rapid.append(np.full(len(p) - 1, blk.rapid))
-        used += len(p) - 1
-        done += share
-        report(min(done / whole, 1.0))
-    if blocks:  # the first sample belongs to the first move
-        line[0][0], rapid[0][0] = line[1][0], rapid[1][0]
-    pos, line, rapid = np.concatenate(pos), np.concatenate(line), np.concatenate(rapid)
+    pos, line, rapid = _plan_blocks(blocks, path, limits, seg_feed, seg_time, tol_m, dt, progress)
     vel, acc, jerk = derivatives(pos, dt)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     return Setpoints(

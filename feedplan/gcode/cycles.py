@@ -88,21 +88,7 @@ def cycle_moves(
     end : (aa, bb, cc)
         The position after the block.
     """
-    name = CYCLES[code]
-    if "R" not in words:
-        if previous != code:
-            raise error(f"{name}: R (clearance plane) is missing in the first block of the cycle",
-                        "")
-        words["R"] = memory.r
-    repeats = words.get("L", 1.0)
-    if repeats != int(repeats) or repeats < 0:
-        raise error(f"{name}: L (repeats) must be a whole number, got {repeats:g}", "L")
-    if repeats == 0:
-        raise error(f"{name}: L0 (no repeat) is not allowed", "L")
-    if previous != code and "c" not in words:
-        raise error(f"{name}: the depth (the axis word normal to the plane) is missing in the "
-                    "first block of the cycle", "")
-    c_word = words.get("c", memory.cc)
+    repeats, c_word = _repeats_and_depth(code, previous, words, memory, error)
     cur_a, cur_b, current_cc = current
     if memory.il is None:
         memory.il = current_cc
@@ -117,12 +103,77 @@ def cycle_moves(
         r, cc = words["R"], c_word
         aa, bb = words.get("a", cur_a), words.get("b", cur_b)
     if r < cc:
-        raise error(f"{name}: R {r:g} is below the depth {cc:g}", "R")
+        raise error(f"{CYCLES[code]}: R {r:g} is below the depth {cc:g}", "R")
     moves: list[tuple] = []
     if old_cc < r:
         moves.append(("T", (cur_a, cur_b, r)))
         old_cc = current_cc = r
-    clear = r if retract_r else old_cc
+    hole = _hole(code, previous, words, spindle, memory, error, ijk, incremental,
+                 r=r, cc=cc, clear=r if retract_r else old_cc,
+                 delta=_RAPID_DELTA_IN * (1.0 if inch else 25.4))
+    for n in range(repeats, 0, -1):
+        aa, bb = aa + inc_a, bb + inc_b
+        if n == repeats and current_cc > r:
+            moves += [("T", (aa, bb, current_cc)), ("T", (aa, bb, r))]
+        else:
+            moves.append(("T", (aa, bb, hole.clear)))
+            if hole.clear > r:
+                moves.append(("T", (aa, bb, r)))
+        moves += _FAMILIES[code](aa, bb, hole)
+    _remember(code, memory, hole, c_word, words["R"])
+    return moves, (aa, bb, hole.clear)
+
+
+def _remember(code: int, memory: CycleMemory, hole: "_Hole", c_word: float, r_word: float):
+    """What LinuxCNC keeps of the block for the next one of the cycle."""
+    if code in _DWELL_P or code in (740, 840):
+        memory.p = hole.p
+    if code in _PECK_Q:
+        memory.q = hole.q
+    memory.cc = c_word
+    memory.r = r_word
+
+
+def _repeats_and_depth(code: int, previous: int | None, words: dict[str, float],
+                       memory: CycleMemory, error) -> tuple[int, float]:
+    """L (repeats) and the depth word of the block, R taken from the memory when the cycle
+    continues without it; the errors of a missing R or depth, or a bad L."""
+    name = CYCLES[code]
+    if "R" not in words:
+        if previous != code:
+            raise error(f"{name}: R (clearance plane) is missing in the first block of the cycle",
+                        "")
+        words["R"] = memory.r
+    repeats = words.get("L", 1.0)
+    if repeats != int(repeats) or repeats < 0:
+        raise error(f"{name}: L (repeats) must be a whole number, got {repeats:g}", "L")
+    if repeats == 0:
+        raise error(f"{name}: L0 (no repeat) is not allowed", "L")
+    if previous != code and "c" not in words:
+        raise error(f"{name}: the depth (the axis word normal to the plane) is missing in the "
+                    "first block of the cycle", "")
+    return int(repeats), words.get("c", memory.cc)
+
+
+@dataclass(frozen=True)
+class _Hole:
+    """One cycle's levels along the normal (program units) and its words, for every hole."""
+
+    r: float  # clearance plane R
+    cc: float  # depth
+    clear: float  # retract height
+    delta: float  # G73/G83 retract above the last depth
+    p: float  # dwell, seconds
+    q: float  # peck depth
+    off_a: float = 0.0  # G87: offset of the bore's axis, top of the bore
+    off_b: float = 0.0
+    middle: float = 0.0
+
+
+def _hole(code, previous, words, spindle, memory, error, ijk, incremental, **levels) -> _Hole:
+    """The cycle's dwell, peck and G87 words (or the memory's), checked; the spindle's
+    direction checked for the cycles that need it."""
+    name = CYCLES[code]
     if code in _DWELL_P and previous != code and "P" not in words:
         raise error(f"{name}: P (dwell, seconds) is missing", "")
     if code in _PECK_Q and previous != code and "Q" not in words:
@@ -139,49 +190,63 @@ def cycle_moves(
     q = words.get("Q", memory.q)
     if code in _PECK_Q and q <= 0:
         raise error(f"{name}: Q (peck depth) must be positive, got {q:g}", "Q")
-    if code == 870:
-        if previous != code:
-            for letter in "IJK":
-                if letter not in words:
-                    raise error(f"G87: {letter} is missing", "")
-        memory.i, memory.j, memory.k = (words.get(x, getattr(memory, x.lower())) for x in "IJK")
-        off_a, off_b, top = (getattr(memory, x.lower()) for x in ijk)
-        middle = cc + top if incremental else top
-    delta = _RAPID_DELTA_IN * (1.0 if inch else 25.4)
-    for n in range(int(repeats), 0, -1):
-        aa, bb = aa + inc_a, bb + inc_b
-        if n == int(repeats) and current_cc > r:
-            moves += [("T", (aa, bb, current_cc)), ("T", (aa, bb, r))]
-        else:
-            moves.append(("T", (aa, bb, clear)))
-            if clear > r:
-                moves.append(("T", (aa, bb, r)))
-        if code == 810:
-            moves += [("F", (aa, bb, cc)), ("T", (aa, bb, clear))]
-        elif code in (820, 860):
-            moves += [("F", (aa, bb, cc)), ("D", p), ("T", (aa, bb, clear))]
-        elif code in (730, 830):
-            depth = r - q
-            while depth > cc:
-                moves.append(("F", (aa, bb, depth)))
-                if code == 830:
-                    moves.append(("T", (aa, bb, r)))
-                moves.append(("T", (aa, bb, depth + delta)))
-                depth = depth - q
-            moves += [("F", (aa, bb, cc)), ("T", (aa, bb, clear))]
-        elif code == 850:
-            moves += [("F", (aa, bb, cc)), ("F", (aa, bb, r)), ("T", (aa, bb, clear))]
-        elif code in (740, 840, 890):
-            moves += [("F", (aa, bb, cc)), ("D", p), ("F", (aa, bb, clear))]
-        elif code == 870:
-            oa, ob = aa + off_a, bb + off_b
-            moves += [("T", (oa, ob, r)), ("T", (oa, ob, cc)), ("T", (aa, bb, cc)),
-                      ("F", (aa, bb, middle)), ("F", (aa, bb, cc)), ("T", (oa, ob, cc)),
-                      ("T", (oa, ob, clear)), ("T", (aa, bb, clear))]
-    if code in _DWELL_P or code in (740, 840):
-        memory.p = p
-    if code in _PECK_Q:
-        memory.q = q
-    memory.cc = c_word
-    memory.r = words["R"]
-    return moves, (aa, bb, clear)
+    if code != 870:
+        return _Hole(p=p, q=q, **levels)
+    if previous != code:
+        for letter in "IJK":
+            if letter not in words:
+                raise error(f"G87: {letter} is missing", "")
+    memory.i, memory.j, memory.k = (words.get(x, getattr(memory, x.lower())) for x in "IJK")
+    off_a, off_b, top = (getattr(memory, x.lower()) for x in ijk)
+    middle = levels["cc"] + top if incremental else top
+    return _Hole(p=p, q=q, off_a=off_a, off_b=off_b, middle=middle, **levels)
+
+
+def _drill(aa: float, bb: float, h: _Hole) -> list[tuple]:
+    """G81: feed to the depth, traverse out."""
+    return [("F", (aa, bb, h.cc)), ("T", (aa, bb, h.clear))]
+
+
+def _dwell_drill(aa: float, bb: float, h: _Hole) -> list[tuple]:
+    """G82, G86: feed to the depth, dwell, traverse out."""
+    return [("F", (aa, bb, h.cc)), ("D", h.p), ("T", (aa, bb, h.clear))]
+
+
+def _peck(aa: float, bb: float, h: _Hole, to_r: bool) -> list[tuple]:
+    """G73 (``to_r`` False: retract by delta) and G83 (traverse to R and back to delta above
+    the last depth): pecks of Q, then the last feed to the depth and out."""
+    moves = []
+    depth = h.r - h.q
+    while depth > h.cc:
+        moves.append(("F", (aa, bb, depth)))
+        if to_r:
+            moves.append(("T", (aa, bb, h.r)))
+        moves.append(("T", (aa, bb, depth + h.delta)))
+        depth = depth - h.q
+    return moves + [("F", (aa, bb, h.cc)), ("T", (aa, bb, h.clear))]
+
+
+def _bore(aa: float, bb: float, h: _Hole) -> list[tuple]:
+    """G85: feed in, feed out to R, traverse out."""
+    return [("F", (aa, bb, h.cc)), ("F", (aa, bb, h.r)), ("T", (aa, bb, h.clear))]
+
+
+def _tap(aa: float, bb: float, h: _Hole) -> list[tuple]:
+    """G74, G84, G89: feed in, dwell, feed out."""
+    return [("F", (aa, bb, h.cc)), ("D", h.p), ("F", (aa, bb, h.clear))]
+
+
+def _back_bore(aa: float, bb: float, h: _Hole) -> list[tuple]:
+    """G87: down beside the bore at the offset, in under it, feed up to the top and back,
+    out beside it again."""
+    oa, ob, cc, clear = aa + h.off_a, bb + h.off_b, h.cc, h.clear
+    return [("T", (oa, ob, h.r)), ("T", (oa, ob, cc)), ("T", (aa, bb, cc)),
+            ("F", (aa, bb, h.middle)), ("F", (aa, bb, cc)), ("T", (oa, ob, cc)),
+            ("T", (oa, ob, clear)), ("T", (aa, bb, clear))]
+
+
+#: The moves of one hole, per cycle.
+_FAMILIES = {810: _drill, 820: _dwell_drill, 860: _dwell_drill,
+             730: lambda aa, bb, h: _peck(aa, bb, h, False),
+             830: lambda aa, bb, h: _peck(aa, bb, h, True),
+             850: _bore, 740: _tap, 840: _tap, 890: _tap, 870: _back_bore}

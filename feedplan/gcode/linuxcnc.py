@@ -232,107 +232,154 @@ def read_linuxcnc(text: str, source: str = "", axes: str = "xyz", setup: Setup |
         [t.rstrip("\r") for t in lines], source)
     records = _run("\n".join(program) + "\n", _tool_table(setup, text), _parameters(setup),
                    axes, timeout_s)
-    out = PathBuilder(source, setup.work_offsets_m[0])
+    canon = _Canon(lines, source, axes, setup, control, cycle_lines, motion_lines)
     for w in warnings:
-        out.warn(w)
-    g5x = np.zeros(3)
-    g92 = np.zeros(3)
-    tlo = np.zeros(3)
-    rot = 0.0
-    line, state = 0, None
-    last_g64_p: float | None = None
-    last_seen = 0
-    unit_m = MM_M
+        canon.out.warn(w)
+    for rec in records:
+        if not canon.take(rec):
+            break
+    return canon.out.path()
 
-    def machine(p) -> np.ndarray:
-        v = np.asarray(p, dtype=np.float64) * INCH_M + g92
-        if rot:
-            c, s = math.cos(math.radians(rot)), math.sin(math.radians(rot))
+
+class _Canon:
+    """The worker's records (canon calls, line reports, the end) made into a Path.
+
+    Positions come in inches in the program's coordinates with no offsets (as LinuxCNC's
+    canon calls them); the offsets (G5x, G92, tool length) and the XY rotation reported
+    beside them are applied here.
+    """
+
+    def __init__(self, lines: list[str], source: str, axes: str, setup: Setup, control: dict,
+                 cycle_lines: set, motion_lines: set) -> None:
+        self.lines, self.source, self.axes, self.setup = lines, source, axes, setup
+        self.control, self.cycle_lines, self.motion_lines = control, cycle_lines, motion_lines
+        self.out = PathBuilder(source, setup.work_offsets_m[0])
+        self.g5x = np.zeros(3)
+        self.g92 = np.zeros(3)
+        self.tlo = np.zeros(3)
+        self.rot = 0.0
+        self.line, self.state = 0, None
+        self.last_g64_p: float | None = None
+        self.last_seen = 0
+        self.unit_m = MM_M
+
+    def machine(self, p) -> np.ndarray:
+        """Machine position (m) of a program position (inches)."""
+        v = np.asarray(p, dtype=np.float64) * INCH_M + self.g92
+        if self.rot:
+            c, s = math.cos(math.radians(self.rot)), math.sin(math.radians(self.rot))
             v = np.array([v[0] * c - v[1] * s, v[0] * s + v[1] * c, v[2]])
-        return v + g5x + tlo
+        return v + self.g5x + self.tlo
 
-    def blend(n: int) -> float | None:
-        if n in cycle_lines or (state is not None and state[0] in CYCLES
-                                and n not in motion_lines):
+    def blend(self, n: int) -> float | None:
+        """The blend tolerance (m) of a move of line ``n`` (0: exact stop; None: default)."""
+        state = self.state
+        if n in self.cycle_lines or (state is not None and state[0] in CYCLES
+                                     and n not in self.motion_lines):
             return 0.0
-        if n in control:
-            mode, p = control[n]
-            return mode if p is None else p * unit_m
+        if n in self.control:
+            mode, p = self.control[n]
+            return mode if p is None else p * self.unit_m
         if state is not None and state[10] in (610, 611):
             return 0.0
-        return None if last_g64_p is None else last_g64_p * unit_m
+        return None if self.last_g64_p is None else self.last_g64_p * self.unit_m
 
-    def check_axes(values: list[float], n: int) -> None:
+    def check_axes(self, values: list[float], n: int) -> None:
+        """A rotary or UVW axis that moves: not on this machine."""
         for letter, v in zip("ABCUVW", values):
             if v != 0.0:
                 raise GcodeError(f"axis {letter} moves: not on this machine (axes "
-                                 f"{axes.upper()})", n, 1, source)
+                                 f"{self.axes.upper()})", n, 1, self.source)
 
-    for rec in records:
+    def take(self, rec: str) -> bool:
+        """Take one record; False at the end of the records."""
         kind, _, rest = rec.partition(" ")
         if kind == "N":
-            fields = [int(x) for x in rest.split()]
-            line, state = fields[0], fields[1:]
-            unit_m = INCH_M if state[4] == 200 else MM_M
-            if last_seen < line:  # lines run since the last report (a linear program)
-                for k in range(last_seen + 1, line + 1):
-                    if k in control and control[k][0] is None:
-                        last_g64_p = control[k][1]
-                last_seen = line
-            continue
-        if kind == "E":
-            parts = rest.split(" ", 2)
-            code, err_line, message = int(parts[0]), int(parts[1]), (parts[2:] or [""])[0]
-            if code > 3 or code < 0:
-                if message.strip() == _NO_END:
-                    out.warn(NO_END)
-                    break
-                where = max(line or int(err_line), 1)
-                src = lines[where - 1] if 0 < where <= len(lines) else ""
-                # the interpreter reads the program from a copy: name the user's file
-                message = message.strip().replace("file:program.ngc",
-                                                  f"file:{source or 'the program'}")
-                raise GcodeError(f"LinuxCNC: {message}", where, _column(src, message), source)
-            break
-        v = [float(x) for x in rest.split()]
-        n = line
+            self.at_line(rest)
+        elif kind == "E":
+            self.end(rest)
+            return False
+        else:
+            self.canon(kind, [float(x) for x in rest.split()], self.line)
+        return True
+
+    def at_line(self, rest: str) -> None:
+        """A line report: its number and the interpreter's modal state."""
+        fields = [int(x) for x in rest.split()]
+        self.line, self.state = fields[0], fields[1:]
+        self.unit_m = INCH_M if self.state[4] == 200 else MM_M
+        if self.last_seen < self.line:  # lines run since the last report (a linear program)
+            for k in range(self.last_seen + 1, self.line + 1):
+                if k in self.control and self.control[k][0] is None:
+                    self.last_g64_p = self.control[k][1]
+            self.last_seen = self.line
+
+    def end(self, rest: str) -> None:
+        """The last record: the program ended, or LinuxCNC's error (a GcodeError at the line
+        and the column of the word it names)."""
+        parts = rest.split(" ", 2)
+        code, err_line, message = int(parts[0]), int(parts[1]), (parts[2:] or [""])[0]
+        if not (code > 3 or code < 0):
+            return
+        if message.strip() == _NO_END:
+            self.out.warn(NO_END)
+            return
+        lines = self.lines
+        where = max(self.line or int(err_line), 1)
+        src = lines[where - 1] if 0 < where <= len(lines) else ""
+        # the interpreter reads the program from a copy: name the user's file
+        message = message.strip().replace("file:program.ngc",
+                                          f"file:{self.source or 'the program'}")
+        raise GcodeError(f"LinuxCNC: {message}", where, _column(src, message), self.source)
+
+    def canon(self, kind: str, v: list[float], n: int) -> None:
+        """A canon call of line ``n``: a move, or a change of plane, feed, offsets."""
+        out = self.out
         if kind in ("T", "F"):
-            check_axes(v[3:], n)
-            out.blend_tol_m = blend(n)
-            (out.traverse if kind == "T" else out.feed)(machine(v[:3]), n)
+            self.check_axes(v[3:], n)
+            out.blend_tol_m = self.blend(n)
+            (out.traverse if kind == "T" else out.feed)(self.machine(v[:3]), n)
         elif kind == "A":
-            check_axes(v[6:], n)
-            i, j, k = PLANES[out.plane]
-            if rot and out.plane != "xy":
-                raise GcodeError("an arc outside G17 with an XY rotation (G10 L2 R) cannot be "
-                                 "planned", n, 1, source)
-            prog_end = np.zeros(3)
-            prog_end[[i, j, k]] = v[0], v[1], v[5]
-            prog_centre = prog_end.copy()
-            prog_centre[[i, j]] = v[2], v[3]
-            out.blend_tol_m = blend(n)
-            end_tol = (ARC_END_TOL_IN if unit_m == INCH_M else ARC_END_TOL_MM) * unit_m
-            out.arc(machine(prog_end), machine(prog_centre), int(v[4]), n,
-                    end_tol_m=end_tol, unit_m=unit_m)
+            self.arc(v, n)
         elif kind == "P":
             out.plane = _PLANES.get(int(v[0]), out.plane)
         elif kind == "R":
             out.feed_m_s = v[0] * INCH_M / 60.0 if v[0] > 0 else None
-        elif kind == "D":
-            out.stop()
-        elif kind == "C":
+        elif kind in ("D", "C"):
             out.stop()
         elif kind == "O":
-            g5x = np.array(v[1:4]) * INCH_M
+            self.g5x = np.array(v[1:4]) * INCH_M
         elif kind == "G":
-            g92 = np.array(v[:3]) * INCH_M
+            self.g92 = np.array(v[:3]) * INCH_M
         elif kind == "X":
-            rot = v[0]
+            self.rot = v[0]
         elif kind == "L":
-            tlo = np.array(v[:3]) * INCH_M
-            src = _COMMENT.sub("", lines[n - 1]) if 0 < n <= len(lines) else ""
-            if setup.tools is None and re.search(r"G\s*4\s*3(?![\s\d]*\.\s*1)", src, re.I):
-                out.warn_once("without a tool table", f"line {n}: G43 without a tool table "
-                              "(--tool-table): tool length 0 (a constant Z shift changes no "
-                              "gain)")
-    return out.path()
+            self.tool_length(v, n)
+
+    def arc(self, v: list[float], n: int) -> None:
+        """An arc: end and centre in the plane's axes, turns, the normal axis's end."""
+        out = self.out
+        self.check_axes(v[6:], n)
+        i, j, k = PLANES[out.plane]
+        if self.rot and out.plane != "xy":
+            raise GcodeError("an arc outside G17 with an XY rotation (G10 L2 R) cannot be "
+                             "planned", n, 1, self.source)
+        prog_end = np.zeros(3)
+        prog_end[[i, j, k]] = v[0], v[1], v[5]
+        prog_centre = prog_end.copy()
+        prog_centre[[i, j]] = v[2], v[3]
+        out.blend_tol_m = self.blend(n)
+        unit_m = self.unit_m
+        end_tol = (ARC_END_TOL_IN if unit_m == INCH_M else ARC_END_TOL_MM) * unit_m
+        out.arc(self.machine(prog_end), self.machine(prog_centre), int(v[4]), n,
+                end_tol_m=end_tol, unit_m=unit_m)
+
+    def tool_length(self, v: list[float], n: int) -> None:
+        """The tool length offset; a warning for G43 without a tool table."""
+        self.tlo = np.array(v[:3]) * INCH_M
+        lines = self.lines
+        src = _COMMENT.sub("", lines[n - 1]) if 0 < n <= len(lines) else ""
+        if self.setup.tools is None and re.search(r"G\s*4\s*3(?![\s\d]*\.\s*1)", src, re.I):
+            self.out.warn_once("without a tool table", f"line {n}: G43 without a tool table "
+                               "(--tool-table): tool length 0 (a constant Z shift changes no "
+                               "gain)")

@@ -94,37 +94,11 @@ def run(args: argparse.Namespace) -> int:
                          "interpolator applied its tolerance)")
     check_files(args, "out", "summary", "report")  # before the compiled kernels load
 
-    from feedplan.read import read_file
-    from feedplan.setpoints import AXES
-    from oga.errors import GcodeError, OptionError, ToolpathError
     from oga.export import table_csv
     from oga.machine import load_machine
-    from oga.pipeline import run_job
-    from oga.identify.trace import TraceError
 
     machine = load_machine(args.machine)
-    try:
-        if args.setpoints is not None:
-            from oga.pipeline import SETPOINTS_PREFIX
-            from oga.recorded import read_setpoints_file
-
-            text, fmt = read_setpoints_file(args.setpoints, args.setpoints_format,
-                                            read_options["columns"])
-            with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
-                job = run_job(text, SETPOINTS_PREFIX + fmt, machine, options,
-                              source=FilePath(args.setpoints).name, progress=bar.update,
-                              setpoints_options=read_options)
-        else:
-            text, fmt = read_file(args.toolpath)
-            with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
-                job = run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
-                              progress=bar.update)
-    except (GcodeError, ToolpathError) as err:
-        raise toolpath_message(err, args.toolpath) from None
-    except TraceError as err:  # SetpointsError too
-        raise toolpath_message(err, args.setpoints) from None
-    except OptionError as err:
-        raise flag_message(err) from None
+    job = _run_job(args, machine, options, read_options)
     res = job.result
     summary = job.summary()
     if args.summary:
@@ -133,6 +107,53 @@ def run(args: argparse.Namespace) -> int:
         from oga.report import render_report
 
         write_text(args.report, render_report(job))
+    _print_result(job, summary, machine)
+    if res.status != "ok":
+        print("verification FAILED, no table written: " + "; ".join(res.optimized.violations),
+              file=sys.stderr)
+        return 1
+    write_text(args.out, table_csv(res))
+    print(f"limits ok, stability ok -> {args.out}")
+    return 0
+
+
+def _run_job(args: argparse.Namespace, machine, options, read_options: dict):
+    """The job of the toolpath or of the recorded setpoints, with a progress bar; a reader's
+    or an option's error as the CLI names it."""
+    from feedplan.read import read_file
+    from oga.errors import GcodeError, OptionError, ToolpathError
+    from oga.identify.trace import TraceError
+    from oga.pipeline import run_job
+
+    try:
+        if args.setpoints is not None:
+            from oga.pipeline import SETPOINTS_PREFIX
+            from oga.recorded import read_setpoints_file
+
+            text, fmt = read_setpoints_file(args.setpoints, args.setpoints_format,
+                                            read_options["columns"])
+            with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
+                return run_job(text, SETPOINTS_PREFIX + fmt, machine, options,
+                               source=FilePath(args.setpoints).name, progress=bar.update,
+                               setpoints_options=read_options)
+        text, fmt = read_file(args.toolpath)
+        with ProgressBar("optimize", enabled=sys.stderr.isatty()) as bar:
+            return run_job(text, fmt, machine, options, source=FilePath(args.toolpath).name,
+                           progress=bar.update)
+    except (GcodeError, ToolpathError) as err:
+        raise toolpath_message(err, args.toolpath) from None
+    except TraceError as err:  # SetpointsError too
+        raise toolpath_message(err, args.setpoints) from None
+    except OptionError as err:
+        raise flag_message(err) from None
+
+
+def _print_result(job, summary: dict, machine) -> None:
+    """What ``oga optimize`` prints: the setpoints read, warnings, baseline and optimised
+    contour errors, following errors, the certificate or search, the model's note."""
+    from feedplan.setpoints import AXES
+
+    res = job.result
     if job.recorded is not None:
         src = job.recorded.source
         print(f"setpoints: {src['file']} ({src['format']}, {src['law']}), {src['samples']} "
@@ -166,13 +187,6 @@ def run(args: argparse.Namespace) -> int:
     if res.kept_baseline:
         print(f"warning: the searched schedule was not kept ({res.kept_baseline_reason}); "
               "the table holds the baseline's fixed gains")
-    if res.status != "ok":
-        print("verification FAILED, no table written: " + "; ".join(res.optimized.violations),
-              file=sys.stderr)
-        return 1
-    write_text(args.out, table_csv(res))
-    print(f"limits ok, stability ok -> {args.out}")
-    return 0
 
 
 def certificate_lines(cert: dict) -> list[str]:

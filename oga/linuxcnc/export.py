@@ -219,6 +219,42 @@ def _stream_text(head: list[str], data: np.ndarray) -> str:
     return buf.getvalue()
 
 
+def _settings(units: str | None, error_previous_target: bool | None,
+              thread: str | None) -> tuple[str, bool, str]:
+    """Units, error-previous-target and thread: given (checked) or :data:`LINUXCNC`'s."""
+    units = LINUXCNC["units"] if units is None else units
+    if units not in UNIT_M:
+        raise OptionError(f"units: expected one of {', '.join(UNIT_M)}, got {units!r}")
+    ept = LINUXCNC["error_previous_target"] if error_previous_target is None \
+        else bool(error_previous_target)
+    thread = LINUXCNC["thread"] if thread is None else thread
+    if not thread or not all(c.isalnum() or c in "-_." for c in thread):
+        raise OptionError(f"thread: {thread!r} is not a HAL thread name")
+    return units, ept, thread
+
+
+def _export_columns(table, axes, ept: bool, unit: float,
+                    feedback_m: dict | None) -> tuple[np.ndarray, list[str]]:
+    """The stream's rows (N, 4 or 5 per axis) in machine units: per axis the command (the
+    next period's where error-previous-target), velocity, Kp (1/s), Kf [, simulated
+    feedback]; and the columns' names."""
+    cols, names = [], []
+    for a in axes:
+        pd = _column(table, f"{a}_pos_m")
+        cmd = np.append(pd[1:], pd[-1]) if ept else pd  # pid takes the error vs prev command
+        cols += [cmd / unit, _column(table, f"{a}_vel_m_s") / unit,
+                 _column(table, f"{a}_kp_m_min_per_mm") * KP_SI_PER_M_MIN_PER_MM,
+                 _column(table, f"{a}_kf")]
+        names += [f"{a}_{c}" for c, _, _ in _COLUMNS]
+        if feedback_m is not None:
+            cols.append(np.asarray(feedback_m[a], dtype=np.float64) / unit)
+            names.append(f"{a}_fb")
+    data = np.column_stack(cols)
+    if not np.isfinite(data).all():
+        raise InputError("table: non-finite values; not exported")
+    return data, names
+
+
 def linuxcnc_export(table, baseline_kp: dict, baseline_kf: dict, *, units: str | None = None,
                     error_previous_target: bool | None = None, axes=None, joints=None,
                     thread: str | None = None, feedback_m: dict | None = None) -> LinuxcncExport:
@@ -254,14 +290,7 @@ def linuxcnc_export(table, baseline_kp: dict, baseline_kf: dict, *, units: str |
         A column is missing, a value is not finite, the period is not whole ns, or the
         table is longer than ``LINUXCNC["max_rows"]``.
     """
-    units = LINUXCNC["units"] if units is None else units
-    if units not in UNIT_M:
-        raise OptionError(f"units: expected one of {', '.join(UNIT_M)}, got {units!r}")
-    ept = LINUXCNC["error_previous_target"] if error_previous_target is None \
-        else bool(error_previous_target)
-    thread = LINUXCNC["thread"] if thread is None else thread
-    if not thread or not all(c.isalnum() or c in "-_." for c in thread):
-        raise OptionError(f"thread: {thread!r} is not a HAL thread name")
+    units, ept, thread = _settings(units, error_previous_target, thread)
     axes = _axes(table, axes)
     joints = _joints(axes, joints)
     base = _baseline(baseline_kp, baseline_kf, axes)
@@ -273,20 +302,7 @@ def linuxcnc_export(table, baseline_kp: dict, baseline_kf: dict, *, units: str |
             np.shape(feedback_m[a]) != (n,) for a in axes)):
         raise OptionError(f"feedback: expected {n} positions for each of {list(axes)}")
     unit = UNIT_M[units]
-    cols, names = [], []
-    for a in axes:
-        pd = _column(table, f"{a}_pos_m")
-        cmd = np.append(pd[1:], pd[-1]) if ept else pd  # pid takes the error vs prev command
-        cols += [cmd / unit, _column(table, f"{a}_vel_m_s") / unit,
-                 _column(table, f"{a}_kp_m_min_per_mm") * KP_SI_PER_M_MIN_PER_MM,
-                 _column(table, f"{a}_kf")]
-        names += [f"{a}_{c}" for c, _, _ in _COLUMNS]
-        if feedback_m is not None:
-            cols.append(np.asarray(feedback_m[a], dtype=np.float64) / unit)
-            names.append(f"{a}_fb")
-    data = np.column_stack(cols)
-    if not np.isfinite(data).all():
-        raise InputError("table: non-finite values; not exported")
+    data, names = _export_columns(table, axes, ept, unit, feedback_m)
     m = {k: printable(v) for k, v in table.meta.items() if isinstance(v, str)}
     per_axis = list(_COLUMNS) + ([_FEEDBACK] if feedback_m is not None else [])
     about = [

@@ -200,13 +200,7 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
     """
     from oga.optimize import setpoints_digest
 
-    d = LINUXCNC_MOTION
-    tols = {"pos_tol_m": d["pos_tol_m"] if pos_tol_m is None else pos_tol_m,
-            "vel_tol_m_s": d["vel_tol_m_s"] if vel_tol_m_s is None else vel_tol_m_s,
-            "override_tol": d["override_tol"] if override_tol is None else override_tol}
-    for name, v in tols.items():
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            raise OptionError(f"{name}: must be a positive number, got {v!r}")
+    tols = _tolerances(pos_tol_m, vel_tol_m_s, override_tol)
     digest = table.meta.get("setpoints_sha256")
     if digest != setpoints_digest(recorded.setpoints):
         raise InputError("recording: the table was not computed on this recording (setpoints "
@@ -214,12 +208,7 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
                          f"{setpoints_digest(recorded.setpoints)[:12]}...)")
     axes = tuple(a for a in AXES if np.ptp(_column(table, f"{a}_pos_m")) > 1e-9)
     lc = _recorded_columns(recorded, axes)
-    joints = dict(lc.joints or {}) if joints is None else dict(joints)
-    if set(joints) < set(axes) or any(not isinstance(joints[a], int) or joints[a] < 0
-                                      for a in axes):
-        raise OptionError(f"joints: give the joint of each axis {list(axes)} (the recording's "
-                          f"header names none), got {joints}")
-    joints = {a: joints[a] for a in axes}
+    joints = _motion_joints(lc, joints, axes)
     base = _baseline(baseline_kp, baseline_kf, axes)
     period_ns = _period_ns(table)
     n = table.data.shape[0]
@@ -232,18 +221,7 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
         raise InputError(f"recording: units {lc.units!r}; LinuxCNC machines run in "
                          f"{' or '.join(UNIT_M)} (the recording's header names them)")
     units, unit = lc.units, UNIT_M[lc.units]
-    cols, names = [], []
-    for a in axes:
-        k = AXES.index(a)
-        cols += [lc.cmd_m[:, k] / unit,
-                 _column(table, f"{a}_kp_m_min_per_mm") * KP_SI_PER_M_MIN_PER_MM,
-                 _column(table, f"{a}_kf")]
-        names += [f"{a}_cmd", f"{a}_kp", f"{a}_kf"]
-    cols += [lc.current_vel_m_s / unit, lc.line.astype(np.float64)]
-    names += ["current_vel", "line"]
-    data = np.column_stack(cols)
-    if not np.isfinite(data).all():
-        raise InputError("table: non-finite values; not exported")
+    data, names = _motion_columns(table, lc, axes, unit)
     m = {k: printable(v) for k, v in table.meta.items() if isinstance(v, str)}
     src = recorded.source
     about = [
@@ -269,7 +247,49 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
                           period_ns=period_ns, columns=tuple(names))
 
 
+def _motion_joints(lc, joints: dict | None, axes) -> dict[str, int]:
+    """The joint of each axis: given, or the recording header's."""
+    joints = dict(lc.joints or {}) if joints is None else dict(joints)
+    if set(joints) < set(axes) or any(not isinstance(joints[a], int) or joints[a] < 0
+                                      for a in axes):
+        raise OptionError(f"joints: give the joint of each axis {list(axes)} (the recording's "
+                          f"header names none), got {joints}")
+    return {a: joints[a] for a in axes}
+
+
+def _tolerances(pos_tol_m, vel_tol_m_s, override_tol) -> dict[str, float]:
+    """The fallback tolerances, each given or :data:`oga.defaults.LINUXCNC_MOTION`'s."""
+    d = LINUXCNC_MOTION
+    tols = {"pos_tol_m": d["pos_tol_m"] if pos_tol_m is None else pos_tol_m,
+            "vel_tol_m_s": d["vel_tol_m_s"] if vel_tol_m_s is None else vel_tol_m_s,
+            "override_tol": d["override_tol"] if override_tol is None else override_tol}
+    for name, v in tols.items():
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise OptionError(f"{name}: must be a positive number, got {v!r}")
+    return tols
+
+
+def _motion_columns(table, lc, axes, unit: float) -> tuple[np.ndarray, list[str]]:
+    """The stream's rows (N, 3 * axes + 2) in machine units: per axis the recorded command,
+    the table's Kp (1/s) and Kf; the recorded speed and line; and the columns' names."""
+    cols, names = [], []
+    for a in axes:
+        k = AXES.index(a)
+        cols += [lc.cmd_m[:, k] / unit,
+                 _column(table, f"{a}_kp_m_min_per_mm") * KP_SI_PER_M_MIN_PER_MM,
+                 _column(table, f"{a}_kf")]
+        names += [f"{a}_cmd", f"{a}_kp", f"{a}_kf"]
+    cols += [lc.current_vel_m_s / unit, lc.line.astype(np.float64)]
+    names += ["current_vel", "line"]
+    data = np.column_stack(cols)
+    if not np.isfinite(data).all():
+        raise InputError("table: non-finite values; not exported")
+    return data, names
+
+
 def _motion_tcl(about, axes, joints, base, ept, period_ns, depth, width, tols, unit) -> str:
+    """The HALFILE: checks of the thread and the pid loops, the components, the start
+    condition, the per-period checks against the row and the gains' multiplexers."""
     h = HalCommands()
     h.comment(*about)
     h.comment(
@@ -293,6 +313,29 @@ def _motion_tcl(about, axes, joints, base, ept, period_ns, depth, width, tols, u
         h.raw(f"set oga_pid({a}) [oga_pid {j}]")
         h.raw(f"oga_check_pid $oga_pid({a}) {1 if ept[a] else 0} "
               f"{hal_number(kp * KP_SI_PER_M_MIN_PER_MM)} {hal_number(kf)}")
+    muxes = _tcl_components(h, axes, depth, width)
+    _tcl_start(h, axes, joints)
+    _tcl_checks(h, axes, tols, unit, muxes)
+    h.blank()
+    h.comment("the gains: the row's while valid, else the fixed baseline")
+    for i, a in enumerate(axes):
+        kp, kf = base[a]
+        h.setp(f"oga-kp-{a}.in0", kp * KP_SI_PER_M_MIN_PER_MM)
+        h.setp(f"oga-kf-{a}.in0", kf)
+        h.net(f"oga-row-{a}-kp", f"streamer.0.pin.{i * _PER_AXIS + 1}", "=>", f"oga-kp-{a}.in1")
+        h.net(f"oga-row-{a}-kf", f"streamer.0.pin.{i * _PER_AXIS + 2}", "=>", f"oga-kf-{a}.in1")
+        h.raw(f"hal net oga-kp-{a} oga-kp-{a}.out $oga_pid({a}).Pgain")
+        h.raw(f"hal net oga-kf-{a} oga-kf-{a}.out $oga_pid({a}).FF1")
+    return h.tcl()
+
+
+#: Stream columns per axis (command, Kp, Kf).
+_PER_AXIS = 3
+
+
+def _tcl_components(h: HalCommands, axes, depth: int, width: int) -> list[str]:
+    """Load the components (freed first where an earlier load left them), the feeder, and add
+    their functions to the thread; the gains' multiplexers' names."""
     comps = ("streamer", "ddt", "near", "conv_s32_float", "logic", "flipflop", "mux2")
     h.raw("foreach c {" + " ".join(comps) + "} {oga_free_comp $c}")
     n_ok = len(axes) + 7
@@ -319,6 +362,11 @@ def _motion_tcl(about, axes, joints, base, ept, period_ns, depth, width, tols, u
         "oga-bad", "oga-fallen", *muxes]
     h.raw("oga_addf $oga_thread {" + " ".join(funcs) + "} [list "
           + " ".join(f"$oga_pid({a})" for a in axes) + "]")
+    return muxes
+
+
+def _tcl_start(h: HalCommands, axes, joints) -> None:
+    """The start: the feeder ready, enabled, coordinated motion, and a joint command moves."""
     h.blank()
     h.comment("start: ready, enabled, coordinated motion, and a joint command moves")
     for i, a in enumerate(axes):
@@ -340,14 +388,18 @@ def _motion_tcl(about, axes, joints, base, ept, period_ns, depth, width, tols, u
     h.net("oga-run", "oga-run.and", "=>", "streamer.0.enable", "oga-valid.in-00",
           "oga-bad.in-00")
     h.raw("hal net [oga_signal halui.program.is-idle] oga-feeder.idle")
+
+
+def _tcl_checks(h: HalCommands, axes, tols: dict, unit: float, muxes: list[str]) -> None:
+    """This period's motion against the row: commands, speed, line, overrides, the stream
+    flowing, motion enabled; valid while all hold, the fallback latched when one fails."""
     h.blank()
     h.comment("checks of this period's motion against the row")
-    width_axis = 3
     for i, a in enumerate(axes):
-        h.net(f"oga-row-{a}-cmd", f"streamer.0.pin.{i * width_axis}", "=>", f"oga-pos-{a}.in2")
+        h.net(f"oga-row-{a}-cmd", f"streamer.0.pin.{i * _PER_AXIS}", "=>", f"oga-pos-{a}.in2")
         h.setp(f"oga-pos-{a}.difference", tols["pos_tol_m"] / unit)
         h.net(f"oga-pos-{a}", f"oga-pos-{a}.out", "=>", f"oga-ok.in-{i:02d}")
-    nv = len(axes) * width_axis
+    nv = len(axes) * _PER_AXIS
     h.raw("hal net [oga_signal motion.current-vel] oga-vel.in1")
     h.net("oga-row-current-vel", f"streamer.0.pin.{nv}", "=>", "oga-vel.in2")
     h.setp("oga-vel.difference", tols["vel_tol_m_s"] / unit)
@@ -374,14 +426,3 @@ def _motion_tcl(about, axes, joints, base, ept, period_ns, depth, width, tols, u
     h.net("oga-bad", "oga-bad.and", "=>", "oga-fallen.set")
     h.net("oga-fallen", "oga-fallen.out", "=>", "oga-feeder.done")
     h.net("oga-valid", "oga-valid.and", "=>", *(f"{m}.sel" for m in muxes))
-    h.blank()
-    h.comment("the gains: the row's while valid, else the fixed baseline")
-    for i, a in enumerate(axes):
-        kp, kf = base[a]
-        h.setp(f"oga-kp-{a}.in0", kp * KP_SI_PER_M_MIN_PER_MM)
-        h.setp(f"oga-kf-{a}.in0", kf)
-        h.net(f"oga-row-{a}-kp", f"streamer.0.pin.{i * width_axis + 1}", "=>", f"oga-kp-{a}.in1")
-        h.net(f"oga-row-{a}-kf", f"streamer.0.pin.{i * width_axis + 2}", "=>", f"oga-kf-{a}.in1")
-        h.raw(f"hal net oga-kp-{a} oga-kp-{a}.out $oga_pid({a}).Pgain")
-        h.raw(f"hal net oga-kf-{a} oga-kf-{a}.out $oga_pid({a}).FF1")
-    return h.tcl()

@@ -209,18 +209,11 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
         raise InputError(f"{ini.name}: [EMCMOT] SERVO_PERIOD = {period!r} is not a number of "
                          "ns") from None
     run_timeout = LINUXCNC_RECORD["run_timeout_s"] if timeout_s is None else float(timeout_s)
-    types = "ff" * len(joints) + "".join(t for _, _, t in _MOTION)
     repeats = LINUXCNC_RECORD["repeats"] if repeats is None else int(repeats)
     if not 1 <= repeats <= 10:
         raise OptionError(f"repeats: 1..10, got {repeats}")
-    back = {"back_to_start": {a.upper(): 2 * i for i, a in enumerate(joints)}}
-    runs = [{"timeout_s": run_timeout, "tail_s": 0.1}] + [
-        {"prepare": [{"tool_of_run": 0}, back, {"sleep": 0.2}], "timeout_s": run_timeout,
-         "tail_s": 0.1}
-        for _ in range(repeats - 1)]
-    job = {"program": str(program), "home": home,
-           "sampler": {"channel": 0, "types": types}, "read_files": [_PIDS], "runs": runs}
-    res = run_session(ini, job, halfiles={"oga_record.tcl": recorder_tcl(joints)},
+    res = run_session(ini, _record_job(program, joints, home, run_timeout, repeats),
+                      halfiles={"oga_record.tcl": recorder_tcl(joints)},
                       timeout_s=LINUXCNC_RECORD["start_timeout_s"]
                       + repeats * (run_timeout + 10.0) + 60.0)
     errors = res.status.get("errors", [])
@@ -236,30 +229,55 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
         raise LinuxcncError(f"{program.name}: no joint moved while the program ran")
     for again in res.runs[1:]:
         _same_motion(program.name, rows, again, n_axes, UNIT_M.get(units, 1.0))
-    names = ["sample"] + [f"{a}_{c}_m" for a in joints for c in ("cmd", "act")] \
-        + [name for name, _, _ in _MOTION]
     header = [
-        HEADER[2:] + ": LinuxCNC's setpoints, one row per servo period (oga optimize "
-        "--setpoints)",
         f"program: {printable(program.name)} (SHA-256 "
         f"{hashlib.sha256(program.read_bytes()).hexdigest()})",
         f"configuration: {printable(str(ini))}",
         f"linuxcnc: {printable(str(res.status.get('version', '')))}",
         f"servo-period-ns: {period_ns}",
         f"units: {units}",
+        "program-pauses: " + _pauses(res.status),
+    ]
+    return Recording(text=_recording_text(header, joints, ept, rows), rows=len(rows),
+                     first_motion_row=int(moved[0]) + 1,
+                     last_motion_row=int(moved[-1]) + 1, units=units,
+                     period_ns=period_ns, joints=joints, error_previous_target=ept,
+                     errors=errors, seconds=res.seconds)
+
+
+def _record_job(program: Path, joints: dict[str, int], home: bool, run_timeout: float,
+                repeats: int) -> dict:
+    """The display's job: sample the joints' commands and the motion columns through
+    ``repeats`` runs of ``program``, each after the first back to its start."""
+    types = "ff" * len(joints) + "".join(t for _, _, t in _MOTION)
+    back = {"back_to_start": {a.upper(): 2 * i for i, a in enumerate(joints)}}
+    runs = [{"timeout_s": run_timeout, "tail_s": 0.1}] + [
+        {"prepare": [{"tool_of_run": 0}, back, {"sleep": 0.2}], "timeout_s": run_timeout,
+         "tail_s": 0.1}
+        for _ in range(repeats - 1)]
+    return {"program": str(program), "home": home,
+            "sampler": {"channel": 0, "types": types}, "read_files": [_PIDS], "runs": runs}
+
+
+def _recording_text(about: list[str], joints: dict[str, int], ept: dict[str, bool],
+                    rows: np.ndarray) -> str:
+    """The recording file: its header (``about`` lines, then joints, error-previous-target,
+    columns) and a row per servo period."""
+    n_axes = len(joints)
+    names = ["sample"] + [f"{a}_{c}_m" for a in joints for c in ("cmd", "act")] \
+        + [name for name, _, _ in _MOTION]
+    header = [
+        HEADER[2:] + ": LinuxCNC's setpoints, one row per servo period (oga optimize "
+        "--setpoints)",
+        *about,
         "joints: " + " ".join(f"{a}={j}" for a, j in joints.items()),
         "error-previous-target: " + " ".join(f"{a}={int(ept[a])}" for a in joints),
-        "program-pauses: " + _pauses(res.status),
         "columns: " + " ".join(names),
     ]
     body = np.column_stack([np.arange(len(rows)), rows])
     fmt = ["%d"] + ["%.17g"] * (2 * n_axes) + ["%d", "%d", "%.17g"]
     lines = [" ".join(f % v for f, v in zip(fmt, row)) for row in body]
-    out = "\n".join([f"# {h}" for h in header] + lines) + "\n"
-    return Recording(text=out, rows=len(rows), first_motion_row=int(moved[0]) + 1,
-                     last_motion_row=int(moved[-1]) + 1, units=units,
-                     period_ns=period_ns, joints=joints, error_previous_target=ept,
-                     errors=errors, seconds=res.seconds)
+    return "\n".join([f"# {h}" for h in header] + lines) + "\n"
 
 
 def _pauses(status: dict) -> str:

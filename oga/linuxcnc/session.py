@@ -208,94 +208,126 @@ def run_session(ini: str | os.PathLike, job: dict, *, halfiles: dict[str, str] |
                             "remove the file if it is stale")
     session = Path(tempfile.mkdtemp(prefix="oga-lcnc-"))
     priv = session / "tmp"  # /tmp inside the namespaces
-    work = priv / "oga"
+    work, home = priv / "oga", priv / "home"
     out = work / "out"
-    home = priv / "home"
     for d in (priv, work, out, home):
         d.mkdir(parents=True, exist_ok=True)
     inside = (lambda p: "/tmp/" + str(Path(p).relative_to(priv))) if isolate else str
     ini_copy = ini.with_name(f".oga-session-{session.name}.ini")
     t0 = time.monotonic()
-    proc = None
     try:
-        display = work / "display.py"
-        source = resources.files("oga.linuxcnc").joinpath("display.py").read_text()
-        display.write_text(f"#!{python}\n" + source.split("\n", 1)[1])
-        display.chmod(0o755)
-        hal_paths = []
-        for name, text in (halfiles or {}).items():
-            (work / name).write_text(text)
-            hal_paths.append(inside(work / name))
-        for name, text in (files or {}).items():
-            (work / name).write_text(text)
-        job = {**job, "out": inside(out)}
-        if "program" in job:  # a copy LinuxCNC reads wherever the program is (/tmp is private)
-            program = Path(job["program"])
-            (work / program.name).write_bytes(program.read_bytes())
-            job["program"] = inside(work / program.name)
-        (work / "job.json").write_text(json.dumps(job))
-        ini_copy.write_text(edit_ini(ini.read_text(), display=inside(display),
-                                     job=inside(work / "job.json"),
-                                     halfiles=tuple(hal_paths)))
+        _write_session(ini, ini_copy, work, inside, python, job, halfiles, files)
         if root:
             for d in (session, priv, work, out, home):
                 os.chown(d, user.pw_uid, user.pw_gid)
-        env = {k: v for k, v in os.environ.items()
-               if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "DISPLAY")}
-        env["PATH"] = ":".join(dict.fromkeys([os.path.dirname(python),
-                                              os.path.dirname(script), "/usr/local/bin",
-                                              "/usr/bin", "/bin", "/usr/sbin", "/sbin"]))
-        if root:  # LinuxCNC's start script leaves its logs in HOME on an error
-            env.update(HOME=inside(home), USER=user.pw_name, LOGNAME=user.pw_name)
+        env = _session_env(python, script, inside(home) if root else None, user)
         if isolate:
-            cfg = ini.parent
-            binds = ""
-            if str(cfg).startswith("/tmp/") and not str(cfg).startswith(str(priv)):
-                rel = cfg.relative_to("/tmp")
-                (priv / rel).mkdir(parents=True, exist_ok=True)
-                binds = f'mount --bind "{cfg}" "{priv / rel}"; '
-            shell = (f'{binds}mount --rbind "{priv}" /tmp && exec setpriv '
-                     f"--reuid={user.pw_uid} --regid={user.pw_gid} --clear-groups "
-                     f'"{script}" "{ini_copy}"')
-            cmd = ["unshare", "--pid", "--fork", "--kill-child", "--mount-proc", "--ipc",
-                   "--mount", "sh", "-c", shell]
+            cmd = _isolated_command(ini, priv, user, script, ini_copy)
         elif root:
             cmd = ["setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}",
                    "--clear-groups", script, str(ini_copy)]
         else:
             cmd = [script, str(ini_copy)]
         log_path = session / "linuxcnc.log"
-        with open(log_path, "w") as log:
-            proc = subprocess.Popen(cmd, cwd=str(ini.parent), env=env, stdin=subprocess.DEVNULL,
-                                    stdout=log, stderr=subprocess.STDOUT,
-                                    start_new_session=True)
-            try:
-                proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                _stop(proc)
-                raise LinuxcncError(f"LinuxCNC did not finish within {timeout_s:g} s; its "
-                                    f"output ends: {_tail(log_path)}") from None
+        code = _run_linuxcnc(cmd, ini.parent, env, log_path, timeout_s)
         with open(log_path, "a") as log:  # the start script's logs, kept on an error
             for f in (home / "linuxcnc_debug.txt", home / "linuxcnc_print.txt"):
                 if f.exists():
                     log.write(f"\n--- {f.name}\n" + f.read_text(errors="replace"))
         log_text = log_path.read_text(errors="replace")
-        status_path = out / "status.json"
-        if not status_path.exists():
-            raise LinuxcncError(f"LinuxCNC ended (exit status {proc.returncode}) before the "
-                                f"display reported: {_errors(log_text) or _tail(log_path)}")
-        status = json.loads(status_path.read_text())
-        if not status.get("ok"):
-            raise LinuxcncError(f"the display failed: {status.get('exception')}; LinuxCNC "
-                                f"reported {status.get('errors')}")
-        runs = [rows_array(out / f"run{i}.txt") for i in range(len(status["runs"]))]
+        status, runs = _display_report(out, code, log_text, log_path)
         return SessionResult(status=status, runs=runs, log=log_text,
                              seconds=time.monotonic() - t0)
     finally:
-        if proc is not None and proc.poll() is None:
-            _stop(proc)
         ini_copy.unlink(missing_ok=True)
         shutil.rmtree(session, ignore_errors=True)
+
+
+def _write_session(ini: Path, ini_copy: Path, work: Path, inside, python: str, job: dict,
+                   halfiles: dict[str, str] | None, files: dict[str, str] | None) -> None:
+    """The display (for LinuxCNC's Python), the HAL and other files, the job and the edited
+    INI copy, written into the session; ``inside`` names a path as LinuxCNC sees it."""
+    display = work / "display.py"
+    source = resources.files("oga.linuxcnc").joinpath("display.py").read_text()
+    display.write_text(f"#!{python}\n" + source.split("\n", 1)[1])
+    display.chmod(0o755)
+    hal_paths = []
+    for name, text in (halfiles or {}).items():
+        (work / name).write_text(text)
+        hal_paths.append(inside(work / name))
+    for name, text in (files or {}).items():
+        (work / name).write_text(text)
+    job = {**job, "out": inside(work / "out")}
+    if "program" in job:  # a copy LinuxCNC reads wherever the program is (/tmp is private)
+        program = Path(job["program"])
+        (work / program.name).write_bytes(program.read_bytes())
+        job["program"] = inside(work / program.name)
+    (work / "job.json").write_text(json.dumps(job))
+    ini_copy.write_text(edit_ini(ini.read_text(), display=inside(display),
+                                 job=inside(work / "job.json"), halfiles=tuple(hal_paths)))
+
+
+def _session_env(python: str, script: str, home: str | None,
+                 user: pwd.struct_passwd) -> dict[str, str]:
+    """LinuxCNC's environment: none of oga's Python; its HOME in the session as root."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "DISPLAY")}
+    env["PATH"] = ":".join(dict.fromkeys([os.path.dirname(python), os.path.dirname(script),
+                                          "/usr/local/bin", "/usr/bin", "/bin", "/usr/sbin",
+                                          "/sbin"]))
+    if home is not None:  # LinuxCNC's start script leaves its logs in HOME on an error
+        env.update(HOME=home, USER=user.pw_name, LOGNAME=user.pw_name)
+    return env
+
+
+def _isolated_command(ini: Path, priv: Path, user: pwd.struct_passwd, script: str,
+                      ini_copy: Path) -> list[str]:
+    """LinuxCNC as ``user`` in its own PID, IPC and mount namespaces, ``priv`` as /tmp (a
+    configuration under /tmp bound inside)."""
+    cfg = ini.parent
+    binds = ""
+    if str(cfg).startswith("/tmp/") and not str(cfg).startswith(str(priv)):
+        rel = cfg.relative_to("/tmp")
+        (priv / rel).mkdir(parents=True, exist_ok=True)
+        binds = f'mount --bind "{cfg}" "{priv / rel}"; '
+    shell = (f'{binds}mount --rbind "{priv}" /tmp && exec setpriv '
+             f"--reuid={user.pw_uid} --regid={user.pw_gid} --clear-groups "
+             f'"{script}" "{ini_copy}"')
+    return ["unshare", "--pid", "--fork", "--kill-child", "--mount-proc", "--ipc",
+            "--mount", "sh", "-c", shell]
+
+
+def _run_linuxcnc(cmd: list[str], cwd: Path, env: dict, log_path: Path,
+                  timeout_s: float) -> int:
+    """Run the session's command (its output into ``log_path``) to its end: its exit status.
+    Stopped, with a LinuxcncError, after ``timeout_s``; stopped on any other exception."""
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(cmd, cwd=str(cwd), env=env, stdin=subprocess.DEVNULL,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            _stop(proc)
+            raise LinuxcncError(f"LinuxCNC did not finish within {timeout_s:g} s; its "
+                                f"output ends: {_tail(log_path)}") from None
+        finally:
+            if proc.poll() is None:
+                _stop(proc)
+    return proc.returncode
+
+
+def _display_report(out: Path, code: int, log_text: str, log_path: Path):
+    """The display's status (dict) and its runs' rows (:func:`rows_array`); a LinuxcncError
+    where it did not report or failed."""
+    status_path = out / "status.json"
+    if not status_path.exists():
+        raise LinuxcncError(f"LinuxCNC ended (exit status {code}) before the "
+                            f"display reported: {_errors(log_text) or _tail(log_path)}")
+    status = json.loads(status_path.read_text())
+    if not status.get("ok"):
+        raise LinuxcncError(f"the display failed: {status.get('exception')}; LinuxCNC "
+                            f"reported {status.get('errors')}")
+    return status, [rows_array(out / f"run{i}.txt") for i in range(len(status["runs"]))]
 
 
 def _stop(proc: subprocess.Popen) -> None:

@@ -114,6 +114,56 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
     te = machine.te if machine is not None else te_s
     if te is None:
         raise ValueError("read_setpoints: give the machine or the period")
+    fmt, columns, units = _format(header, fmt, columns, units, te, source)
+    try:
+        table = read_table(text, fmt, columns=columns, te_s=te, extra=_EXTRA)
+    except SetpointsError:
+        raise
+    except TraceError as err:  # the trace readers' message, as this reader's error
+        raise SetpointsError(str(err)) from None
+    col, data, rows = table.columns, table.data, table.rows
+    check_period(table.dt_s, te, "t_s" if "t_s" in col else "sample")
+    axes, raw = _commands(table, units)
+    line, rapid = _line_and_rapid(table)
+    periods, lcnc = np.arange(len(data)), None
+    if fmt == "halsampler":
+        ept = _error_previous_target(header, axes, error_previous_target)
+        periods, pos, vel = pid_law(raw, te, ept, axes)
+        cv = (data[periods, col["current_vel_m_s"]] * UNITS[units]
+              if "current_vel_m_s" in col else None)
+        lcnc = LinuxcncPeriods(
+            cmd_m=raw[periods], axes=axes, line=None if line is None else line[periods],
+            current_vel_m_s=cv, error_previous_target={a: ept[a] for a in axes}, units=units,
+            joints=None if header is None else header.joints, first_row=int(rows[periods[0]]))
+        _, acc, jerk = derivatives(pos, te)
+    else:
+        pos = raw
+        vel, acc, jerk = derivatives(pos, te)
+        for k, a in enumerate(AXES):
+            if f"{a}_ff_vel_m_s" in col:
+                vel[:, k] = data[:, col[f"{a}_ff_vel_m_s"]] * UNITS[units]
+    sample_rows = rows[periods]
+    if machine is not None:
+        check_limits(pos, te, machine, {a: f"{a}_cmd_m" for a in AXES}, sample_rows)
+    rapid = rapid[periods]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    sp = Setpoints(dt=te, s=s, pos=pos, vel=vel, acc=acc, jerk=jerk,
+                   block=np.zeros(len(pos), dtype=np.int64) if line is None else line[periods],
+                   rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source)
+    info = {"file": source, "format": fmt,
+            "sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(),
+            "law": "linuxcnc-pid" if fmt == "halsampler" else "given", "units": units,
+            "samples": len(sp), "first_row": int(sample_rows[0])}
+    if lcnc is not None:
+        info["error_previous_target"] = lcnc.error_previous_target
+    if header is not None and "program-pauses" in header.meta:  # resumed M0/M1 (lcnc-record)
+        info["program_pauses"] = header.meta["program-pauses"]
+    return RecordedSetpoints(setpoints=sp, source=info, linuxcnc=lcnc)
+
+
+def _format(header, fmt: str | None, columns, units: str | None, te: float, source: str):
+    """The format, column names and units: given, or the ``oga lcnc-record`` header's
+    (whose servo period must be ``te``); SetpointsError where they do not fit."""
     if fmt is None:
         fmt = "halsampler" if header is not None else "csv"
     if fmt not in SETPOINT_FORMATS:
@@ -134,14 +184,13 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
     units = units or "m"
     if units not in UNITS:
         raise SetpointsError(f"units: expected one of {', '.join(UNITS)}, got {units!r}")
-    try:
-        table = read_table(text, fmt, columns=columns, te_s=te, extra=_EXTRA)
-    except SetpointsError:
-        raise
-    except TraceError as err:  # the trace readers' message, as this reader's error
-        raise SetpointsError(str(err)) from None
+    return fmt, columns, units
+
+
+def _commands(table, units: str) -> tuple[tuple[str, ...], np.ndarray]:
+    """The axes with a position setpoint column and the setpoints (rows, 3) m, each axis's
+    speed checked (zeros on the others)."""
     col, data, rows = table.columns, table.data, table.rows
-    check_period(table.dt_s, te, "t_s" if "t_s" in col else "sample")
     scale = UNITS[units]
     axes = tuple(a for a in AXES if f"{a}_cmd_m" in col)
     if not axes:
@@ -154,6 +203,13 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
                 check_speed(raw[:, k], table.dt_s, f"{a}_cmd_m", rows, units)
             except TraceError as err:
                 raise SetpointsError(str(err)) from None
+    return axes, raw
+
+
+def _line_and_rapid(table) -> tuple[np.ndarray | None, np.ndarray]:
+    """The program line per row (None without the column) and the rapid flags (from
+    ``rapid``, else ``motion_type``, else none)."""
+    col, data, rows = table.columns, table.data, table.rows
     line = _integers(data[:, col["line"]], "line", rows) if "line" in col else None
     if "rapid" in col:
         rapid = _integers(data[:, col["rapid"]], "rapid", rows)
@@ -165,48 +221,21 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
         rapid = _integers(data[:, col["motion_type"]], "motion_type", rows) == _TRAVERSE
     else:
         rapid = np.zeros(len(data), dtype=bool)
-    periods, lcnc = np.arange(len(data)), None
-    if fmt == "halsampler":
-        if header is not None and header.error_previous_target is not None:
-            ept = header.error_previous_target
-            missing = [a for a in axes if a not in ept]
-            if missing:
-                raise SetpointsError(f"header 'error-previous-target': no value for axis "
-                                     f"{', '.join(missing)}")
-        else:
-            flag = LINUXCNC["error_previous_target"] if error_previous_target is None \
-                else bool(error_previous_target)
-            ept = dict.fromkeys(axes, flag)
-        periods, pos, vel = pid_law(raw, te, ept, axes)
-        cv = data[periods, col["current_vel_m_s"]] * scale if "current_vel_m_s" in col else None
-        lcnc = LinuxcncPeriods(
-            cmd_m=raw[periods], axes=axes, line=None if line is None else line[periods],
-            current_vel_m_s=cv, error_previous_target={a: ept[a] for a in axes}, units=units,
-            joints=None if header is None else header.joints, first_row=int(rows[periods[0]]))
-        _, acc, jerk = derivatives(pos, te)
-    else:
-        pos = raw
-        vel, acc, jerk = derivatives(pos, te)
-        for k, a in enumerate(AXES):
-            if f"{a}_ff_vel_m_s" in col:
-                vel[:, k] = data[:, col[f"{a}_ff_vel_m_s"]] * scale
-    sample_rows = rows[periods]
-    if machine is not None:
-        check_limits(pos, te, machine, {a: f"{a}_cmd_m" for a in AXES}, sample_rows)
-    rapid = rapid[periods]
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
-    sp = Setpoints(dt=te, s=s, pos=pos, vel=vel, acc=acc, jerk=jerk,
-                   block=np.zeros(len(pos), dtype=np.int64) if line is None else line[periods],
-                   rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source)
-    info = {"file": source, "format": fmt,
-            "sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(),
-            "law": "linuxcnc-pid" if fmt == "halsampler" else "given", "units": units,
-            "samples": len(sp), "first_row": int(sample_rows[0])}
-    if lcnc is not None:
-        info["error_previous_target"] = lcnc.error_previous_target
-    if header is not None and "program-pauses" in header.meta:  # resumed M0/M1 (lcnc-record)
-        info["program_pauses"] = header.meta["program-pauses"]
-    return RecordedSetpoints(setpoints=sp, source=info, linuxcnc=lcnc)
+    return line, rapid
+
+
+def _error_previous_target(header, axes, error_previous_target: bool | None) -> dict:
+    """``pid.N.error-previous-target`` per axis: the header's, else given, else LinuxCNC's."""
+    if header is not None and header.error_previous_target is not None:
+        ept = header.error_previous_target
+        missing = [a for a in axes if a not in ept]
+        if missing:
+            raise SetpointsError(f"header 'error-previous-target': no value for axis "
+                                 f"{', '.join(missing)}")
+        return ept
+    flag = LINUXCNC["error_previous_target"] if error_previous_target is None \
+        else bool(error_previous_target)
+    return dict.fromkeys(axes, flag)
 
 
 def read_setpoints_file(path: str | os.PathLike, fmt: str | None = None,
