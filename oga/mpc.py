@@ -672,10 +672,10 @@ def mpc_multi_chunk(
                         continue
                     _plan_gains(points, a, wk, kspace, kpa, kfa)
                     scratch[:] = states[s, a]
-                    run_tangent(scratch, params[s, a], pdT[a, k:k + wk], vdT[a, k:k + wk], kpa,
-                                kfa, dir_kp[:, lo_v:hi_v], dir_kf[:, lo_v:hi_v],
-                                var_start[lo_v:hi_v], p0[s, a], u0[s, a], sp[s, :, lo_v:hi_v],
-                                su[s, :, lo_v:hi_v])
+                    run_tangent(scratch, params[s, a], (pdT[a, k:k + wk], vdT[a, k:k + wk], kpa,
+                                kfa, dir_kp[:, lo_v:hi_v], dir_kf[:, lo_v:hi_v]),
+                                var_start[lo_v:hi_v], (p0[s, a], u0[s, a], sp[s, :, lo_v:hi_v],
+                                su[s, :, lo_v:hi_v]))
             # 2: linearised contour error around each plant's nominal prediction, weighted
             nominal_d2 = 0.0  # the exact window cost of the plan (the line search's scale 0)
             for s in range(n_s):

@@ -553,11 +553,12 @@ def _walk(loop: _Loop, g: GainSettings) -> tuple[float, float]:
 def _walk_compiled(loop: _Loop, g: GainSettings) -> tuple[float, float]:
     """:func:`_walk` of a loop in modal form, compiled (:func:`_walk_modal`)."""
     lam, res, dead = loop.modal
-    ends = _walk_modal(lam, res, dead, loop.te, loop.w, loop.h, loop.log_mag, loop.phase,
-                       loop.a, loop.b, loop.c, loop.gm_db,
+    lo_b, hi_b = (float(b) for b in g.kp_bounds_m_min_per_mm)
+    ends = _walk_modal((lam, res, dead, loop.te), (loop.w, loop.h, loop.log_mag, loop.phase),
+                       (loop.a, loop.b, loop.c), loop.gm_db,
                        decimal_grid(*g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm),
-                       *(float(b) for b in g.kp_bounds_m_min_per_mm), float(g.pm_min_deg),
-                       float(g.gm_min_db), KP_SI_PER_M_MIN_PER_MM)
+                       (lo_b, hi_b, float(g.pm_min_deg), float(g.gm_min_db),
+                        KP_SI_PER_M_MIN_PER_MM))
     return float(ends[0]), float(ends[1])
 
 
@@ -804,12 +805,19 @@ def _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi):
 
 
 @njit(cache=True, nogil=True)
-def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, lo_b, hi_b,
-                pm_min, gm_min, kp_si_per):
+def _walk_modal(modal, curve, abc, gm_db, grid, rule):
     """:func:`_ends`'s walk over ``grid`` with :func:`_margins`' figures, compiled.
 
-    Returns ``(kp_min, kp_max)`` (``nan`` both when no grid value qualifies).
+    ``modal = (lam, res, dead, te)`` (:attr:`_Loop.modal` and the period), ``curve = (w, h,
+    log_mag, phase)`` (the loop's frequency grid and response there), ``abc = (a, b, c)``
+    (the lifted loop), ``gm_db`` its gain margin at Kp = 1/s, ``rule = (lo_b, hi_b, pm_min,
+    gm_min, kp_si_per)``: the configured Kp bounds, the margins asked for and the unit of
+    ``grid``. Returns ``(kp_min, kp_max)`` (``nan`` both when no grid value qualifies).
     """
+    lam, res, dead, te = modal
+    w, h, log_mag, phase = curve
+    a, b, c = abc
+    lo_b, hi_b, pm_min, gm_min, kp_si_per = rule
     first, last = np.nan, np.nan
     acl = np.empty(a.shape, dtype=np.complex128)
     acl_f = np.empty(a.shape)  # the real matrix, column-major (:func:`_closed_loop_stable`)
