@@ -97,7 +97,8 @@ from numba import njit
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
 from oga.linear import dead_line, substep_matrices, substep_sequence_of
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, machine_memo
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.model.plant import Plant, plant_of
 
 __all__ = [
     "axis_params",
@@ -931,72 +932,105 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
     na = axes.shape[0]
     if na == 0:
         return
-    p_now, v_now, f_now, i_now = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    p_was, v_was, f_was, i_was = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    ud, fn, ud_still = np.empty(3), np.empty(3), np.zeros(3)
-    still = np.zeros(3, dtype=np.bool_)  # see :func:`_period`
-    sub = np.empty(3, dtype=np.int64)  # the axes taking the sub-steps this period
+    now = (np.empty(3), np.empty(3), np.empty(3), np.empty(3))  # p, v, F, I per axis run
+    was = (np.empty(3), np.empty(3), np.empty(3), np.empty(3))  # at the period's start
+    # the applied command, the friction force, the command last held still, and still
+    # (see :func:`_period`); the axes taking the sub-steps this period
+    hold = (np.empty(3), np.empty(3), np.zeros(3), np.zeros(3, dtype=np.bool_))
+    sub = np.empty(3, dtype=np.int64)
     for q in range(na):
         a = axes[q]
-        p_now[q], v_now[q], f_now[q], i_now[q] = (states[a, _P], states[a, _V], states[a, _F],
-                                                  states[a, _I])
+        for r in range(4):
+            now[r][q] = states[a, _P + r]
     nsub = int(params[axes[0], _NSUB])  # the machine's timing: every axis the same
     for k in range(n):
         ns = 0
         for q in range(na):  # :func:`run`'s sample k of axis a, up to :func:`_substeps`
             a = axes[q]
-            prm = params[a]
-            p, v, f, i = p_now[q], v_now[q], f_now[q], i_now[q]
+            p = now[0][q]
             out_p[k, a] = p
-            u = kp_si[k, a] * (pd[k, a] - p) + kf[k, a] * vd[k, a]
-            out_u[k, a] = u
-            dead = int(prm[_DEAD])
-            m = k - dead
-            udq = out_u[m, a] if m >= 0 else states[a, _LINE + dead - 1 - k]
-            if prm[_FRAC] != 0.0:
-                udq = _delayed(prm, udq, out_u[m + 1, a] if m + 1 >= 0
-                               else states[a, _LINE + dead - 2 - k])
-            if still[q] and _same(udq, ud_still[q]):
-                continue
-            ud_still[q] = udq
-            if v == 0.0 and f == 0.0 and i == 0.0 and udq == 0.0:  # at rest, not driven
-                still[q] = _same(p, p)
-                continue
-            if _linear_guard(prm, v, f, i, udq, 0.0):  # as :func:`_advance`, load 0
-                p1, v1, f1, i1 = _linear(prm, p, v, f, i, udq, 0.0)
-                still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
-                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
-                continue
-            fnq = friction_nonlinear(prm, v) + 0.0
-            if prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq):
-                p1, v1, f1, i1 = _lifted(prm, p, v, f, i, udq, fnq)
-                still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
-                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
-                continue
-            p_was[q], v_was[q], f_was[q], i_was[q] = p, v, f, i
-            ud[q] = udq
-            fn[q] = fnq
-            sub[ns] = q
-            ns += 1
-        for j in range(nsub if ns else 0):  # :func:`_substeps`, the axes side by side
-            for r in range(ns):
-                q = sub[r]
-                prm = params[axes[q]]
-                v = v_now[q]
-                if j > 0:
-                    fn[q] = _friction_flat(prm, v) + 0.0
-                fc, i_now[q], _lin, _integrating = _pi_substep(ud[q], v, i_now[q],
-                                                               _pi_coefs(prm))
-                p_now[q], v_now[q], f_now[q] = _mechanics(_substep_coefs(prm), p_now[q], v,
-                                                          f_now[q], fc, fn[q])
-        for r in range(ns):
-            q = sub[r]
-            still[q] = (_same(p_now[q], p_was[q]) and _same(v_now[q], v_was[q])
-                        and _same(f_now[q], f_was[q]) and _same(i_now[q], i_was[q]))
+            out_u[k, a] = kp_si[k, a] * (pd[k, a] - p) + kf[k, a] * vd[k, a]
+            udq = _applied_command(states[a], params[a], k, out_u[:, a])
+            if _period_start(params[a], q, udq, now, was, hold):
+                sub[ns] = q
+                ns += 1
+        _substeps_side_by_side(params, axes, sub[:ns], nsub, now, hold)
+        _still_after_substeps(sub[:ns], now, was, hold[3])
     for q in range(na):
         a = axes[q]
-        _store_cascade(states[a], int(params[a, _DEAD]), out_u[:, a], n, p_now[q], v_now[q],
-                       f_now[q], i_now[q])
+        _store_cascade(states[a], int(params[a, _DEAD]), out_u[:, a], n, now[0][q], now[1][q],
+                       now[2][q], now[3][q])
+
+
+@njit(cache=True, inline="always")
+def _applied_command(state, prm, k, out_u):
+    """The command a cascade axis applies at sample ``k`` of :func:`run_axes`: ``u`` of
+    ``dead`` samples ago (``out_u`` its column, the dead-time line of ``state`` before the
+    run's start), mixed with the next one for a fractional dead time."""
+    dead = int(prm[_DEAD])
+    m = k - dead
+    udq = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
+    if prm[_FRAC] != 0.0:
+        udq = _delayed(prm, udq, out_u[m + 1] if m + 1 >= 0 else state[_LINE + dead - 2 - k])
+    return udq
+
+
+@njit(cache=True, inline="always")
+def _period_start(prm, q, udq, now, was, hold):
+    """Advance axis ``q`` of :func:`run_axes` over one period where no sub-steps are needed
+    (held still, at rest, the linear or the lifted map); else note its start in ``was`` and
+    ``hold`` and return True (it takes the sub-steps)."""
+    p_now, v_now, f_now, i_now = now
+    ud, fn, ud_still, still = hold
+    p, v, f, i = p_now[q], v_now[q], f_now[q], i_now[q]
+    if still[q] and _same(udq, ud_still[q]):
+        return False
+    ud_still[q] = udq
+    if v == 0.0 and f == 0.0 and i == 0.0 and udq == 0.0:  # at rest, not driven
+        still[q] = _same(p, p)
+        return False
+    if _linear_guard(prm, v, f, i, udq, 0.0):  # as :func:`_advance`, load 0
+        p1, v1, f1, i1 = _linear(prm, p, v, f, i, udq, 0.0)
+        still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+        p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
+        return False
+    fnq = friction_nonlinear(prm, v) + 0.0
+    if prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq):
+        p1, v1, f1, i1 = _lifted(prm, p, v, f, i, udq, fnq)
+        still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+        p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
+        return False
+    for r in range(4):
+        was[r][q] = now[r][q]
+    ud[q] = udq
+    fn[q] = fnq
+    return True
+
+
+@njit(cache=True, inline="always")
+def _substeps_side_by_side(params, axes, sub, nsub, now, hold):
+    """:func:`_substeps` of the axes ``sub`` of :func:`run_axes`, their chains interleaved."""
+    p_now, v_now, f_now, i_now = now
+    ud, fn = hold[0], hold[1]
+    for j in range(nsub if sub.shape[0] else 0):
+        for r in range(sub.shape[0]):
+            q = sub[r]
+            prm = params[axes[q]]
+            v = v_now[q]
+            if j > 0:
+                fn[q] = _friction_flat(prm, v) + 0.0
+            fc, i_now[q], _lin, _integrating = _pi_substep(ud[q], v, i_now[q], _pi_coefs(prm))
+            p_now[q], v_now[q], f_now[q] = _mechanics(_substep_coefs(prm), p_now[q], v,
+                                                      f_now[q], fc, fn[q])
+
+
+@njit(cache=True, inline="always")
+def _still_after_substeps(sub, now, was, still):
+    """Whether each axis of ``sub`` ended its sub-stepped period where it started."""
+    for r in range(sub.shape[0]):
+        q = sub[r]
+        still[q] = (_same(now[0][q], was[0][q]) and _same(now[1][q], was[1][q])
+                    and _same(now[2][q], was[2][q]) and _same(now[3][q], was[3][q]))
 
 
 @njit(cache=True, inline="always")
@@ -1171,15 +1205,15 @@ def _still(pd, vd):
     return True
 
 
-def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Simulation:
+def simulate(setpoints: Setpoints, machine: Machine | Plant, kp_m_min_per_mm, kf) -> Simulation:
     """Simulate every axis of ``machine`` on ``setpoints``, each from rest at its first setpoint.
 
     Parameters
     ----------
     setpoints : Setpoints
         The planned motion (N samples); its period must be the machine's Te.
-    machine : Machine
-        Machine description.
+    machine : Machine or Plant
+        Machine description, or its :class:`~oga.model.plant.Plant` (packed once).
     kp_m_min_per_mm : float, dict or array_like, shape (N, 3)
         Position gain in (m/min)/mm: one value, one per axis ``{"x": .., "y": .., "z": ..}``
         (every axis named), or per sample and axis. Must be positive.
@@ -1199,6 +1233,8 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         A setpoint moves an axis the machine lacks.
     """
     n = len(setpoints)
+    plant = plant_of(machine)
+    machine = plant.machine
     if not math.isclose(setpoints.dt, machine.te, rel_tol=1e-9):
         raise OptionError(
             f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
@@ -1209,9 +1245,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         raise OptionError("kp_m_min_per_mm: gains must be positive")
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
-    digest = machine.digest() if n else ""
-    n_params, n_state = machine_memo(machine, "simulate._sizes", lambda: _sizes(machine))
-    params, states = np.zeros((3, n_params)), np.zeros((3, n_state))
+    params, states = np.zeros(plant.params.shape), np.zeros((3, plant.state_size))
     fused = []  # the moving cascade axes: one :func:`run_axes`
     for c, a in enumerate(AXES):
         pd = setpoints.pos[:, c]
@@ -1228,7 +1262,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         if _at_rest(machine.axes[a], pd, setpoints.vel[:, c]):
             pos[:, c] = pd  # exact rest: u stays 0 (:func:`_at_rest`), nothing to pack
             continue
-        params[c] = _params_of(digest, machine, a)
+        params[c] = plant.params[c]
         if params[c, _KIND] == _CASCADE:
             states[c, _P] = pd[0]  # :func:`rest_state`
             fused.append(c)

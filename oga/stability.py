@@ -45,6 +45,7 @@ from scipy.optimize import brentq
 from oga.errors import OptionError
 from oga.linear import dead_line, position_open_loop
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
+from oga.model.plant import Plant, machine_of
 
 ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
 
@@ -422,7 +423,7 @@ def _loop(machine: Machine, axis: str, key: str | None = None) -> _Loop:
     return _memo(_LOOPS, key, _LOOPS_KEPT, lambda: _Loop(machine, axis))
 
 
-def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
+def margins(machine: Machine | Plant, axis: str, kp_m_min_per_mm: float) -> Margins:
     """Phase and gain margins of the linearised position loop of one axis.
 
     Parameters
@@ -443,6 +444,7 @@ def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
     OptionError
         ``kp_m_min_per_mm`` not a positive finite number.
     """
+    machine = machine_of(machine)
     try:
         kp = float(kp_m_min_per_mm)
     except (TypeError, ValueError):
@@ -466,7 +468,7 @@ def decimal_grid(lo: float, hi: float, step: float) -> np.ndarray:
     return np.round(lo + np.arange(n) * step, _KP_DECIMALS)
 
 
-def stable_range(machine: Machine, axis: str) -> StabilityRange:
+def stable_range(machine: Machine | Plant, axis: str) -> StabilityRange:
     """The stable Kp range of one axis over the machine's Kp grid.
 
     The grid spans ``machine.gains.kp_span_m_min_per_mm`` in steps of
@@ -489,6 +491,7 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     -------
     StabilityRange
     """
+    machine = machine_of(machine)
     g = machine.gains
     loop_key = _loop_key(machine, axis)
     kp, pm, gm, stable = _memo(
@@ -500,7 +503,7 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     return _summarise(axis, g, kp, pm, gm, stable)
 
 
-def stable_ends(machine: Machine, axis: str) -> tuple[float, float]:
+def stable_ends(machine: Machine | Plant, axis: str) -> tuple[float, float]:
     """``(kp_min, kp_max)`` of :func:`stable_range` (``nan`` both when empty), computing
     only what decides them.
 
@@ -512,6 +515,7 @@ def stable_ends(machine: Machine, axis: str) -> tuple[float, float]:
     :func:`stable_range` already holds is used as is; the ends are memoised by what they
     depend on (the loop and the gain settings).
     """
+    machine = machine_of(machine)
     g = machine.gains
     loop_key = _loop_key(machine, axis)
     return _memo(_ENDS, (loop_key, g.model_dump_json()), _ENDS_KEPT,
