@@ -1079,7 +1079,7 @@ def simulate_axis(
     return p_act, u
 
 
-def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def axis_arrays(machine: Machine | Plant, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Packed parameters and rest states of the x, y, z axes, for compiled multi-axis loops.
 
     Rows are in ``AXES`` order (every axis of a machine has the same lengths), so a
@@ -1088,8 +1088,8 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
     Parameters
     ----------
-    machine : Machine
-        Machine description.
+    machine : Machine or Plant
+        Machine description (or its plant).
     p0 : array_like, shape (3,)
         Initial positions of x, y, z, m (each present axis starts at rest there).
 
@@ -1102,16 +1102,13 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
     present : ndarray of bool, shape (3,)
         Whether the machine has the axis.
     """
-    rows = {a: axis_params(machine, a) for a in AXES if a in machine.axes}
-    rests = {a: rest_state(rows[a], float(p0[c])) for c, a in enumerate(AXES) if a in rows}
-    n_params, n_state = _sizes(machine)
-    params = np.zeros((3, n_params))
-    states = np.zeros((3, n_state))
+    plant = plant_of(machine)
+    params = np.array(plant.params)  # writeable: the compiled loops take the same types
+    states = np.zeros((3, plant.state_size))
     for c, a in enumerate(AXES):
-        if a in rows:
-            params[c] = rows[a]
-            states[c] = rests[a]
-    present = np.array([a in rows for a in AXES])
+        if a in plant.axes:
+            states[c] = rest_state(params[c], float(p0[c]))
+    present = np.array([a in plant.axes for a in AXES])
     return params, states, present
 
 
