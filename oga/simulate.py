@@ -932,105 +932,72 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
     na = axes.shape[0]
     if na == 0:
         return
-    now = (np.empty(3), np.empty(3), np.empty(3), np.empty(3))  # p, v, F, I per axis run
-    was = (np.empty(3), np.empty(3), np.empty(3), np.empty(3))  # at the period's start
-    # the applied command, the friction force, the command last held still, and still
-    # (see :func:`_period`); the axes taking the sub-steps this period
-    hold = (np.empty(3), np.empty(3), np.zeros(3), np.zeros(3, dtype=np.bool_))
-    sub = np.empty(3, dtype=np.int64)
+    p_now, v_now, f_now, i_now = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    p_was, v_was, f_was, i_was = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    ud, fn, ud_still = np.empty(3), np.empty(3), np.zeros(3)
+    still = np.zeros(3, dtype=np.bool_)  # see :func:`_period`
+    sub = np.empty(3, dtype=np.int64)  # the axes taking the sub-steps this period
     for q in range(na):
         a = axes[q]
-        for r in range(4):
-            now[r][q] = states[a, _P + r]
+        p_now[q], v_now[q], f_now[q], i_now[q] = (states[a, _P], states[a, _V], states[a, _F],
+                                                  states[a, _I])
     nsub = int(params[axes[0], _NSUB])  # the machine's timing: every axis the same
     for k in range(n):
         ns = 0
         for q in range(na):  # :func:`run`'s sample k of axis a, up to :func:`_substeps`
             a = axes[q]
-            p = now[0][q]
+            prm = params[a]
+            p, v, f, i = p_now[q], v_now[q], f_now[q], i_now[q]
             out_p[k, a] = p
-            out_u[k, a] = kp_si[k, a] * (pd[k, a] - p) + kf[k, a] * vd[k, a]
-            udq = _applied_command(states[a], params[a], k, out_u[:, a])
-            if _period_start(params[a], q, udq, now, was, hold):
-                sub[ns] = q
-                ns += 1
-        _substeps_side_by_side(params, axes, sub[:ns], nsub, now, hold)
-        _still_after_substeps(sub[:ns], now, was, hold[3])
+            u = kp_si[k, a] * (pd[k, a] - p) + kf[k, a] * vd[k, a]
+            out_u[k, a] = u
+            dead = int(prm[_DEAD])
+            m = k - dead
+            udq = out_u[m, a] if m >= 0 else states[a, _LINE + dead - 1 - k]
+            if prm[_FRAC] != 0.0:
+                udq = _delayed(prm, udq, out_u[m + 1, a] if m + 1 >= 0
+                               else states[a, _LINE + dead - 2 - k])
+            if still[q] and _same(udq, ud_still[q]):
+                continue
+            ud_still[q] = udq
+            if v == 0.0 and f == 0.0 and i == 0.0 and udq == 0.0:  # at rest, not driven
+                still[q] = _same(p, p)
+                continue
+            if _linear_guard(prm, v, f, i, udq, 0.0):  # as :func:`_advance`, load 0
+                p1, v1, f1, i1 = _linear(prm, p, v, f, i, udq, 0.0)
+                still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
+                continue
+            fnq = friction_nonlinear(prm, v) + 0.0
+            if prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq):
+                p1, v1, f1, i1 = _lifted(prm, p, v, f, i, udq, fnq)
+                still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
+                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
+                continue
+            p_was[q], v_was[q], f_was[q], i_was[q] = p, v, f, i
+            ud[q] = udq
+            fn[q] = fnq
+            sub[ns] = q
+            ns += 1
+        for j in range(nsub if ns else 0):  # :func:`_substeps`, the axes side by side
+            for r in range(ns):
+                q = sub[r]
+                prm = params[axes[q]]
+                v = v_now[q]
+                if j > 0:
+                    fn[q] = _friction_flat(prm, v) + 0.0
+                fc, i_now[q], _lin, _integrating = _pi_substep(ud[q], v, i_now[q],
+                                                               _pi_coefs(prm))
+                p_now[q], v_now[q], f_now[q] = _mechanics(_substep_coefs(prm), p_now[q], v,
+                                                          f_now[q], fc, fn[q])
+        for r in range(ns):
+            q = sub[r]
+            still[q] = (_same(p_now[q], p_was[q]) and _same(v_now[q], v_was[q])
+                        and _same(f_now[q], f_was[q]) and _same(i_now[q], i_was[q]))
     for q in range(na):
         a = axes[q]
-        _store_cascade(states[a], int(params[a, _DEAD]), out_u[:, a], n, now[0][q], now[1][q],
-                       now[2][q], now[3][q])
-
-
-@njit(cache=True, inline="always")
-def _applied_command(state, prm, k, out_u):
-    """The command a cascade axis applies at sample ``k`` of :func:`run_axes`: ``u`` of
-    ``dead`` samples ago (``out_u`` its column, the dead-time line of ``state`` before the
-    run's start), mixed with the next one for a fractional dead time."""
-    dead = int(prm[_DEAD])
-    m = k - dead
-    udq = out_u[m] if m >= 0 else state[_LINE + dead - 1 - k]
-    if prm[_FRAC] != 0.0:
-        udq = _delayed(prm, udq, out_u[m + 1] if m + 1 >= 0 else state[_LINE + dead - 2 - k])
-    return udq
-
-
-@njit(cache=True, inline="always")
-def _period_start(prm, q, udq, now, was, hold):
-    """Advance axis ``q`` of :func:`run_axes` over one period where no sub-steps are needed
-    (held still, at rest, the linear or the lifted map); else note its start in ``was`` and
-    ``hold`` and return True (it takes the sub-steps)."""
-    p_now, v_now, f_now, i_now = now
-    ud, fn, ud_still, still = hold
-    p, v, f, i = p_now[q], v_now[q], f_now[q], i_now[q]
-    if still[q] and _same(udq, ud_still[q]):
-        return False
-    ud_still[q] = udq
-    if v == 0.0 and f == 0.0 and i == 0.0 and udq == 0.0:  # at rest, not driven
-        still[q] = _same(p, p)
-        return False
-    if _linear_guard(prm, v, f, i, udq, 0.0):  # as :func:`_advance`, load 0
-        p1, v1, f1, i1 = _linear(prm, p, v, f, i, udq, 0.0)
-        still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
-        p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
-        return False
-    fnq = friction_nonlinear(prm, v) + 0.0
-    if prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq):
-        p1, v1, f1, i1 = _lifted(prm, p, v, f, i, udq, fnq)
-        still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
-        p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
-        return False
-    for r in range(4):
-        was[r][q] = now[r][q]
-    ud[q] = udq
-    fn[q] = fnq
-    return True
-
-
-@njit(cache=True, inline="always")
-def _substeps_side_by_side(params, axes, sub, nsub, now, hold):
-    """:func:`_substeps` of the axes ``sub`` of :func:`run_axes`, their chains interleaved."""
-    p_now, v_now, f_now, i_now = now
-    ud, fn = hold[0], hold[1]
-    for j in range(nsub if sub.shape[0] else 0):
-        for r in range(sub.shape[0]):
-            q = sub[r]
-            prm = params[axes[q]]
-            v = v_now[q]
-            if j > 0:
-                fn[q] = _friction_flat(prm, v) + 0.0
-            fc, i_now[q], _lin, _integrating = _pi_substep(ud[q], v, i_now[q], _pi_coefs(prm))
-            p_now[q], v_now[q], f_now[q] = _mechanics(_substep_coefs(prm), p_now[q], v,
-                                                      f_now[q], fc, fn[q])
-
-
-@njit(cache=True, inline="always")
-def _still_after_substeps(sub, now, was, still):
-    """Whether each axis of ``sub`` ended its sub-stepped period where it started."""
-    for r in range(sub.shape[0]):
-        q = sub[r]
-        still[q] = (_same(now[0][q], was[0][q]) and _same(now[1][q], was[1][q])
-                    and _same(now[2][q], was[2][q]) and _same(now[3][q], was[3][q]))
+        _store_cascade(states[a], int(params[a, _DEAD]), out_u[:, a], n, p_now[q], v_now[q],
+                       f_now[q], i_now[q])
 
 
 @njit(cache=True, inline="always")
