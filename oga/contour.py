@@ -169,7 +169,7 @@ def ce_point(pd, lo, hi, x, y, z, e1, e2, signed):
         (the path stands still), the distance to ``pd[lo]``, positive.
     """
     bi, bt, best = nearest_segment(pd, lo, hi, x, y, z)
-    return _signed(pd, (lo, hi), (x, y, z), (e1, e2, signed), (bi, bt, best))
+    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
 
 
 @njit(cache=True, inline="always")
@@ -182,13 +182,8 @@ def _point_d2(pd, i, x, y, z):
 
 
 @njit(cache=True, nogil=True)
-def _signed(pd, win, q, plane, near):
-    """:func:`ce_point` of the point ``q = (x, y, z)`` from the nearest segment
-    ``near = (bi, bt, best)`` of the window ``win = (lo, hi)``; ``plane = (e1, e2, signed)``."""
-    lo, hi = win
-    x, y, z = q
-    e1, e2, signed = plane
-    bi, bt, best = near
+def _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best):
+    """:func:`ce_point` from the nearest segment ``(bi, bt, best)`` of the window ``lo..hi``."""
     if bi < 0:  # standing still over the whole window
         return np.sqrt(_point_d2(pd, lo, x, y, z))
     dist = np.sqrt(best)
@@ -321,8 +316,8 @@ def ce_indexed(pd, pa, tree, lo, hi, e1, e2, signed):
     out = np.empty(n)
     near = -1
     for k in range(n):
-        out[k], near = ce_at(pd, tree, (lo[k], hi[k]), k, (pa[k, 0], pa[k, 1], pa[k, 2]),
-                             (e1, e2, signed), near)
+        out[k], near = ce_at(pd, tree, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2], e1, e2,
+                             signed, near)
     return out
 
 
@@ -364,7 +359,7 @@ def path_index(pd, window):
 
 
 @njit(cache=True, inline="always")
-def ce_at(pd, tree, win, k, q, plane, hint):
+def ce_at(pd, tree, lo, hi, k, x, y, z, e1, e2, signed, hint):
     """Contour error of the point ``(x, y, z)`` taken at sample ``k``, as :func:`ce_series`.
 
     The result does not depend on ``hint``, only the time it takes: pass the segment
@@ -376,13 +371,13 @@ def ce_at(pd, tree, win, k, q, plane, hint):
         Desired positions (setpoints), metres.
     tree : tuple
         From :func:`path_index`.
-    win : tuple of int ``(lo, hi)``
+    lo, hi : int
         Window of sample ``k`` from :func:`path_index`.
     k : int
         Sample index.
-    q : tuple of float ``(x, y, z)``
+    x, y, z : float
         The actual point, metres.
-    plane : tuple ``(e1, e2, signed)``
+    e1, e2, signed
         Plane axes and signing (see :func:`ce_point`).
     hint : int
         A segment index likely to be the nearest (any value is safe), -1 for none.
@@ -395,10 +390,8 @@ def ce_at(pd, tree, win, k, q, plane, hint):
         The nearest segment (the first of least distance, as :func:`nearest_segment`),
         -1 if the window stands still: the hint for the next sample.
     """
-    lo, hi = win
-    x, y, z = q
-    near = nearest_at(pd, tree, lo, hi, k, x, y, z, hint)
-    return _signed(pd, win, q, plane, near), near[0]
+    bi, bt, best = nearest_at(pd, tree, lo, hi, k, x, y, z, hint)
+    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best), bi
 
 
 @njit(cache=True, inline="always")
@@ -407,8 +400,7 @@ def ce2_at(pd, tree, lo, hi, k, x, y, z, hint):
     squaring :func:`ce_at` (no sign, no square root).
 
     The squared distance that :func:`ce_at` takes the root of: ``ce_at(...)[0] ** 2``
-    up to the rounding of the root and the square (2 ulp). Arguments as :func:`ce_at`
-    (the window and the point unpacked).
+    up to the rounding of the root and the square (2 ulp). Arguments as :func:`ce_at`.
 
     Returns
     -------
@@ -505,19 +497,14 @@ def _clearance(nodes, parent, reach):
 
 
 @njit(cache=True, inline="always")
-def _scan_leaves(pd, segs, leaves, among, win, q, bound, near):
-    """Fold the segments of leaves ``among = (a0, a1)`` in the window ``win = (lo, hi)`` into
-    the nearest so far ``near = (bi, bt, best)`` to the point ``q = (x, y, z)``, in index order
-    with :func:`nearest_segment`'s strict comparison.
+def _scan_leaves(pd, segs, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best):
+    """Fold the segments of leaves ``a0 .. a1`` in the window ``lo..hi`` into the nearest so
+    far ``(bi, bt, best)``, in index order with :func:`nearest_segment`'s strict comparison.
 
     A leaf, and inside a leaf a segment, whose sphere lies farther than ``sqrt(bound)`` (an
     upper bound of the least squared distance, lowered by every distance found) is skipped
     (no distance computed: it cannot be the nearest). Returns ``(bound, bi, bt, best)``.
     """
-    a0, a1 = among
-    lo, hi = win
-    x, y, z = q
-    bi, bt, best = near
     reach = np.sqrt(bound)
     for a in range(max(a0, lo // _LEAF), min(a1, (hi - 1) // _LEAF) + 1):
         far = leaves[a, 3] + reach
@@ -539,14 +526,9 @@ def _scan_leaves(pd, segs, leaves, among, win, q, bound, near):
 
 
 @njit(cache=True, nogil=True)
-def _scan_blocks(pd, tree, among, win, q, bound):
-    """:func:`_scan_leaves` over the blocks ``among = (b0, b1)`` of ``tree`` (from
-    :func:`path_index`) whose sphere lies within ``sqrt(bound)`` of the point ``q``; returns
-    ``(bound, bi, bt, best)``."""
-    segs, leaves, blocks, _span = tree
-    b0, b1 = among
-    lo, hi = win
-    x, y, z = q
+def _scan_blocks(pd, segs, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
+    """:func:`_scan_leaves` over the blocks ``b0 .. b1`` whose sphere lies within
+    ``sqrt(bound)`` of the point; returns ``(bound, bi, bt, best)``."""
     bi = -1
     bt = 0.0
     best = np.inf
@@ -556,8 +538,8 @@ def _scan_blocks(pd, tree, among, win, q, bound):
         if _point_d2(blocks, b, x, y, z) > far * far:
             continue
         was = bound
-        bound, bi, bt, best = _scan_leaves(pd, segs, leaves, (b * _FAN, (b + 1) * _FAN - 1),
-                                           win, q, bound, (bi, bt, best))
+        bound, bi, bt, best = _scan_leaves(pd, segs, leaves, b * _FAN, (b + 1) * _FAN - 1, lo,
+                                           hi, x, y, z, bound, bi, bt, best)
         if bound < was:
             reach = np.sqrt(bound)
     return bound, bi, bt, best
@@ -598,20 +580,20 @@ def nearest_at(pd, tree, lo, hi, k, x, y, z, hint):
                 return nearest_segment(pd, max(lo, hint - 1), min(hi, hint + 2), x, y, z)
             leaf = hint // _LEAF
             if leaves[leaf, 4] ** 2 > far2:
-                _b, bi, bt, best = _scan_leaves(pd, segs, leaves, (leaf - 1, leaf + 1), (lo, hi),
-                                                (x, y, z), d2, (-1, 0.0, np.inf))
+                _b, bi, bt, best = _scan_leaves(pd, segs, leaves, leaf - 1, leaf + 1, lo, hi, x,
+                                                y, z, d2, -1, 0.0, np.inf)
                 return bi, bt, best
             if blocks[blk, 4] ** 2 > far2:
-                _b, bi, bt, best = _scan_blocks(pd, tree, (blk - 1, blk + 1), (lo, hi),
-                                                (x, y, z), d2)
+                _b, bi, bt, best = _scan_blocks(pd, segs, leaves, blocks, blk - 1, blk + 1, lo, hi,
+                                                x, y, z, d2)
                 return bi, bt, best
     else:
         kb = min(kc, hi - 1) // _BLOCK
         _j, _t, d2 = nearest_segment(pd, max(lo, kb * _BLOCK), min(hi, (kb + 1) * _BLOCK),
                                      x, y, z)
     bound = min(_point_d2(pd, kc, x, y, z), d2)
-    bound, bi, bt, best = _scan_blocks(pd, tree, (0, blocks.shape[0]), (lo, hi), (x, y, z),
-                                       bound)
+    bound, bi, bt, best = _scan_blocks(pd, segs, leaves, blocks, 0, blocks.shape[0], lo, hi,
+                                       x, y, z, bound)
     if best > bound:  # the bound was not a distance to the window's path: no pruning
         return nearest_segment(pd, lo, hi, x, y, z)
     return bi, bt, best
