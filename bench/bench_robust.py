@@ -87,14 +87,15 @@ def _path(file: Path, lines: int | None):
 
 def _cold() -> None:
     """Empty the in-process memos (module doc): the stability loops, margin tables and
-    ends, the packed axis parameters, the sub-step matrices and the machines' digests and
-    limits."""
+    ends, the packed axis parameters and plants, the sub-step matrices and the machines'
+    digests and limits."""
     stability = importlib.import_module("oga.stability")
     simulate = importlib.import_module("oga.simulate")  # the module, not oga's function
     linear = importlib.import_module("oga.linear")
     machine = importlib.import_module("oga.machine")
+    plant = importlib.import_module("oga.model.plant")
     for memo in (stability._LOOPS, stability._TABLES, stability._ENDS, simulate._PARAMS,
-                 machine._MACHINE_MEMOS):
+                 machine._MACHINE_MEMOS, plant._PLANTS):
         memo.clear()
     for cached in (linear._matrices, linear._sequence, stability._unit_circle):
         cached.cache_clear()

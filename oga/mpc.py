@@ -726,10 +726,12 @@ def _predict(k, wk, prog, plants, work, carry):
                 continue
             _plan_gains(points, a, wk, work.kspace, work.kpa, work.kfa)
             work.scratch[:] = states[s, a]
-            run_tangent(work.scratch, plants.params[s, a], prog.pdT[a, k:k + wk],
-                        prog.vdT[a, k:k + wk], work.kpa, work.kfa, work.dir_kp[:, lo_v:hi_v],
-                        work.dir_kf[:, lo_v:hi_v], work.start[lo_v:hi_v], work.p0[s, a],
-                        work.u0[s, a], work.sp[s, :, lo_v:hi_v], work.su[s, :, lo_v:hi_v])
+            run_tangent(work.scratch, plants.params[s, a],
+                        (prog.pdT[a, k:k + wk], prog.vdT[a, k:k + wk], work.kpa, work.kfa,
+                         work.dir_kp[:, lo_v:hi_v], work.dir_kf[:, lo_v:hi_v]),
+                        work.start[lo_v:hi_v],
+                        (work.p0[s, a], work.u0[s, a], work.sp[s, :, lo_v:hi_v],
+                         work.su[s, :, lo_v:hi_v]))
 
 
 @njit(cache=True, nogil=True)

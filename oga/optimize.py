@@ -25,6 +25,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import MachineError, OptionError
 from oga.machine import Machine
+from oga.model.plant import plant_of
 from oga.options import OptimizeOptions, options_from_dict
 from oga.verify import Verification, verify
 
@@ -325,11 +326,47 @@ def optimize(
         outside the stable range, no feasible baseline; with the robust search, the
         paper mode or an explicit baseline).
     """
-    from oga.simulate import axis_params, rest_state
-
     if not isinstance(options, OptimizeOptions):
         options = options_from_dict(options)
     t0 = time.perf_counter()
+    _check_window(options)
+    moving, adjusted = _axes(setpoints, machine, options)
+    kp_bounds = _kp_bounds(machine, options, moving, adjusted)
+    if not options.nominal:  # the checks above hold for the robust search too
+        from oga.robust.plants import uncertain_axes
+
+        if uncertain_axes(machine):
+            return _robust(setpoints, machine, options, progress, t0)
+    plant = plant_of(machine)
+    share = _BASELINE_SHARE if options.baseline == "best" else 0.0
+    base_kp, base_kf = _baseline(setpoints, plant, options, moving,
+                                 None if progress is None else lambda f: progress(share * f))
+    box = _gain_box(plant, options, (base_kp, base_kf), kp_bounds, adjusted)
+    n = len(setpoints)
+    fixed_kp = np.tile([base_kp[a] for a in AXES], (n, 1))
+    fixed_kf = np.tile([base_kf[a] for a in AXES], (n, 1))
+    for arr in (fixed_kp, fixed_kf):
+        arr.flags.writeable = False
+    baseline = verify(setpoints, plant, fixed_kp, fixed_kf, kp_bounds)
+    kp_out, kf_out, stats = _search(setpoints, plant, options, box, moving, (progress, share))
+    searched = verify(setpoints, plant, kp_out, kf_out, kp_bounds)
+    searched_schedule = GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out)
+    kept_baseline = not (searched.ok and searched.metrics.mse_m2 < baseline.metrics.mse_m2)
+    if kept_baseline:
+        schedule, optimized = GainSchedule(kp_m_min_per_mm=fixed_kp, kf=fixed_kf), baseline
+    else:
+        schedule, optimized = searched_schedule, searched
+    return OptimizeResult(
+        status=optimized.status, setpoints=setpoints, machine=machine, options=options,
+        schedule=schedule, baseline_kp=base_kp, baseline_kf=base_kf, baseline=baseline,
+        optimized=optimized, searched_schedule=searched_schedule, searched=searched,
+        kept_baseline=kept_baseline, adjusted=adjusted, kp_bounds=kp_bounds,
+        optimize_time_s=time.perf_counter() - t0, fallbacks=int(stats[0]),
+        windows=int(stats[1]))
+
+
+def _check_window(options: OptimizeOptions) -> None:
+    """OptionError where the full mode's window or knot spacing cannot work."""
     if options.mode == "full" and options.np_value < defaults.MPC_MIN_NP:
         raise OptionError(
             f"np: full mode needs a window of at least {defaults.MPC_MIN_NP} samples "
@@ -340,6 +377,11 @@ def optimize(
             f"knot: the {options.np_value}-sample window needs at least 3 spline intervals "
             f"(knot <= {options.np_value // 3}, got {options.knot_value})"
         )
+
+
+def _axes(setpoints, machine, options) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``(moving, adjusted)`` axes, checked: something moves, every adjusted axis moves, and
+    the machine has every moving one."""
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     if not moving:
         raise OptionError("toolpath: no axis moves; nothing to optimise")
@@ -349,24 +391,14 @@ def optimize(
         raise OptionError(f"adjust: axis {', '.join(still)} does not move on this toolpath")
     for a in moving:
         machine.axis(a)
-    kp_bounds = _kp_bounds(machine, options, moving, adjusted)
-    if not options.nominal:  # the checks above hold for the robust search too
-        from oga.robust.plants import uncertain_axes
+    return moving, adjusted
 
-        if uncertain_axes(machine):
-            return _robust(setpoints, machine, options, progress, t0)
-    share = _BASELINE_SHARE if options.baseline == "best" else 0.0
-    base_kp, base_kf = _baseline(setpoints, machine, options, moving,
-                                 None if progress is None else lambda f: progress(share * f))
 
-    n = len(setpoints)
-    te = setpoints.dt
-    pd = np.ascontiguousarray(setpoints.pos)
-    pdT = np.ascontiguousarray(setpoints.pos.T)
-    vdT = np.ascontiguousarray(setpoints.vel.T)
-    present = [a for a in AXES if a in machine.axes]
-    params = np.stack([axis_params(machine, a if a in machine.axes else present[0]) for a in AXES])
-    states = np.stack([rest_state(params[i], pd[0, i]) for i in range(3)])
+def _gain_box(plant, options, base, kp_bounds, adjusted) -> tuple:
+    """``(kp_base, kf_base, gain_bounds)``: the baseline gains per axis x, y, z and the
+    search's ``(adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)``; OptionError where the
+    baseline's Kp of an adjusted axis leaves its range."""
+    base_kp, base_kf = base
     kp = np.array([base_kp[a] for a in AXES])
     kf = np.array([base_kf[a] for a in AXES])
     adj = np.array([a in adjusted for a in AXES])
@@ -374,68 +406,38 @@ def optimize(
     adj_kf = adj & ("kf" in options.gains)
     kp_lo = np.array([kp_bounds.get(a, (kp[i], kp[i]))[0] for i, a in enumerate(AXES)])
     kp_hi = np.array([kp_bounds.get(a, (kp[i], kp[i]))[1] for i, a in enumerate(AXES)])
-    kf_lo = np.full(3, machine.gains.kf_range[0])
-    kf_hi = np.full(3, machine.gains.kf_range[1])
+    kf_lo = np.full(3, plant.machine.gains.kf_range[0])
+    kf_hi = np.full(3, plant.machine.gains.kf_range[1])
     for i, a in enumerate(AXES):
         if adj[i] and not kp_lo[i] <= kp[i] <= kp_hi[i]:
             raise OptionError(
                 f"baseline: Kp {kp[i]} of axis {a} lies outside its range "
                 f"[{kp_lo[i]}, {kp_hi[i]}] (m/min)/mm"
             )
-    lim = machine.axis_limits()
-    vmax, amax, jmax = lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3
+    return kp.copy(), kf.copy(), (adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
+
+
+def _search(setpoints, plant, options, box, moving, report):
+    """Run the chunked search (paper mode or the windowed search) from rest with the
+    baseline gains, ``report = (progress, share done before)``; returns the searched
+    ``(kp, kf)`` (N, 3), read-only, and ``(fallbacks, windows)``."""
+    from oga.simulate import rest_state
+
+    n = len(setpoints)
+    machine = plant.machine
+    pd = np.ascontiguousarray(setpoints.pos)
+    present = [AXES.index(a) for a in AXES if a in machine.axes]
+    params = np.stack([plant.params[i if a in machine.axes else present[0]]
+                       for i, a in enumerate(AXES)])
+    states = np.stack([rest_state(params[i], pd[0, i]) for i in range(3)])
+    kp_base, kf_base, _bounds = box
+    progress, share = report
+    lim = machine.axis_limits()  # the same arrays (read-only) the compiled searches take
+    limits = (lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3)
     is_moving = np.array([a in moving for a in AXES])
-    kp_base = kp.copy()
-    kf_base = kf.copy()
-    fixed_kp = np.tile([base_kp[a] for a in AXES], (n, 1))
-    fixed_kf = np.tile([base_kf[a] for a in AXES], (n, 1))
-    for arr in (fixed_kp, fixed_kf):
-        arr.flags.writeable = False
-    baseline = verify(setpoints, machine, fixed_kp, fixed_kf, kp_bounds)
-    ferror_max = machine.ferror_limits()
-    gain_bounds = (adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi)
-    chunk = _CHUNK
-    if options.mode == "paper":
-        from oga.search import STAT_FALLBACK, STAT_WINDOWS, search_chunk
-
-        def advance(k0, k1, run):
-            search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
-                         run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
-                         kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
-                         is_moving, *run[4:], ferror_max)
-    else:
-        from oga.contour import path_index
-        from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
-
-        wlen = options.np_value
-        kspace = options.knot_value
-        # whole spline intervals, so that the shifted plan is the same gain trajectory
-        commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
-        # every call ends after a whole number of commits: the plan carried to the next
-        # call is shifted by whole spline intervals only
-        chunk = max(_CHUNK // commit, 1) * commit
-        pad = wlen + defaults.MPC_SETTLE_TAIL + 1
-        pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
-        vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-        feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
-        # eq. 2 and the following-error limit: every sample of the program, not the padding
-        live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
-        # the contour error's index and windows, as the replay measures it
-        tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
-        # the plan's spline control points per axis and gain, carried across chunks (as many
-        # as leave the plan at rest over the window's last interval, checked against eq. 2)
-        points = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
-                          axis=2)
-
-        def advance(k0, k1, run):
-            mpc_chunk(k0, k1, pd, pdT_pad, vdT_pad, params, *run[:3], *gain_bounds, kp_base,
-                      kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
-                      defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
-                      options.anchor_value, tree, win_lo, win_hi, is_moving,
-                      feed_pad, live_pad, points, *run[4:], defaults.MPC_STOP,
-                      defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE,
-                      defaults.MPC_SETTLE_TAIL)
-
+    make = _paper_advance if options.mode == "paper" else _window_advance
+    advance, chunk, stat_keys = make(setpoints, params, options, box,
+                                     (limits, is_moving, machine.ferror_limits()))
     # the search state: axis states, gains, command history, outputs, counters
     run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
            np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
@@ -446,32 +448,73 @@ def optimize(
     kp_out, kf_out, stats = run[4], run[5], run[7]
     for arr in (kp_out, kf_out):
         arr.flags.writeable = False
-    searched = verify(setpoints, machine, kp_out, kf_out, kp_bounds)
-    searched_schedule = GainSchedule(kp_m_min_per_mm=kp_out, kf=kf_out)
-    kept_baseline = not (searched.ok and searched.metrics.mse_m2 < baseline.metrics.mse_m2)
-    if kept_baseline:
-        schedule, optimized = GainSchedule(kp_m_min_per_mm=fixed_kp, kf=fixed_kf), baseline
-    else:
-        schedule, optimized = searched_schedule, searched
-    return OptimizeResult(
-        status=optimized.status,
-        setpoints=setpoints,
-        machine=machine,
-        options=options,
-        schedule=schedule,
-        baseline_kp=base_kp,
-        baseline_kf=base_kf,
-        baseline=baseline,
-        optimized=optimized,
-        searched_schedule=searched_schedule,
-        searched=searched,
-        kept_baseline=kept_baseline,
-        adjusted=adjusted,
-        kp_bounds=kp_bounds,
-        optimize_time_s=time.perf_counter() - t0,
-        fallbacks=int(stats[STAT_FALLBACK]),
-        windows=int(stats[STAT_WINDOWS]),
-    )
+    return kp_out, kf_out, (stats[stat_keys[0]], stats[stat_keys[1]])
+
+
+def _paper_advance(setpoints, params, options, box, checks):
+    """``(advance(k0, k1, run), chunk, (STAT_FALLBACK, STAT_WINDOWS))`` of the paper mode
+    (:func:`oga.search.search_chunk`)."""
+    from oga.search import STAT_FALLBACK, STAT_WINDOWS, search_chunk
+
+    pd = np.ascontiguousarray(setpoints.pos)
+    pdT = np.ascontiguousarray(setpoints.pos.T)
+    vdT = np.ascontiguousarray(setpoints.vel.T)
+    kp_base, kf_base, gain_bounds = box
+    (vmax, amax, jmax), is_moving, ferror_max = checks
+    te = setpoints.dt
+
+    def advance(k0, k1, run):
+        search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
+                     run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
+                     kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
+                     is_moving, *run[4:], ferror_max)
+
+    return advance, _CHUNK, (STAT_FALLBACK, STAT_WINDOWS)
+
+
+def _window_advance(setpoints, params, options, box, checks):
+    """``(advance(k0, k1, run), chunk, (STAT_FALLBACK, STAT_WINDOWS))`` of the full mode's
+    windowed search (:func:`oga.mpc.mpc_chunk`)."""
+    from oga.contour import path_index
+    from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
+
+    n = len(setpoints)
+    pd = np.ascontiguousarray(setpoints.pos)
+    pdT = np.ascontiguousarray(setpoints.pos.T)
+    vdT = np.ascontiguousarray(setpoints.vel.T)
+    kp_base, kf_base, gain_bounds = box
+    (vmax, amax, jmax), is_moving, ferror_max = checks
+    te = setpoints.dt
+    wlen = options.np_value
+    kspace = options.knot_value
+    # whole spline intervals, so that the shifted plan is the same gain trajectory
+    commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
+    # every call ends after a whole number of commits: the plan carried to the next
+    # call is shifted by whole spline intervals only
+    chunk = max(_CHUNK // commit, 1) * commit
+    pad = wlen + defaults.MPC_SETTLE_TAIL + 1
+    pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
+    vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
+    feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+    # eq. 2 and the following-error limit: every sample of the program, not the padding
+    live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
+    # the contour error's index and windows, as the replay measures it
+    tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
+    # the plan's spline control points per axis and gain, carried across chunks (as many
+    # as leave the plan at rest over the window's last interval, checked against eq. 2)
+    points = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
+                       axis=2)
+
+    def advance(k0, k1, run):
+        mpc_chunk(k0, k1, pd, pdT_pad, vdT_pad, params, *run[:3], *gain_bounds, kp_base,
+                  kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
+                  defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
+                  options.anchor_value, tree, win_lo, win_hi, is_moving,
+                  feed_pad, live_pad, points, *run[4:], defaults.MPC_STOP,
+                  defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE,
+                  defaults.MPC_SETTLE_TAIL)
+
+    return advance, chunk, (STAT_FALLBACK, STAT_WINDOWS)
 
 
 def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:

@@ -47,7 +47,8 @@ from oga.defaults import CE_WINDOW_SAMPLES
 from oga.errors import InputError, OptionError
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.metrics import ContourMetrics, contour_metrics
-from oga.simulate import axis_params, rest_state, run, run_axes, simulate, simulate_axis
+from oga.model.plant import Plant, plant_of
+from oga.simulate import rest_state, run, run_axes, simulate, simulate_axis
 from oga.kinematics import command_peaks
 from oga.stability import decimal_grid
 
@@ -259,7 +260,7 @@ def _feed_mask(setpoints: Setpoints, machine: Machine) -> np.ndarray:
     return feed
 
 
-def _sweep(setpoints, machine, axis_grids, kf_grid, common):
+def _sweep(setpoints, plant, axis_grids, kf_grid, common):
     """Simulate every (axis, Kp, Kf) once; per-axis peaks and tracking MSE, equal-gain MSE(CE).
 
     ``axis_grids`` maps each axis to its Kp grid; ``common`` is the Kp grid shared by
@@ -267,11 +268,11 @@ def _sweep(setpoints, machine, axis_grids, kf_grid, common):
     ``per_axis[a]`` a (5, P_a, F) array (vel, acc, jerk peaks, tracking MSE, largest
     tracking error) and ``mse_ce`` of shape (len(common), F).
     """
-    feed = _feed_mask(setpoints, machine)
+    feed = _feed_mask(setpoints, plant.machine)
     every = np.ones(len(setpoints), dtype=bool)  # eq. 2 and the following error: all samples
-    te = machine.te
+    te = plant.machine.te
     cols = {a: AXES.index(a) for a in axis_grids}
-    params = {a: axis_params(machine, a) for a in axis_grids}
+    params = {a: np.array(plant.axis_params(a)) for a in axis_grids}
     per_axis = {a: np.empty((5, len(g), len(kf_grid))) for a, g in axis_grids.items()}
     mse_ce = np.empty((len(common), len(kf_grid)))
     e1, e2, signed = plane_axes(setpoints.plane)
@@ -323,7 +324,7 @@ def _kf_grid(machine: Machine) -> np.ndarray:
 
 def kinematic_range(
     setpoints: Setpoints,
-    machine: Machine,
+    machine: Machine | Plant,
     axis: str,
     kp_grid: np.ndarray | None = None,
     kf_grid: np.ndarray | None = None,
@@ -355,6 +356,8 @@ def kinematic_range(
     InputError
         The toolpath has no feed move.
     """
+    plant = plant_of(machine)
+    machine = plant.machine
     machine.axis(axis)
     if kp_grid is None:
         from oga.stability import stable_range
@@ -364,7 +367,7 @@ def kinematic_range(
     kf_grid = _kf_grid(machine) if kf_grid is None else np.asarray(kf_grid, np.float64).reshape(-1)
     if kp_grid.size == 0 or kf_grid.size == 0 or not np.all(kp_grid > 0):
         raise OptionError("kp_grid, kf_grid: need non-empty grids with positive Kp")
-    per_axis, _ = _sweep(setpoints, machine, {axis: kp_grid}, kf_grid, np.empty(0))
+    per_axis, _ = _sweep(setpoints, plant, {axis: kp_grid}, kf_grid, np.empty(0))
     return _kinematic(axis, machine, kp_grid, kf_grid, per_axis[axis])
 
 
@@ -400,7 +403,7 @@ def _best_fixed(setpoints, machine, axes, kp: float, kf: float, mse_ce_m2: float
     )
 
 
-def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
+def gain_ranges(setpoints: Setpoints, machine: Machine | Plant) -> Ranges:
     """Stability and kinematic ranges of the contouring axes, and the best fixed gains.
 
     Parameters
@@ -421,8 +424,10 @@ def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
     MachineError
         The toolpath moves an axis the machine lacks.
     """
+    plant = plant_of(machine)
+    machine = plant.machine
     axes, stability, grids, common, kf_grid = _equal_grid(setpoints, machine)
-    per_axis, mse_ce = _sweep(setpoints, machine, grids, kf_grid, common)
+    per_axis, mse_ce = _sweep(setpoints, plant, grids, kf_grid, common)
     kinematic = {a: _kinematic(a, machine, grids[a], kf_grid, per_axis[a]) for a in axes}
     feasible = np.ones(mse_ce.shape, dtype=bool)
     for a in axes:
@@ -447,7 +452,7 @@ def gain_ranges(setpoints: Setpoints, machine: Machine) -> Ranges:
     )
 
 
-def best_fixed_gains(setpoints: Setpoints, machine: Machine, *,
+def best_fixed_gains(setpoints: Setpoints, machine: Machine | Plant, *,
                      progress: Callable[[float], None] | None = None,
                      memo: EqualGainMemo | None = None) -> BestFixed | None:
     """The best equal fixed gains (paper case C1) without the full tables of :func:`gain_ranges`.
@@ -488,52 +493,65 @@ def best_fixed_gains(setpoints: Setpoints, machine: Machine, *,
     OptionError
         Sample period different from Te.
     """
+    plant = plant_of(machine)
+    machine = plant.machine
     axes, _stability, _grids, common, kf_grid = _equal_grid(setpoints, machine)
     feed = _feed_mask(setpoints, machine)
     cols = np.array([AXES.index(a) for a in axes], dtype=np.int64)
-    pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
-    lim = machine.axis_limits()
-    limits = np.column_stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3,
-                              machine.ferror_limits()])[cols]  # ferror inf: none set
-    # heuristic visiting order (speed only, the result does not depend on it): stiff loops
-    # and strong feed-forward first, as the least contour error usually lies at the top of
-    # the stable range, at the largest feasible Kf
-    n_kp, n_kf = len(common), len(kf_grid)
-    visit = np.array(
-        [(i, j) for i in range(n_kp - 1, -1, -1) for j in range(n_kf - 1, -1, -1)], np.int64
-    ).reshape(-1, 2)
-    params = np.stack([axis_params(machine, a) for a in axes])
+    lim = plant.limits
+    limits = np.column_stack([lim[:, 0], lim[:, 1], lim[:, 2], machine.ferror_limits()])[cols]
+    params = plant.params[cols]  # ferror inf above: none set
     memo = EqualGainMemo() if memo is None else memo
     sse = memo.start(setpoints, params, common, kf_grid, limits)
-    tree, lo, hi = memo.index
-    status = memo.status[visit[:, 0], visit[:, 1]]
-    visit = visit[(status == _UNSEEN) | (status == _PRUNED)]  # the others are known
-    # the lowest known bounds first (those never visited keep the heuristic order): the
-    # least sum is found early, and fewer abandoned configurations are simulated again
-    visit = visit[np.argsort(memo.lower[visit[:, 0], visit[:, 1]], kind="stable")]
+    visit = _visit_order(memo, len(common), len(kf_grid))
     by_col = np.zeros((3, params.shape[1]))
     by_col[cols] = params
     fused = np.array([AXES.index(a) for a in axes if machine.axis(a).kind == "cascade"],
                      dtype=np.int64)
-    args = (by_col, fused, cols, pos, np.ascontiguousarray(setpoints.vel, dtype=np.float64),
-            feed, machine.te, common * KP_SI_PER_M_MIN_PER_MM, kf_grid, limits, tree, lo, hi)
+    tree, lo, hi = memo.index
+    packed = ((by_col, fused, cols, limits, machine.te),
+              (np.ascontiguousarray(setpoints.pos, dtype=np.float64),
+               np.ascontiguousarray(setpoints.vel, dtype=np.float64), feed, tree, lo, hi),
+              (common * KP_SI_PER_M_MIN_PER_MM, kf_grid))
     parts = [visit] if progress is None else np.array_split(visit, _PROGRESS_PARTS)
     for k, part in enumerate(parts):
-        found = _equal_gain_search(*args, part, _SUM_SLACK, sse.min(), memo.status,
-                                   memo.peaks, memo.lower, memo.resume)
+        found = _equal_gain_search(*packed, part, _SUM_SLACK, sse.min(),
+                                   (memo.status, memo.peaks, memo.lower, memo.resume))
         memo.sse = np.where(memo.status == _COMPLETE, np.minimum(memo.sse, found), memo.sse)
         sse = np.minimum(sse, found)
         if progress is not None:
             progress((k + 1) / len(parts))
     if not np.isfinite(sse).any():
         return None
-    # every configuration that may hold the least MSE(CE), Kp-major like gain_ranges' argmin
+    return _least_of_near(setpoints, plant, axes, (common, kf_grid), sse, feed)
+
+
+def _visit_order(memo, n_kp: int, n_kf: int) -> np.ndarray:
+    """The configurations ``(i, j)`` of the grid still to visit, shape (M, 2): a heuristic
+    order (speed only, the result does not depend on it: stiff loops and strong
+    feed-forward first, as the least contour error usually lies at the top of the stable
+    range, at the largest feasible Kf), then the lowest known bounds first (those never
+    visited keep it): the least sum is found early, and fewer abandoned configurations are
+    simulated again."""
+    visit = np.array(
+        [(i, j) for i in range(n_kp - 1, -1, -1) for j in range(n_kf - 1, -1, -1)], np.int64
+    ).reshape(-1, 2)
+    status = memo.status[visit[:, 0], visit[:, 1]]
+    visit = visit[(status == _UNSEEN) | (status == _PRUNED)]  # the others are known
+    return visit[np.argsort(memo.lower[visit[:, 0], visit[:, 1]], kind="stable")]
+
+
+def _least_of_near(setpoints, plant, axes, grid, sse, feed) -> BestFixed:
+    """Among every configuration that may hold the least MSE(CE) (within rounding of the
+    least sum ``sse``), the least, evaluated exactly, Kp-major like gain_ranges' argmin."""
+    common, kf_grid = grid
     near = np.argwhere(sse <= sse.min() * (1.0 + _SUM_SLACK))
-    mse = [_mse_ce(setpoints, machine, axes, float(common[i]), float(kf_grid[j]), feed)
+    mse = [_mse_ce(setpoints, plant, axes, float(common[i]), float(kf_grid[j]), feed)
            for i, j in near]
     k = int(np.argmin(mse))
     i, j = near[k]
-    return _best_fixed(setpoints, machine, axes, float(common[i]), float(kf_grid[j]), mse[k])
+    return _best_fixed(setpoints, plant.machine, axes, float(common[i]), float(kf_grid[j]),
+                       mse[k])
 
 
 class EqualGainMemo:
@@ -606,7 +624,7 @@ class EqualGainMemo:
         return self.sse.copy()
 
 
-def _mse_ce(setpoints, machine, axes, kp: float, kf: float, feed) -> float:
+def _mse_ce(setpoints, plant, axes, kp: float, kf: float, feed) -> float:
     """MSE(CE) over the feed samples of equal gains ``(kp, kf)``, evaluated as :func:`_sweep`
     does (same simulations, same contour error, same numpy mean: the same bits)."""
     pa = np.array(setpoints.pos, dtype=np.float64)
@@ -614,7 +632,7 @@ def _mse_ce(setpoints, machine, axes, kp: float, kf: float, feed) -> float:
         c = AXES.index(a)
         pd = np.ascontiguousarray(setpoints.pos[:, c])
         pa[:, c], _ = simulate_axis(
-            axis_params(machine, a), pd[0], pd, np.ascontiguousarray(setpoints.vel[:, c]),
+            np.array(plant.params[c]), pd[0], pd, np.ascontiguousarray(setpoints.vel[:, c]),
             kp * KP_SI_PER_M_MIN_PER_MM, kf,
         )
     ce = ce_series(setpoints.pos, pa, CE_WINDOW_SAMPLES, *plane_axes(setpoints.plane))[feed]
@@ -697,8 +715,7 @@ def _keep(resume, i, j, k, s, states, u):
 
 
 @njit(cache=True)
-def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo,
-                       hi, visit, slack, best, status, peaks, lower, resume):
+def _equal_gain_search(plant, path, grid, visit, slack, best, memo):
     """Sum of squared contour errors of the equal-gain configurations, pruned exactly.
 
     Best first: the configuration of ``visit`` with the least lower bound (``lower``: its
@@ -717,6 +734,144 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     a running sum, in time order (:func:`oga.contour.ce2_at`, each sample's search hinted
     with the previous sample's nearest segment).
 
+    Pruning and resuming: :func:`_run_config`.
+
+    Parameters
+    ----------
+    plant : tuple ``(params, fused, cols, limits, te)``
+        ``params`` (3, P): row ``c`` the packed parameters (:func:`oga.simulate.axis_params`)
+        of the axis of column ``c``, for the moving ones; ``fused``: the columns of the
+        moving cascade axes (run side by side, the others one by one); ``cols`` (A,): the
+        columns of the A moving axes, in checking order; ``limits`` (A, 4): Vmax (m/s),
+        Amax (m/s^2), Jmax (m/s^3), following-error limit (m, inf: none) of each; ``te``: s.
+    path : tuple ``(pos, vel, feed, tree, lo, hi)``
+        Setpoint positions (N, 3) (m; axes not simulated hold them) and velocities (m/s);
+        the feed samples (N,) (the MSE counts them; eq. 2 applies at every sample); the
+        path's index (:func:`oga.contour.path_index` of ``pos``, window of
+        :func:`oga.contour.ce_series`).
+    grid : tuple ``(kp_si, kf)``
+        Kp grid (P,), 1/s, and Kf grid (F,).
+    visit : ndarray of int, shape (M, 2)
+        Grid indices ``(i, j)``, in the order that breaks ties of ``lower`` (speed only).
+    slack : float
+        Relative margin of the pruning test.
+    best : float
+        Least complete sum of configurations visited before (``inf``: none).
+    memo : tuple ``(status, peaks, lower, resume)``
+        Of :class:`EqualGainMemo`, for each configuration: ``status`` (P, F) int8 receives
+        :data:`_INFEASIBLE`, :data:`_PRUNED` or :data:`_COMPLETE`; ``peaks`` (P, F, A, 4)
+        its largest ``|u|``, ``|du|/Te``, ``|d2u|/Te^2``, ``|pd - p|`` per axis over the
+        samples simulated; ``lower`` (P, F) a lower bound of its sum (0: none known; one
+        above the pruning bound is not simulated, stays pruned), receives the running sum
+        where pruned or completed; ``resume`` ``(at, total, state, u)`` (``at`` -1: from
+        the first sample), read when visited, written when pruned.
+
+    Returns
+    -------
+    ndarray, shape (P, F)
+        Sum of the squared contour errors over the feed samples, m^2, of the
+        feasible configurations not pruned; ``inf`` elsewhere (all ``inf``: none is
+        feasible).
+    """
+    kp_si, kf = grid
+    status, _peaks, lower, _resume = memo
+    sse = np.full((kp_si.size, kf.size), np.inf)
+    work = _search_work(plant, path[0])
+    todo = np.ones(visit.shape[0], dtype=np.bool_)
+    while True:
+        bound = best * (1.0 + slack)
+        m, least, other = _least_bound(visit, todo, lower, status, bound)
+        if m < 0:
+            break
+        todo[m] = False
+        i, j = visit[m, 0], visit[m, 1]
+        s, end = _run_config(plant, path, grid, memo, work, (i, j), bound, max(other, least))
+        if end == _PAUSED:
+            todo[m] = True
+        elif end == _DONE:
+            sse[i, j] = s
+            lower[i, j] = s
+            status[i, j] = _COMPLETE
+            best = min(best, s)
+    return sse
+
+
+#: How :func:`_run_config` left a configuration: dropped (infeasible or pruned), paused
+#: (to be taken up again), or simulated to the end.
+_DROPPED, _PAUSED, _DONE = 0, 1, 2
+
+
+@njit(cache=True)
+def _search_work(plant, pos):
+    """Scratch of :func:`_equal_gain_search`: ``(p_act, u, kp_k, kf_k, check, alone, states,
+    start)``: the path with the moving axes' columns overwritten chunk by chunk, the commands
+    (each chunk's check reads the previous two), the gains per sample, the check's scratch,
+    the moving axes not run side by side, the axes' states and those at the chunk's start."""
+    params, fused, cols = plant[0], plant[1], plant[2]
+    n = pos.shape[0]
+    alone = np.ones(3, dtype=np.bool_)  # moving axes not in ``fused``: :func:`run` each
+    alone[fused] = False
+    states = np.zeros((3, rest_state(params[cols[0]], 0.0).size))
+    return (pos.copy(), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
+            np.empty(_CHUNK + 2, dtype=np.bool_), alone, states, np.empty_like(states))
+
+
+@njit(cache=True)
+def _least_bound(visit, todo, lower, status, bound):
+    """The configuration of ``visit`` still to do with the least lower bound (the first in
+    visiting order among equal ones), ``(q, its bound, the next least)``; ``q`` -1: none.
+    Those whose bound passed ``bound`` are marked pruned and done."""
+    m, least, other = -1, np.inf, np.inf
+    for q in range(visit.shape[0]):
+        if not todo[q]:
+            continue
+        lq = lower[visit[q, 0], visit[q, 1]]
+        if lq > bound:  # pruned before, and still: its sum is at least that
+            status[visit[q, 0], visit[q, 1]] = _PRUNED
+            todo[q] = False
+        elif lq < least:
+            m, least, other = q, lq, least
+        elif lq < other:
+            other = lq
+    return m, least, other
+
+
+@njit(cache=True)
+def _take_up(plant, pos, memo, work, ij):
+    """Start configuration ``ij`` from rest, or resume it where it was left; returns
+    ``(first sample, running sum)``, first -1 when the peaks kept break a limit."""
+    params, _fused, cols, limits, _te = plant
+    _status, peaks, _lower, resume = memo
+    u, states = work[1], work[6]
+    i, j = ij
+    at, total, kept_state, kept_u = resume
+    pk = peaks[i, j]
+    first = at[i, j]
+    if first < 0:
+        for a in range(cols.size):
+            states[cols[a]] = rest_state(params[cols[a]], pos[0, cols[a]])
+        pk[:] = 0.0
+        return 0, 0.0
+    alive = True  # abandoned or paused before: on from that chunk
+    for a in range(cols.size):
+        if not _holds(pk[a, 0], pk[a, 1], pk[a, 2], pk[a, 3], limits[a]):
+            alive = False
+    if not alive:
+        return -1, 0.0
+    states[:] = kept_state[i, j]
+    if first >= 2:
+        u[first - 2:first] = kept_u[i, j]
+    s = total[i, j]
+    at[i, j] = -1
+    return first, s
+
+
+@njit(cache=True)
+def _run_config(plant, path, grid, memo, work, ij, bound, pause):
+    """Simulate configuration ``ij`` chunk by chunk from where :func:`_take_up` puts it,
+    until it breaks a limit, its sum passes ``bound`` (pruned) or ``pause`` (paused), or
+    it ends; returns ``(running sum, _DROPPED | _PAUSED | _DONE)``.
+
     Pruning: a sum of non-negative terms only grows, so once the running sum exceeds
     the best complete sum (times ``1 + slack``, covering the rounding of both sums and
     the 2 ulp by which each term may differ from the square of
@@ -734,159 +889,69 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     to the last bit. A paused configuration taken up again pauses only past its own
     bound, so the configurations are taken in the same order, and the memo holds the
     same, whether it resumes or starts again from the first sample.
-
-    Parameters
-    ----------
-    params : ndarray, shape (3, P)
-        Row ``c``: packed parameters (:func:`oga.simulate.axis_params`) of the axis of
-        column ``c``, for the moving ones.
-    fused : ndarray of int64
-        The columns of the moving cascade axes (run side by side; the others one by one).
-    cols : ndarray of int, shape (A,)
-        The columns of the A moving axes, in checking order.
-    pos, vel : ndarray, shape (N, 3)
-        Setpoint positions (m; the path: axes not simulated hold them) and velocities
-        (m/s) of x, y, z.
-    feed : ndarray of bool, shape (N,)
-        Feed samples (the MSE counts them; eq. 2 applies at every sample).
-    te : float
-        Sample period, s.
-    kp_si : ndarray, shape (P,)
-        Kp grid, 1/s.
-    kf : ndarray, shape (F,)
-        Kf grid.
-    limits : ndarray, shape (A, 4)
-        Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) and the following-error limit (m, inf:
-        none) of each moving axis.
-    tree, lo, hi
-        The path's index (:func:`oga.contour.path_index` of ``pos``, the contour-error
-        window of :func:`oga.contour.ce_series`).
-    visit : ndarray of int, shape (M, 2)
-        Grid indices ``(i, j)``, in the order that breaks ties of ``lower`` (speed only).
-    slack : float
-        Relative margin of the pruning test.
-    best : float
-        Least complete sum of configurations visited before (``inf``: none).
-    status : ndarray of int8, shape (P, F)
-        Receives, for each configuration visited, :data:`_INFEASIBLE`, :data:`_PRUNED` or
-        :data:`_COMPLETE`.
-    peaks : ndarray, shape (P, F, A, 4)
-        Receives, for each configuration visited, its largest ``|u|``, ``|du|/Te``,
-        ``|d2u|/Te^2`` and ``|pd - p|`` per axis over the samples simulated (all of them
-        when complete).
-    lower : ndarray, shape (P, F)
-        A lower bound of each configuration's sum (0: none known): one whose bound exceeds
-        the pruning bound is not simulated (it stays :data:`_PRUNED`); receives the
-        running sum where a configuration is pruned or completed.
-    resume : tuple
-        ``(at, total, state, u)`` of :class:`EqualGainMemo` (``at`` -1: start from the
-        first sample): read for the configurations visited, written for those pruned.
-
-    Returns
-    -------
-    ndarray, shape (P, F)
-        Sum of the squared contour errors over the feed samples, m^2, of the
-        feasible configurations not pruned; ``inf`` elsewhere (all ``inf``: none is
-        feasible).
     """
-    n_ax, n = cols.size, pos.shape[0]
-    sse = np.full((kp_si.size, kf.size), np.inf)
-    p_act = pos.copy()  # the path, the moving axes' columns overwritten chunk by chunk
-    u = np.empty((n, 3))  # each chunk's check reads the previous two commands
-    kp_k = np.empty((n, 3))
-    kf_k = np.empty((n, 3))
-    check = np.empty(_CHUNK + 2, dtype=np.bool_)
-    alone = np.ones(3, dtype=np.bool_)  # moving axes not in ``fused``: :func:`run` each
-    alone[fused] = False
-    states = np.zeros((3, rest_state(params[cols[0]], 0.0).size))
-    at, total, kept_state, kept_u = resume
-    start = np.empty_like(states)  # the states at the start of the chunk
-    todo = np.ones(visit.shape[0], dtype=np.bool_)
-    while True:
-        bound = best * (1.0 + slack)
-        # the configuration of least lower bound next (the first in visiting order among
-        # equal ones); it pauses where its sum passes the next least
-        m, least, other = -1, np.inf, np.inf
-        for q in range(visit.shape[0]):
-            if not todo[q]:
-                continue
-            lq = lower[visit[q, 0], visit[q, 1]]
-            if lq > bound:  # pruned before, and still: its sum is at least that
-                status[visit[q, 0], visit[q, 1]] = _PRUNED
-                todo[q] = False
-            elif lq < least:
-                m, least, other = q, lq, least
-            elif lq < other:
-                other = lq
-        if m < 0:
-            break
-        todo[m] = False
-        i, j = visit[m, 0], visit[m, 1]
-        pause = max(other, least)
-        near = -1  # nearest segment of the previous sample: the hint of the next
-        alive = True
-        pk = peaks[i, j]
-        status[i, j] = _INFEASIBLE
-        first = at[i, j]
-        if first < 0:
-            for a in range(n_ax):
-                states[cols[a]] = rest_state(params[cols[a]], pos[0, cols[a]])
-            s = 0.0
-            first = 0
-            pk[:] = 0.0
-        else:  # abandoned or paused before: on from that chunk
-            for a in range(n_ax):
-                if not _holds(pk[a, 0], pk[a, 1], pk[a, 2], pk[a, 3], limits[a]):
-                    alive = False
-            if not alive:
-                continue
-            states[:] = kept_state[i, j]
-            if first >= 2:
-                u[first - 2:first] = kept_u[i, j]
-            s = total[i, j]
-            at[i, j] = -1
-        for k0 in range(first, n, _CHUNK):
-            k1 = min(k0 + _CHUNK, n)
-            start[:] = states
-            s0 = s
-            kp_k[k0:k1] = kp_si[i]
-            kf_k[k0:k1] = kf[j]
-            run_axes(states, params, fused, pos[k0:k1], vel[k0:k1], kp_k[k0:k1], kf_k[k0:k1],
-                     p_act[k0:k1], u[k0:k1])
-            for a in range(n_ax):
-                c = cols[a]
-                if alone[c]:
-                    run(states[c], params[c], pos[k0:k1, c], vel[k0:k1, c], kp_k[k0:k1, c],
-                        kf_k[k0:k1, c], p_act[k0:k1, c], u[k0:k1, c])
-                if not _checked(pos[:, c], p_act[:, c], u[:, c], te, limits[a], k0, k1, check,
-                                pk[a]):
-                    alive = False
-                    break
-            if not alive:
-                break
-            for k in range(k0, k1):
-                if feed[k]:
-                    ce2, near = ce2_at(pos, tree, lo[k], hi[k], k, p_act[k, 0], p_act[k, 1],
-                                       p_act[k, 2], near)
-                    s += ce2
-                    if s > bound:
-                        alive = False
-                        status[i, j] = _PRUNED
-                        lower[i, j] = s
-                        _keep(resume, i, j, k0, s0, start, u)
-                        break
-            if not alive:
-                break
-            if s > pause and k1 < n:  # another configuration's sum is now the least
-                status[i, j] = _PRUNED
-                lower[i, j] = s
-                _keep(resume, i, j, k1, s, states, u)
-                todo[m] = True
-                alive = False
-                break
-        if alive:
-            sse[i, j] = s
+    status, peaks, lower, resume = memo
+    p_act, u, states, start = work[0], work[1], work[6], work[7]
+    i, j = ij
+    n = p_act.shape[0]
+    status[i, j] = _INFEASIBLE
+    first, s = _take_up(plant, path[0], memo, work, ij)
+    if first < 0:
+        return s, _DROPPED
+    near = -1  # nearest segment of the previous sample: the hint of the next
+    for k0 in range(first, n, _CHUNK):
+        k1 = min(k0 + _CHUNK, n)
+        start[:] = states
+        s0 = s
+        if not _chunk_feasible(plant, path, grid, work, ij, k0, k1, peaks[i, j]):
+            return s, _DROPPED
+        s, near, over = _chunk_sum(path, p_act, (k0, k1), s, bound, near)
+        if over:
+            status[i, j] = _PRUNED
             lower[i, j] = s
-            status[i, j] = _COMPLETE
-            best = min(best, s)
-    return sse
+            _keep(resume, i, j, k0, s0, start, u)
+            return s, _DROPPED
+        if s > pause and k1 < n:  # another configuration's sum is now the least
+            status[i, j] = _PRUNED
+            lower[i, j] = s
+            _keep(resume, i, j, k1, s, states, u)
+            return s, _PAUSED
+    return s, _DONE
+
+
+@njit(cache=True)
+def _chunk_feasible(plant, path, grid, work, ij, k0, k1, pk):
+    """Simulate samples ``k0 .. k1 - 1`` of configuration ``ij`` on the moving axes and
+    check them (:func:`_checked`, raising the peaks ``pk``); False at the first violation."""
+    params, fused, cols, limits, te = plant
+    pos, vel = path[0], path[1]
+    p_act, u, kp_k, kf_k, check, alone, states, _start = work
+    i, j = ij
+    kp_k[k0:k1] = grid[0][i]
+    kf_k[k0:k1] = grid[1][j]
+    run_axes(states, params, fused, pos[k0:k1], vel[k0:k1], kp_k[k0:k1], kf_k[k0:k1],
+             p_act[k0:k1], u[k0:k1])
+    for a in range(cols.size):
+        c = cols[a]
+        if alone[c]:
+            run(states[c], params[c], pos[k0:k1, c], vel[k0:k1, c], kp_k[k0:k1, c],
+                kf_k[k0:k1, c], p_act[k0:k1, c], u[k0:k1, c])
+        if not _checked(pos[:, c], p_act[:, c], u[:, c], te, limits[a], k0, k1, check, pk[a]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _chunk_sum(path, p_act, span, s, bound, near):
+    """Add the squared contour errors of the feed samples of ``span = (k0, k1)`` to the
+    running sum ``s``, in time order, stopping where it passes ``bound``; returns ``(s,
+    nearest segment hint, passed)``."""
+    pos, _vel, feed, tree, lo, hi = path
+    for k in range(span[0], span[1]):
+        if feed[k]:
+            ce2, near = ce2_at(pos, tree, lo[k], hi[k], k, p_act[k, 0], p_act[k, 1],
+                               p_act[k, 2], near)
+            s += ce2
+            if s > bound:
+                return s, near, True
+    return s, near, False

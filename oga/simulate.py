@@ -97,7 +97,8 @@ from numba import njit
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
 from oga.linear import dead_line, substep_matrices, substep_sequence_of
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, machine_memo
+from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.model.plant import Plant, plant_of
 
 __all__ = [
     "axis_params",
@@ -1045,7 +1046,7 @@ def simulate_axis(
     return p_act, u
 
 
-def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def axis_arrays(machine: Machine | Plant, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Packed parameters and rest states of the x, y, z axes, for compiled multi-axis loops.
 
     Rows are in ``AXES`` order (every axis of a machine has the same lengths), so a
@@ -1054,8 +1055,8 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
     Parameters
     ----------
-    machine : Machine
-        Machine description.
+    machine : Machine or Plant
+        Machine description (or its plant).
     p0 : array_like, shape (3,)
         Initial positions of x, y, z, m (each present axis starts at rest there).
 
@@ -1068,16 +1069,13 @@ def axis_arrays(machine: Machine, p0) -> tuple[np.ndarray, np.ndarray, np.ndarra
     present : ndarray of bool, shape (3,)
         Whether the machine has the axis.
     """
-    rows = {a: axis_params(machine, a) for a in AXES if a in machine.axes}
-    rests = {a: rest_state(rows[a], float(p0[c])) for c, a in enumerate(AXES) if a in rows}
-    n_params, n_state = _sizes(machine)
-    params = np.zeros((3, n_params))
-    states = np.zeros((3, n_state))
+    plant = plant_of(machine)
+    params = np.array(plant.params)  # writeable: the compiled loops take the same types
+    states = np.zeros((3, plant.state_size))
     for c, a in enumerate(AXES):
-        if a in rows:
-            params[c] = rows[a]
-            states[c] = rests[a]
-    present = np.array([a in rows for a in AXES])
+        if a in plant.axes:
+            states[c] = rest_state(params[c], float(p0[c]))
+    present = np.array([a in plant.axes for a in AXES])
     return params, states, present
 
 
@@ -1171,15 +1169,15 @@ def _still(pd, vd):
     return True
 
 
-def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Simulation:
+def simulate(setpoints: Setpoints, machine: Machine | Plant, kp_m_min_per_mm, kf) -> Simulation:
     """Simulate every axis of ``machine`` on ``setpoints``, each from rest at its first setpoint.
 
     Parameters
     ----------
     setpoints : Setpoints
         The planned motion (N samples); its period must be the machine's Te.
-    machine : Machine
-        Machine description.
+    machine : Machine or Plant
+        Machine description, or its :class:`~oga.model.plant.Plant` (packed once).
     kp_m_min_per_mm : float, dict or array_like, shape (N, 3)
         Position gain in (m/min)/mm: one value, one per axis ``{"x": .., "y": .., "z": ..}``
         (every axis named), or per sample and axis. Must be positive.
@@ -1199,6 +1197,8 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         A setpoint moves an axis the machine lacks.
     """
     n = len(setpoints)
+    plant = plant_of(machine)
+    machine = plant.machine
     if not math.isclose(setpoints.dt, machine.te, rel_tol=1e-9):
         raise OptionError(
             f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
@@ -1209,9 +1209,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         raise OptionError("kp_m_min_per_mm: gains must be positive")
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
-    digest = machine.digest() if n else ""
-    n_params, n_state = machine_memo(machine, "simulate._sizes", lambda: _sizes(machine))
-    params, states = np.zeros((3, n_params)), np.zeros((3, n_state))
+    params, states = np.zeros(plant.params.shape), np.zeros((3, plant.state_size))
     fused = []  # the moving cascade axes: one :func:`run_axes`
     for c, a in enumerate(AXES):
         pd = setpoints.pos[:, c]
@@ -1228,7 +1226,7 @@ def simulate(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm, kf) -> Sim
         if _at_rest(machine.axes[a], pd, setpoints.vel[:, c]):
             pos[:, c] = pd  # exact rest: u stays 0 (:func:`_at_rest`), nothing to pack
             continue
-        params[c] = _params_of(digest, machine, a)
+        params[c] = plant.params[c]
         if params[c, _KIND] == _CASCADE:
             states[c, _P] = pd[0]  # :func:`rest_state`
             fused.append(c)

@@ -45,6 +45,7 @@ from scipy.optimize import brentq
 from oga.errors import OptionError
 from oga.linear import dead_line, position_open_loop
 from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
+from oga.model.plant import Plant, machine_of
 
 ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
 
@@ -422,7 +423,7 @@ def _loop(machine: Machine, axis: str, key: str | None = None) -> _Loop:
     return _memo(_LOOPS, key, _LOOPS_KEPT, lambda: _Loop(machine, axis))
 
 
-def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
+def margins(machine: Machine | Plant, axis: str, kp_m_min_per_mm: float) -> Margins:
     """Phase and gain margins of the linearised position loop of one axis.
 
     Parameters
@@ -443,6 +444,7 @@ def margins(machine: Machine, axis: str, kp_m_min_per_mm: float) -> Margins:
     OptionError
         ``kp_m_min_per_mm`` not a positive finite number.
     """
+    machine = machine_of(machine)
     try:
         kp = float(kp_m_min_per_mm)
     except (TypeError, ValueError):
@@ -466,7 +468,7 @@ def decimal_grid(lo: float, hi: float, step: float) -> np.ndarray:
     return np.round(lo + np.arange(n) * step, _KP_DECIMALS)
 
 
-def stable_range(machine: Machine, axis: str) -> StabilityRange:
+def stable_range(machine: Machine | Plant, axis: str) -> StabilityRange:
     """The stable Kp range of one axis over the machine's Kp grid.
 
     The grid spans ``machine.gains.kp_span_m_min_per_mm`` in steps of
@@ -489,6 +491,7 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     -------
     StabilityRange
     """
+    machine = machine_of(machine)
     g = machine.gains
     loop_key = _loop_key(machine, axis)
     kp, pm, gm, stable = _memo(
@@ -500,7 +503,7 @@ def stable_range(machine: Machine, axis: str) -> StabilityRange:
     return _summarise(axis, g, kp, pm, gm, stable)
 
 
-def stable_ends(machine: Machine, axis: str) -> tuple[float, float]:
+def stable_ends(machine: Machine | Plant, axis: str) -> tuple[float, float]:
     """``(kp_min, kp_max)`` of :func:`stable_range` (``nan`` both when empty), computing
     only what decides them.
 
@@ -512,6 +515,7 @@ def stable_ends(machine: Machine, axis: str) -> tuple[float, float]:
     :func:`stable_range` already holds is used as is; the ends are memoised by what they
     depend on (the loop and the gain settings).
     """
+    machine = machine_of(machine)
     g = machine.gains
     loop_key = _loop_key(machine, axis)
     return _memo(_ENDS, (loop_key, g.model_dump_json()), _ENDS_KEPT,
@@ -553,11 +557,12 @@ def _walk(loop: _Loop, g: GainSettings) -> tuple[float, float]:
 def _walk_compiled(loop: _Loop, g: GainSettings) -> tuple[float, float]:
     """:func:`_walk` of a loop in modal form, compiled (:func:`_walk_modal`)."""
     lam, res, dead = loop.modal
-    ends = _walk_modal(lam, res, dead, loop.te, loop.w, loop.h, loop.log_mag, loop.phase,
-                       loop.a, loop.b, loop.c, loop.gm_db,
+    lo_b, hi_b = (float(b) for b in g.kp_bounds_m_min_per_mm)
+    ends = _walk_modal((lam, res, dead, loop.te), (loop.w, loop.h, loop.log_mag, loop.phase),
+                       (loop.a, loop.b, loop.c), loop.gm_db,
                        decimal_grid(*g.kp_span_m_min_per_mm, g.kp_step_m_min_per_mm),
-                       *(float(b) for b in g.kp_bounds_m_min_per_mm), float(g.pm_min_deg),
-                       float(g.gm_min_db), KP_SI_PER_M_MIN_PER_MM)
+                       (lo_b, hi_b, float(g.pm_min_deg), float(g.gm_min_db),
+                        KP_SI_PER_M_MIN_PER_MM))
     return float(ends[0]), float(ends[1])
 
 
@@ -804,12 +809,19 @@ def _closed_loop_stable(a, b, c, kp_si, acl, acl_f, wr, wi):
 
 
 @njit(cache=True, nogil=True)
-def _walk_modal(lam, res, dead, te, w, h, log_mag, phase, a, b, c, gm_db, grid, lo_b, hi_b,
-                pm_min, gm_min, kp_si_per):
+def _walk_modal(modal, curve, abc, gm_db, grid, rule):
     """:func:`_ends`'s walk over ``grid`` with :func:`_margins`' figures, compiled.
 
-    Returns ``(kp_min, kp_max)`` (``nan`` both when no grid value qualifies).
+    ``modal = (lam, res, dead, te)`` (:attr:`_Loop.modal` and the period), ``curve = (w, h,
+    log_mag, phase)`` (the loop's frequency grid and response there), ``abc = (a, b, c)``
+    (the lifted loop), ``gm_db`` its gain margin at Kp = 1/s, ``rule = (lo_b, hi_b, pm_min,
+    gm_min, kp_si_per)``: the configured Kp bounds, the margins asked for and the unit of
+    ``grid``. Returns ``(kp_min, kp_max)`` (``nan`` both when no grid value qualifies).
     """
+    lam, res, dead, te = modal
+    w, h, log_mag, phase = curve
+    a, b, c = abc
+    lo_b, hi_b, pm_min, gm_min, kp_si_per = rule
     first, last = np.nan, np.nan
     acl = np.empty(a.shape, dtype=np.complex128)
     acl_f = np.empty(a.shape)  # the real matrix, column-major (:func:`_closed_loop_stable`)

@@ -70,6 +70,10 @@ from oga.simulate import (
 
 __all__ = ["run_tangent", "friction_slope"]
 
+#: Rows of the tangent block of :func:`run_tangent` (5, D): the derivatives of the position,
+#: velocity, force, PI integral and applied command along each direction.
+_DP, _DV, _DF, _DI, _DUD = 0, 1, 2, 3, 4
+
 
 @njit(cache=True)
 def friction_slope(params: np.ndarray, v: float) -> float:
@@ -87,11 +91,13 @@ def friction_slope(params: np.ndarray, v: float) -> float:
 
 
 @njit(cache=True)
-def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd, fn, slope):
-    """:func:`oga.simulate._substeps` (no load) with the tangents of ``(p, v, F, I)`` of the
-    first ``nd`` directions advanced in place; returns the nominal ``(p, v, F, I)``.
-    ``fn, slope``: :func:`oga.simulate.friction_and_slope` at ``v`` (the first sub-step's,
-    already known to the caller)."""
+def _substeps_tangent(params, x, ud, dx, nd, fn, slope):
+    """:func:`oga.simulate._substeps` (no load) from ``x = (p, v, F, I)`` with the tangents
+    ``dx`` (rows :data:`_DP` ..) of the first ``nd`` directions advanced in place; returns the
+    nominal ``(p, v, F, I)``. ``fn, slope``: :func:`oga.simulate.friction_and_slope` at ``v``
+    (the first sub-step's, already known to the caller)."""
+    p, v, f, i = x
+    dp, dv, df, di, dud = dx[_DP], dx[_DV], dx[_DF], dx[_DI], dx[_DUD]
     c = _substep_coefs(params)
     pi = _pi_coefs(params)
     kv, inv_tn, h, _flim = pi
@@ -147,7 +153,7 @@ def _arx_tangent(state, params, dst, du, nd):
 
 
 @njit(cache=True)
-def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out_u, sp, su):
+def run_tangent(state, params, drive, start, out):
     """:func:`oga.simulate.run` and its derivatives along ``D`` gain directions, in one pass.
 
     Parameters
@@ -156,44 +162,39 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
         Axis state at sample 0; on return the state at sample N (as ``run``).
     params : ndarray
         From :func:`oga.simulate.axis_params`.
-    pd, vd, kp_si, kf : ndarray, shape (N,)
-        Setpoints (m, m/s) and the nominal gains (1/s, factor) per sample.
-    dkp_si, dkf : ndarray, shape (N, D)
-        The directions: per sample and direction the change of Kp (1/s per unit of
-        the direction's parameter) and of Kf (per unit).
+    drive : tuple ``(pd, vd, kp_si, kf, dkp_si, dkf)``
+        ``pd, vd, kp_si, kf`` (N,): setpoints (m, m/s) and the nominal gains (1/s, factor)
+        per sample. ``dkp_si, dkf`` (N, D): the directions: per sample and direction the
+        change of Kp (1/s per unit of the direction's parameter) and of Kf (per unit).
     start : ndarray of int, shape (D,)
         Non-decreasing; direction ``d`` is zero before sample ``start[d]`` (its
         derivatives are zero there and are not propagated: speed only).
-    out_p, out_u : ndarray, shape (N,)
-        Receive the positions ``p_k`` (m) and commands ``u_k`` (m/s), the same bits
-        as ``run``.
-    sp, su : ndarray, shape (N, D)
-        Receive ``dp_k/dtheta_d`` (m per unit) and ``du_k/dtheta_d`` (m/s per unit).
+    out : tuple ``(out_p, out_u, sp, su)``
+        ``out_p, out_u`` (N,) receive the positions ``p_k`` (m) and commands ``u_k`` (m/s),
+        the same bits as ``run``; ``sp, su`` (N, D) receive ``dp_k/dtheta_d`` (m per unit)
+        and ``du_k/dtheta_d`` (m/s per unit).
     """
-    n = pd.shape[0]
+    out_p, out_u, su = out[0], out[1], out[3]
+    n = drive[0].shape[0]
     nd_all = start.shape[0]
     nd = 0  # active directions: start[d] <= k
     if params[_KIND] == _ARX:
         dst = np.zeros((state.shape[0], nd_all))
         for k in range(n):
             out_p[k] = state[_P]
-            out_u[k], nd = _record(k, nd, start, state[_P], dst[0], pd, vd, kp_si, kf, dkp_si,
-                                   dkf, sp, su)
+            out_u[k], nd = _record(k, nd, start, state[_P], dst[0], drive, out)
             _arx_tangent(state, params, dst, su[k], nd)
             _arx_drive(state, params, out_u[k], 0.0)
         return
     dead = int(params[_DEAD])
     frac = params[_FRAC]
     lifted = params[_LIFTED] != 0.0
-    dp = np.zeros(nd_all)
-    dv = np.zeros(nd_all)
-    df = np.zeros(nd_all)
-    di = np.zeros(nd_all)
-    dud = np.zeros(nd_all)
+    dx = np.zeros((5, nd_all))  # the tangents of p, v, F, I and the applied command
+    dp, dv, df, di, dud = dx[_DP], dx[_DV], dx[_DF], dx[_DI], dx[_DUD]
     p, v, f, i = state[_P], state[_V], state[_F], state[_I]
     for k in range(n):
         out_p[k] = p
-        out_u[k], nd = _record(k, nd, start, p, dp, pd, vd, kp_si, kf, dkp_si, dkf, sp, su)
+        out_u[k], nd = _record(k, nd, start, p, dp, drive, out)
         m = k - dead  # the command applied now is u_m; the line's initial commands are data
         if m >= 0:
             ud = out_u[m]
@@ -223,16 +224,18 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
             _lifted_tangent(params, dp, dv, df, di, dud, nd)
             p, v, f, i = _lifted(params, p, v, f, i, ud, fn)
         else:  # the sub-steps (also at rest, where they change nothing: the same bits as run)
-            p, v, f, i = _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd, fn,
-                                           slope)
+            p, v, f, i = _substeps_tangent(params, (p, v, f, i), ud, dx, nd, fn, slope)
     _store_cascade(state, dead, out_u, n, p, v, f, i)
 
 
 @njit(cache=True, inline="always")
-def _record(k, nd, start, p, dpos, pd, vd, kp_si, kf, dkp_si, dkf, sp, su):
-    """Sample ``k`` of :func:`run_tangent`: the directions active from it on, the measured
-    position's derivatives ``dpos`` into ``sp[k]`` and the command's into ``su[k]`` (zero for
-    the directions not yet started). Returns ``(u_k, active directions)``."""
+def _record(k, nd, start, p, dpos, drive, out):
+    """Sample ``k`` of :func:`run_tangent` (``drive``, ``out`` as there): the directions active
+    from it on, the measured position's derivatives ``dpos`` into ``sp[k]`` and the command's
+    into ``su[k]`` (zero for the directions not yet started). Returns ``(u_k, active
+    directions)``."""
+    pd, vd, kp_si, kf, dkp_si, dkf = drive
+    sp, su = out[2], out[3]
     nd_all = start.shape[0]
     while nd < nd_all and start[nd] <= k:
         nd += 1

@@ -23,7 +23,8 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.contour import contour_error_of
-from oga.machine import Machine, machine_memo
+from oga.machine import Machine
+from oga.model.plant import Plant, plant_of
 from oga.metrics import ContourMetrics, nan_max, contour_metrics
 from oga.kinematics import command_peaks
 from oga.simulate import simulate
@@ -34,7 +35,7 @@ __all__ = ["Verification", "command_ratios", "ferror_ratios", "verify"]
 _SLACK = 1e-9
 
 
-def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.ndarray:
+def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine | Plant) -> np.ndarray:
     """Largest ratio of the velocity command's |v|, |a|, |j| to the axis limits (paper eq. 2).
 
     Checked over every sample, rapids included, as the kinematic range is (:mod:`oga.ranges`).
@@ -45,7 +46,7 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
         Velocity commands, m/s (axes x, y, z); the axes are at rest before sample 0.
     setpoints : Setpoints
         The setpoints (sample period).
-    machine : Machine
+    machine : Machine or Plant
         Supplies the limits; an axis the machine lacks must have u == 0.
 
     Returns
@@ -53,7 +54,7 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
     ndarray, shape (3, 3)
         ``[axis, (v, a, j)]`` ratios; <= 1 means within the limit.
     """
-    limits = machine_memo(machine, "verify.limits", lambda: _limits(machine))
+    limits = plant_of(machine).limits
     u = np.asarray(u, dtype=np.float64)
     check = np.ones(len(u), dtype=bool)
     out = np.zeros((3, 3))
@@ -65,15 +66,6 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
             elif peaks[j] > 0:
                 out[k, j] = np.inf
     return out
-
-
-def _limits(machine: Machine) -> np.ndarray:
-    """``[axis, (vmax, amax, jmax)]`` of :meth:`oga.machine.Machine.axis_limits`, shape (3, 3),
-    read-only."""
-    lim = machine.axis_limits()
-    limits = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
-    limits.flags.writeable = False
-    return limits
 
 
 @njit(cache=True, nogil=True)
@@ -181,8 +173,8 @@ def verify(
     ----------
     setpoints : Setpoints
         The planned motion (N samples).
-    machine : Machine
-        The machine.
+    machine : Machine or Plant
+        The machine (or its plant, packed once).
     kp_m_min_per_mm, kf : ndarray, shape (N, 3)
         The gains per sample and axis.
     kp_bounds : dict
@@ -192,12 +184,14 @@ def verify(
     -------
     Verification
     """
+    plant = plant_of(machine)
+    machine = plant.machine
     kp = np.asarray(kp_m_min_per_mm, dtype=np.float64)
     kf = np.asarray(kf, dtype=np.float64)
-    sim = simulate(setpoints, machine, kp, kf)
+    sim = simulate(setpoints, plant, kp, kf)
     ce = contour_error_of(setpoints, sim.pos)
     metrics = contour_metrics(ce, setpoints.pos, sim.pos, ~setpoints.rapid)
-    ratio = command_ratios(sim.u, setpoints, machine)
+    ratio = command_ratios(sim.u, setpoints, plant)
     limit_v = [
         f"axis {a}: velocity command {what} reaches {ratio[k, j]:.3f}x its limit "
         + _where(setpoints, _peak_sample(sim.u[:, k], j))

@@ -220,9 +220,9 @@ def test_every_entry_point_takes_it_with_the_same_bits(axis):
     start = np.zeros(1, dtype=np.int64)
     sp_t, su_t = np.empty((n, 1)), np.empty((n, 1))
     p_t, u_t = np.empty(n), np.empty(n)
-    run_tangent(rest_state(prm, pd[0]), prm, pd, vd, kp, kf,
-                np.full((n, 1), KP_SI_PER_M_MIN_PER_MM), np.zeros((n, 1)), start, p_t, u_t,
-                sp_t, su_t)
+    run_tangent(rest_state(prm, pd[0]), prm, (pd, vd, kp, kf,
+                np.full((n, 1), KP_SI_PER_M_MIN_PER_MM), np.zeros((n, 1))), start,
+                (p_t, u_t, sp_t, su_t))
     assert np.array_equal(p_t, ref_p) and np.array_equal(u_t, ref_u)
     # and its derivative is the central difference of run (the map is linear)
     h = 1e-4

@@ -62,7 +62,7 @@ def test_nominal_is_run_to_the_last_bit(machine, axis):
     p_run, u_run, p_tan, u_tan = (np.empty(N) for _ in range(4))
     run(s_run, prm, pd, vd, kp, kf, p_run, u_run)
     sp, su = np.empty((N, start.size)), np.empty((N, start.size))
-    run_tangent(s_tan, prm, pd, vd, kp, kf, dkp, dkf, start, p_tan, u_tan, sp, su)
+    run_tangent(s_tan, prm, (pd, vd, kp, kf, dkp, dkf), start, (p_tan, u_tan, sp, su))
     assert np.array_equal(p_run, p_tan) and np.array_equal(u_run, u_tan)
     assert np.array_equal(s_run, s_tan)  # the state carried to the next call too
 
@@ -72,8 +72,8 @@ def test_derivatives_equal_central_differences(machine, axis):
     prm = axis_params(machine, axis)
     pd, vd, kp, kf, dkp, dkf, start = _reversal_case()
     sp, su = np.empty((N, start.size)), np.empty((N, start.size))
-    run_tangent(rest_state(prm, pd[0]), prm, pd, vd, kp, kf, dkp, dkf, start, np.empty(N),
-                np.empty(N), sp, su)
+    run_tangent(rest_state(prm, pd[0]), prm, (pd, vd, kp, kf, dkp, dkf), start,
+                (np.empty(N), np.empty(N), sp, su))
     h = 1e-4
     for d in range(start.size):
         out = []
@@ -95,13 +95,13 @@ def test_directions_superpose_and_scale():
     prm = axis_params(UCP, "z")
     pd, vd, kp, kf, dkp, dkf, start = _reversal_case()
     sp, su = np.empty((N, start.size)), np.empty((N, start.size))
-    run_tangent(rest_state(prm, pd[0]), prm, pd, vd, kp, kf, dkp, dkf, start, np.empty(N),
-                np.empty(N), sp, su)
+    run_tangent(rest_state(prm, pd[0]), prm, (pd, vd, kp, kf, dkp, dkf), start,
+                (np.empty(N), np.empty(N), sp, su))
     w = np.array([0.5, -2.0, 1.0, 3.0, -1.0, 0.25])
     comb_p, comb_u = np.empty((N, 1)), np.empty((N, 1))
-    run_tangent(rest_state(prm, pd[0]), prm, pd, vd, kp, kf, (dkp @ w)[:, None],
-                (dkf @ w)[:, None], np.zeros(1, dtype=np.int64), np.empty(N), np.empty(N),
-                comb_p, comb_u)
+    run_tangent(rest_state(prm, pd[0]), prm, (pd, vd, kp, kf, (dkp @ w)[:, None],
+                (dkf @ w)[:, None]), np.zeros(1, dtype=np.int64), (np.empty(N), np.empty(N),
+                comb_p, comb_u))
     np.testing.assert_allclose(comb_p[:, 0], sp @ w, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(comb_u[:, 0], su @ w, rtol=1e-9, atol=1e-15)
 

@@ -78,9 +78,9 @@ def axis_tangent(plant, axis: str, i: int, pd: np.ndarray, vd: np.ndarray, kp: n
     dkf[:, nkp:] = w_kf
     p, u = np.empty(n), np.empty(n)
     sp, su = np.empty((n, d)), np.empty((n, d))
-    run_tangent(state, params, np.ascontiguousarray(pd[:, i]), np.ascontiguousarray(vd[:, i]),
+    run_tangent(state, params, (np.ascontiguousarray(pd[:, i]), np.ascontiguousarray(vd[:, i]),
                 np.ascontiguousarray(kp * KP_SI_PER_M_MIN_PER_MM), np.ascontiguousarray(kf),
-                dkp, dkf, np.zeros(d, dtype=np.int64), p, u, sp, su)
+                dkp, dkf), np.zeros(d, dtype=np.int64), (p, u, sp, su))
     return p, u, sp, su
 
 

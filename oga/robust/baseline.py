@@ -329,8 +329,8 @@ def _tangent_replay(params, path, kp_si, kf, with_ce, peaks, slopes, model):
     for a in range(cols.size):
         c = cols[a]
         state = rest_state(params[c], pos_t[c, 0])
-        run_tangent(state, params[c], pos_t[c], vel_t[c], kp_k, kf_k, dkp, dkf, start, pa, ua,
-                    spa, sua)
+        run_tangent(state, params[c], (pos_t[c], vel_t[c], kp_k, kf_k, dkp, dkf), start,
+                    (pa, ua, spa, sua))
         for k in range(n):
             p_act[k, c] = pa[k]
             sp[k, c, 0] = spa[k, 0]

@@ -40,12 +40,14 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from oga import defaults
 from oga.errors import MachineError
 from oga.machine import FACTOR_FIELDS, Machine, machine_from_dict
+from oga.model.plant import PlantBatch
 
 __all__ = [
     "ScenarioSet",
@@ -72,7 +74,8 @@ class ScenarioSet:
     nominal : Machine
         The machine the set belongs to.
     plants : tuple of Machine
-        The Monte Carlo plants first, then the corners; no uncertainty section of their own.
+        The Monte Carlo plants first, then the corners; no uncertainty section of their own
+        (:attr:`batch`: the same, packed once into arrays).
     labels : tuple of str
         One per plant: ``"mc-0007"`` or the corner, e.g. ``"corner friction-lo mass-hi ..."``.
     draws : tuple
@@ -94,6 +97,13 @@ class ScenarioSet:
 
     def __len__(self) -> int:
         return len(self.plants)
+
+    @cached_property
+    def batch(self) -> PlantBatch:
+        """The plants packed once, stacked with a leading plant axis (:class:`PlantBatch`:
+        ``params`` (S, 3, P), ``limits`` (S, 3, 3), ``dead_samples`` (S, 3); ``.machines``
+        gives :attr:`plants` back)."""
+        return PlantBatch.of(self.plants, self.labels)
 
 
 def uncertain_axes(machine: Machine) -> tuple[str, ...]:
