@@ -132,8 +132,8 @@ def run_claimed(store: Store, job: JobRow) -> str:
         end this process, whose heap may be fragmented).
     """
     from oga.errors import OgaError
-    from oga.export import table_npz
-    from oga.machine import machine_from_dict
+    from oga.export.table import table_npz
+    from oga.model.machine import machine_from_dict
     from oga.pipeline import run_job, stored_options
 
     parent = os.getppid()

@@ -107,7 +107,7 @@ def search_arrays(result) -> dict:
 
 
 def _search_case(name: str, mode: str = "full") -> dict:
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
     from oga.optimize import optimize
 
     r = optimize(pinned_setpoints(name), load_machine("ucp710"), {"mode": mode, "nominal": True})
@@ -124,8 +124,8 @@ def verify_gains(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
 
 def verify_plant(i: int):
     """Plant ``i`` of :data:`VERIFY_PLANTS` (the exact kernel: no linear friction setting)."""
-    from oga.machine import load_machine
-    from oga.robust.plants import scenario_set
+    from oga.model.machine import load_machine
+    from oga.search.robust.plants import scenario_set
 
     ucp = load_machine("ucp710")
     plant = ucp if i == 0 else scenario_set(ucp, n=64, seed=17).plants[i - 1]
@@ -134,7 +134,7 @@ def verify_plant(i: int):
 
 
 def _verify_case(i: int) -> dict:
-    from oga.verify import verify
+    from oga.verify.replay import verify
 
     sp = pinned_setpoints("reference_xz.ngc")
     kp, kf = verify_gains(len(sp))

@@ -19,9 +19,9 @@ from pathlib import Path
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.pipeline import plan_toolpath
-from oga.robust.search import robust_optimize
+from oga.search.robust.search import robust_optimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_perturb import figures, scaled  # noqa: E402

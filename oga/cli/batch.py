@@ -123,7 +123,7 @@ def _expand(inputs: list[str]) -> list[FilePath]:
 
 
 def _outputs(stem: str, formats) -> tuple[list[str], str]:
-    from oga.export import TABLE_FORMATS
+    from oga.export.table import TABLE_FORMATS
 
     return [stem + TABLE_FORMATS[f][0] for f in formats], f"{stem}.summary.json"
 
@@ -142,8 +142,8 @@ def _run_one(task: _Task, progress) -> dict:
     """In a worker process: optimise one program; returns its outputs or its failure (the
     reason names the file first)."""
     from feedplan.read import read_file
-    from oga.export import table_c_header, table_csv, table_json
-    from oga.machine import machine_from_dict
+    from oga.export.table import table_c_header, table_csv, table_json
+    from oga.model.machine import machine_from_dict
     from oga.options import options_from_dict
     from oga.pipeline import run_job
 
@@ -267,7 +267,7 @@ def _store(out: FilePath, task: _Task, outcome: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     from oga.defaults import BATCH_MAX_JOBS_PER_CPU
     from oga.errors import InputError
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
 
     formats = tuple(f.strip() for f in args.format.split(",") if f.strip())
     bad = [f for f in formats if f not in BATCH_TABLE_FORMATS]

@@ -97,8 +97,8 @@ def run(args: argparse.Namespace) -> int:
     from feedplan.read import read_file
     from feedplan.setpoints import AXES
     from oga.errors import GcodeError, OptionError, ToolpathError
-    from oga.export import table_csv
-    from oga.machine import load_machine
+    from oga.export.table import table_csv
+    from oga.model.machine import load_machine
     from oga.pipeline import run_job
     from oga.identify.trace import TraceError
 
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     if args.summary:
         write_json(args.summary, summary)
     if args.report:
-        from oga.report import render_report
+        from oga.report.optimize import render_report
 
         write_text(args.report, render_report(job))
     if job.recorded is not None:
@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
 
 def certificate_lines(cert: dict) -> list[str]:
     """The certificate of a summary (``summary["certificate"]``) as the lines printed."""
-    from oga.robust.certificate import confidence_text
+    from oga.verify.certificate import confidence_text
 
     br = cert["breaks"]
     s, b = cert["schedule"], cert["baseline"]

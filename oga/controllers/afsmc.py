@@ -27,7 +27,7 @@ plane axes:
 - total (eq. 5): ``u = kf vd + u_fz + u_c``.
 
 Axes outside the contour plane and rapids use P + feed-forward at the baseline
-gains (the best fixed gains of :func:`oga.ranges.gain_ranges`); adaptation and
+gains (the best fixed gains of :func:`oga.search.ranges.gain_ranges`); adaptation and
 compensation are off during rapids.
 """
 
@@ -50,8 +50,8 @@ from oga.controllers.base import (
     score,
 )
 from oga.errors import OptionError, TuneError
-from oga.machine import Machine
-from oga.simulate import axis_arrays, drive
+from oga.model.machine import Machine
+from oga.model.simulate import axis_arrays, drive
 
 __all__ = ["NAME", "NEEDS_FIRMWARE", "PARAMETERS", "RULES", "AfsmcTrace", "simulate_afsmc", "run"]
 
@@ -126,7 +126,7 @@ def _loop(pd, vd, speed, feed, params, states, present, ctrl, kp_base, kf_base, 
 
     ``pd, vd, load, out_p, out_u`` are (N, 3) (m, m/s, N, m, m/s); ``speed`` (N,) the
     setpoint path speed (m/s); ``feed`` (N,) bool; ``params, states`` from
-    :func:`oga.simulate.axis_arrays` (advanced in place); ``present, ctrl`` (3,) bool
+    :func:`oga.model.simulate.axis_arrays` (advanced in place); ``present, ctrl`` (3,) bool
     (axis exists, axis in the contour plane); ``kp_base`` (1/s), ``kf_base`` (3,);
     ``theta`` (3, 7, 7) rule singletons (m/s), adapted in place; ``out_comp,
     out_adapt`` (N,) bool.

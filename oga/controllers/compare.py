@@ -3,8 +3,8 @@
 Every controller (:mod:`oga.controllers`) is simulated on the same setpoints and
 machine; each row's figures are computed here from the run's positions and
 velocity commands by the same functions for everybody: the contour error
-(:func:`oga.contour.contour_error_of`) and its statistics over the feed samples
-(:func:`oga.metrics.contour_metrics`), and the command ratios of paper eq. 2
+(:func:`oga.model.contour.contour_error_of`) and its statistics over the feed samples
+(:func:`oga.model.metrics.contour_metrics`), and the command ratios of paper eq. 2
 (:func:`oga.verify.command_ratios`).
 """
 
@@ -16,17 +16,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import CONTROLLERS, load_controller
 from oga.errors import OgaError, OptimizeError, OptionError, TuneError
-from oga.machine import Machine
-from oga.metrics import contour_metrics
-from oga.verify import command_ratios, ferror_ratios
+from oga.model.machine import Machine
+from oga.model.metrics import contour_metrics
+from oga.verify.replay import command_ratios, ferror_ratios
 
 __all__ = ["ComparisonRow", "Comparison", "compare", "parse_controllers"]
 
 _UM = 1e6
-#: Slack on the limit check (float64 rounding only), as in oga.verify.
+#: Slack on the limit check (float64 rounding only), as in oga.verify.replay.
 _SLACK = 1e-9
 
 

@@ -146,7 +146,7 @@ def gain_table(result, *, toolpath_sha256: str | None = None,
     """
     from oga import __version__
     from oga.errors import OptimizeError
-    from oga.optimize import setpoints_digest
+    from oga.search.result import setpoints_digest
 
     _require_ok(result)
     header, cols = table_columns(result)

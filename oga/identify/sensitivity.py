@@ -2,15 +2,15 @@
 parameters: the fit's Jacobian in one pass instead of a re-simulation per parameter.
 
 :func:`positions_and_sensitivities` simulates the axis exactly as
-:func:`oga.simulate.simulate_axis` does (the same arithmetic: the same positions to the last
+:func:`oga.model.simulate.simulate_axis` does (the same arithmetic: the same positions to the last
 bit) and carries, beside the state ``(p, v, F, I)`` and the dead-time line, its derivatives
-along ``D`` directions of the packed parameters (:func:`oga.simulate.axis_params`): the
+along ``D`` directions of the packed parameters (:func:`oga.model.simulate.axis_params`): the
 sub-step mechanics' coefficients, ``Kv``, ``1/Tn``, the friction's ``Fc``, ``Fs - Fc`` and
 ``1/vs``, the lifted map over Te (and the linear friction map, on a machine that sets
 ``timing.friction_linear_below_m_s``; identification's do not). The derivative follows
 the branch the nominal simulation takes at each period (the lifted map where it is exact,
 else the sub-steps with the velocity PI, its force limit and anti-windup, and the friction
-through its slope), as :mod:`oga.tangent` does for the gains; it is exact for the
+through its slope), as :mod:`oga.model.tangent` does for the gains; it is exact for the
 computation performed, except where the axis sticks (the friction's slope there limited:
 see :func:`_advance_sens`).
 """
@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from oga.simulate import (
+from oga.model.simulate import (
     _DEAD,
     _DFS,
     _FC,
@@ -63,9 +63,9 @@ def _friction_terms(params, v):
 
 @njit(cache=True)
 def _advance_sens(params, dpar, dc, p, v, f, i, ud, dp, dv, df, di, dud):
-    """:func:`oga.simulate._advance` (no load) of one Te, the tangents ``dp, dv, df, di`` (D,)
+    """:func:`oga.model.simulate._advance` (no load) of one Te, the tangents ``dp, dv, df, di`` (D,)
     advanced in place; ``dud`` (D,) the derivatives of the command ``ud``; ``dc`` (D, 10)
-    the directions' :func:`oga.simulate._substep_coefs`."""
+    the directions' :func:`oga.model.simulate._substep_coefs`."""
     nd = dpar.shape[0]
     if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
         return p, v, f, i  # at rest and not driven: nothing moves (as the simulator)
@@ -165,7 +165,7 @@ def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: flo
     Parameters
     ----------
     params : ndarray
-        :func:`oga.simulate.axis_params` of a cascade axis (its dead time included).
+        :func:`oga.model.simulate.axis_params` of a cascade axis (its dead time included).
     dparams : ndarray, shape (D, len(params))
         Directions in the packed parameters (e.g. their derivatives with respect to D
         fitted quantities); only the entries the kernel uses matter (mechanics, PI,
@@ -177,7 +177,7 @@ def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: flo
     Returns
     -------
     p : ndarray, shape (N,)
-        Positions, m (equal to :func:`oga.simulate.simulate_axis`'s).
+        Positions, m (equal to :func:`oga.model.simulate.simulate_axis`'s).
     dp : ndarray, shape (N, D)
         Their derivatives along each direction, m per unit of the direction.
     """

@@ -4,7 +4,7 @@ Used by the simulation kernel (its sub-step matrices and its lifted step) and by
 the stability analysis (the linearised loop lifted over Te). An axis is either a
 cascade (below) or an identified ARX velocity loop (:func:`arx_state_space`).
 
-The continuous mechanics of one axis (:class:`oga.machine.Cascade`), with state ``x = [p, v, F]``
+The continuous mechanics of one axis (:class:`oga.model.machine.Cascade`), with state ``x = [p, v, F]``
 (position m, velocity m/s, actual force N) and inputs ``[F_cmd, F_n]`` (force
 command N, nonlinear friction force N)::
 
@@ -14,7 +14,7 @@ command N, nonlinear friction force N)::
 
 are discretised exactly over one sub-step ``h = Te / substeps`` with both inputs
 held (zero-order hold): :func:`substep_matrices`. The simulation kernel
-(:mod:`oga.simulate`) propagates exactly these matrices, so its linear part is exact.
+(:mod:`oga.model.simulate`) propagates exactly these matrices, so its linear part is exact.
 
 The discrete velocity PI of every sub-step ``j`` (the same in the kernel) is::
 
@@ -30,7 +30,7 @@ inside the matrices, so ``F_n = 0``) this is the lifted axis (:func:`lifted_axis
 (:func:`dead_line`: whole samples, or a fractional one as a linear interpolation between
 two) and the gain Kp (:func:`position_open_loop`).
 
-An ARX axis (:class:`oga.machine.Arx`) is already discrete over Te; its velocity
+An ARX axis (:class:`oga.model.machine.Arx`) is already discrete over Te; its velocity
 ``v_k`` follows the difference equation of ``V(z)`` on the input
 ``u_k - viscous_ratio v_{k-1}`` (friction linearised: the Coulomb term is dropped)
 and ``p_{k+1} = p_k + Te v_k`` (:func:`arx_state_space`).
@@ -45,7 +45,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from oga.errors import MachineError
-from oga.machine import Arx, Cascade, Machine
+from oga.model.machine import Arx, Cascade, Machine
 
 __all__ = [
     "substep_matrices",
@@ -260,7 +260,7 @@ def lifted_axis(
 
 
 def dead_line(machine: Machine, axis: str) -> tuple[int, float]:
-    """The dead time of ``axis`` (:meth:`oga.machine.Machine.dead_time_samples_of`) as a
+    """The dead time of ``axis`` (:meth:`oga.model.machine.Machine.dead_time_samples_of`) as a
     line of commands: ``(L, f)``, the line's length and the weight of its oldest command.
 
     A whole dead time ``d`` is ``(d, 0.0)``: the axis receives ``u_{k-d}``. A fractional one

@@ -254,7 +254,7 @@ class Timing(_Frozen):
     ``friction_linear_below_m_s`` (optional, unset by default: the exact kernel) lets the
     simulation take a cascade axis's friction force ``F_n(v)`` as its tangent at rest,
     ``Fs / friction_smoothing_m_s * v``, over the periods whose velocity provably stays below
-    it at every sub-step (:mod:`oga.simulate`: the periods of an axis standing still then cost
+    it at every sub-step (:mod:`oga.model.simulate`: the periods of an axis standing still then cost
     one linear map instead of the sub-steps). There ``|F_n - tangent| <= Fs x^3 / 3 +
     (Fs - Fc) (V / vs)^2 x`` with ``x = V / friction_smoothing_m_s``. The scenario plants of
     the robust search set it (:data:`oga.defaults.ROBUST_FRICTION_LINEAR_BELOW_M_S`); unset,

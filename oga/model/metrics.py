@@ -69,7 +69,7 @@ def contour_metrics(
     Parameters
     ----------
     ce : array_like, shape (N,)
-        Contour error, m (e.g. from :func:`oga.contour.contour_error`).
+        Contour error, m (e.g. from :func:`oga.model.contour.contour_error`).
     pd, pa : array_like, shape (N, 3)
         Desired and actual positions, m.
     mask : array_like of bool, shape (N,), optional

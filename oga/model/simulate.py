@@ -1,14 +1,14 @@
 """The compiled nonlinear axis simulation, one axis at a time: cascade or ARX axes.
 
-An axis is one of two kinds (:class:`oga.machine.Axis`), told apart by a kind code
+An axis is one of two kinds (:class:`oga.model.machine.Axis`), told apart by a kind code
 in its packed parameters, so every compiled function below takes either.
 
-**Cascade** (:class:`oga.machine.Cascade`). Per axis and position-loop sample k (period Te):
+**Cascade** (:class:`oga.model.machine.Cascade`). Per axis and position-loop sample k (period Te):
 
 1. measure ``p_k``;
 2. velocity command ``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (Kp in 1/s);
 3. ``u_k`` enters a dead-time line of ``d`` samples (the axis's own,
-   :meth:`oga.machine.Machine.dead_time_samples_of`): during ``[k Te, (k+1) Te)`` the
+   :meth:`oga.model.machine.Machine.dead_time_samples_of`): during ``[k Te, (k+1) Te)`` the
    velocity loop receives ``u_{k-d}`` (zero before the start); a fractional dead time
    ``d = L - 1 + f`` (``0 < f < 1``) gives it ``f u_{k-L} + (1 - f) u_{k-L+1}`` (the
    linear-interpolation fractional delay: over the period, the mean of the command
@@ -23,17 +23,17 @@ in its packed parameters, so every compiled function below takes either.
      evaluated at the sub-step start;
    - ``F_cmd`` and ``F_n`` held over ``h`` (zero-order hold) and the linear part
      (position, velocity, force lag with the viscous friction B) propagated exactly
-     with its matrix exponential (:func:`oga.linear.substep_matrices`).
+     with its matrix exponential (:func:`oga.model.linear.substep_matrices`).
 
 With ``Fc = Fs = 0`` and a force limit never reached this is exactly the linear
-lifted model of :mod:`oga.linear`. ``F_n`` takes ``tanh`` and ``exp`` only where their
+lifted model of :mod:`oga.model.linear`. ``F_n`` takes ``tanh`` and ``exp`` only where their
 float64 result is not exactly ``+-1`` or changes it (the sub-steps take both and choose
 after, without branches: the same bits, :func:`_friction_flat`).
 
 Speed without approximation: wherever it provably gives the same result as the
 sub-steps (the force command stays inside the limit and ``F_n`` stays exactly
 ``+-Fc`` at every sub-step, checked by a bound linear in the state), a whole Te is
-advanced with the lifted linear map of :func:`oga.linear.substep_sequence` (the
+advanced with the lifted linear map of :func:`oga.model.linear.substep_sequence` (the
 same model; the two paths differ by floating-point rounding only, about 1e-15
 relative). On a contour this covers all but the samples near axis reversals.
 Where an axis stands still its state soon stops changing to the last bit (a
@@ -53,7 +53,7 @@ inside the limit (:func:`_linear_guard`). For ``|v| <= V``,
 ``V = 1e-6`` m/s and ucp710's plants, below 1e-4 N against the friction ``c V`` of about
 1 N there.
 
-**ARX** (:class:`oga.machine.Arx`): an identified velocity loop, already discrete
+**ARX** (:class:`oga.model.machine.Arx`): an identified velocity loop, already discrete
 over Te. At sample k, with the command ``u_k`` issued:
 
 1. the velocity loop's input ``w_k = u_k - f(v_{k-1}) - g_load F_load`` with the
@@ -64,7 +64,7 @@ over Te. At sample k, with the command ``u_k`` issued:
 
 The dead time is folded into the numerator (``d`` leading zeros; a fractional one as
 ``z^-(L-1) (1 - f + f z^-1)``); with the
-friction off this is exactly the linear model of :func:`oga.linear.arx_state_space`.
+friction off this is exactly the linear model of :func:`oga.model.linear.arx_state_space`.
 
 The compiled functions (:func:`rest_state`, :func:`step`, :func:`drive`, :func:`window`,
 :func:`run`) take the packed parameters of :func:`axis_params` and a state vector of
@@ -96,8 +96,8 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import MachineError, OptionError
-from oga.linear import dead_line, substep_matrices, substep_sequence_of
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine, machine_memo
+from oga.model.linear import dead_line, substep_matrices, substep_sequence_of
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine, machine_memo
 
 __all__ = [
     "axis_params",
@@ -343,7 +343,7 @@ def _w_rows(a_j, b_j) -> np.ndarray:
 def _linear_friction_map(m_sub, n_sub, cas, n_steps: int):
     """The sub-steps of one Te with the friction force taken as its tangent at rest.
 
-    One sub-step is ``z_{j+1} = M z_j + N [u, F_n,j + load]`` (:func:`oga.linear.substep_sequence`,
+    One sub-step is ``z_{j+1} = M z_j + N [u, F_n,j + load]`` (:func:`oga.model.linear.substep_sequence`,
     ``M = A_1``, ``N = B_1``; PI unsaturated); with ``F_n,j = c v_j``, ``c = Fs / eps`` (the
     slope of ``F_n`` at ``v = 0``), held over the sub-step as the kernel holds ``F_n``, it is
     ``z_{j+1} = (M + c N[:, 1] e_v^T) z_j + N [u, load]``, and ``n_steps`` of them one map.
@@ -364,7 +364,7 @@ def _linear_friction_map(m_sub, n_sub, cas, n_steps: int):
     b = np.empty((n_steps + 1, 4, 2))
     a[0] = np.eye(4)
     b[0] = 0.0
-    for j in range(n_steps):  # as :func:`oga.linear.substep_sequence` composes them
+    for j in range(n_steps):  # as :func:`oga.model.linear.substep_sequence` composes them
         a[j + 1] = mc @ a[j]
         b[j + 1] = mc @ b[j] + n_sub
     w_rows = _w_rows(a[:-1], b[:-1])
@@ -558,7 +558,7 @@ def _substep_coefs(params):
     """The nonzero entries of the sub-step matrices: ``(a01, a02, a11, a12, a22, b00, b01,
     b10, b11, b20)``. In x = [p, v, F] the position integrates, the force depends on
     neither p nor v, and the friction input does not reach F (structural zeros of
-    :func:`oga.linear.substep_matrices`)."""
+    :func:`oga.model.linear.substep_matrices`)."""
     return (params[_AD + 1], params[_AD + 2], params[_AD + 4], params[_AD + 5], params[_AD + 8],
             params[_BD], params[_BD + 1], params[_BD + 2], params[_BD + 3], params[_BD + 4])
 
@@ -602,7 +602,7 @@ def _linear_guard(params, v, f, i, ud, load):
     ``_VLIN``): with ``w = [v, u - v, F, I, load]`` at the period's start, that map's
     sub-step starts satisfy ``|v_j| <= wl.|w|`` and ``|F_cmd,j| <= wf.|w|``
     (:func:`_linear_friction_map`). If the first stays below ``V`` (the friction is its
-    tangent at rest within the bound of :class:`oga.machine.Timing` at every sub-step) and
+    tangent at rest within the bound of :class:`oga.model.machine.Timing` at every sub-step) and
     the second below the force limit (the PI is linear throughout), the map is the sub-steps
     with that friction.
     """
@@ -1155,7 +1155,7 @@ def _at_rest(model, pd: np.ndarray, vd: np.ndarray) -> bool:
     integral and the force stay 0, the friction of a zero velocity is 0 (``tanh(0)``), so the
     kernel would return ``p = pd[0]`` and ``u = 0`` at every sample: the replay is skipped
     (tests/test_robust_speed.py compares it with the kernel's, bit for bit). An ARX axis is
-    always replayed. ``model``: the axis (:class:`oga.machine.Axis`).
+    always replayed. ``model``: the axis (:class:`oga.model.machine.Axis`).
     """
     return model.arx is None and _still(pd, vd)
 

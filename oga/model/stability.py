@@ -1,6 +1,6 @@
 """Phase and gain margins of the position loop, and the stable Kp range of an axis.
 
-The open loop ``L(z) = Kp z^-d G(z)`` of :func:`oga.linear.position_open_loop`
+The open loop ``L(z) = Kp z^-d G(z)`` of :func:`oga.model.linear.position_open_loop`
 (either axis kind; friction -> its viscous part, no force limit) is evaluated on the unit circle
 ``z = exp(j w Te)`` over a dense logarithmic grid from ``1e-6 / Te`` rad/s to the
 Nyquist frequency ``pi / Te``; every crossing of ``|L| = 1`` (gain crossover) and
@@ -43,8 +43,8 @@ from scipy.linalg import matrix_balance
 from scipy.optimize import brentq
 
 from oga.errors import OptionError
-from oga.linear import dead_line, position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
+from oga.model.linear import dead_line, position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
 
 ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
 
@@ -192,7 +192,7 @@ class _Loop:
     """The part of one axis's position loop that does not depend on Kp.
 
     The open loop is ``L = Kp H`` with ``H`` the open loop of
-    :func:`oga.linear.position_open_loop` at ``Kp = 1 1/s`` (the lifted inner loops and the
+    :func:`oga.model.linear.position_open_loop` at ``Kp = 1 1/s`` (the lifted inner loops and the
     dead time). ``H`` on the frequency grid, its unwrapped phase and the phase crossovers
     (``Im H = 0`` with ``Re H < 0``: a positive Kp moves none of them) are computed here once;
     a Kp then costs its gain crossovers and one eigenvalue problem (:func:`_margins`).
@@ -325,7 +325,7 @@ _MODAL_COND_MAX = 1e6
 def _modal(a, b, c, dead: int):
     """The loop ``H(z) = z^-d G(z)`` in modal form ``G(z) = sum_i r_i / (z - p_i)``.
 
-    ``a, b, c`` are :func:`oga.linear.position_open_loop`'s (balanced here): the axis's
+    ``a, b, c`` are :func:`oga.model.linear.position_open_loop`'s (balanced here): the axis's
     ``m`` states first, then the dead-time line of ``d`` samples (a shift register: its
     poles are a defective ``d``-fold zero, so it is taken out as ``z^-d``). ``G`` is the axis alone
     (its input the oldest command of the line).

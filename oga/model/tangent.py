@@ -1,19 +1,19 @@
 """Forward-mode derivatives of the axis simulation with respect to its gain sequences.
 
-:func:`run_tangent` simulates one axis exactly as :func:`oga.simulate.run` does
+:func:`run_tangent` simulates one axis exactly as :func:`oga.model.simulate.run` does
 (the same arithmetic: the same positions and commands to the last bit) and, in
 the same pass, propagates ``D`` tangent directions: for a direction
 ``(dKp_k, dKf_k)`` over the samples, the derivatives of every measured position
 ``p_k`` and velocity command ``u_k`` along it. The full-mode search
-(:mod:`oga.mpc`) needs exactly these (its sensitivities); one pass with the
+(:mod:`oga.search.window`) needs exactly these (its sensitivities); one pass with the
 directions side by side replaces a finite-difference re-simulation per direction.
 
 The derivative follows the branch the nominal simulation takes at each period:
 
-- the lifted linear map over Te (:func:`oga.simulate._lifted`), taken only where
+- the lifted linear map over Te (:func:`oga.model.simulate._lifted`), taken only where
   the friction force is provably constant over the period: its derivative there
   is zero, and the map is linear;
-- the linear friction map over Te (:func:`oga.simulate._linear`, only on a machine that
+- the linear friction map over Te (:func:`oga.model.simulate._linear`, only on a machine that
   sets ``timing.friction_linear_below_m_s``): linear, the friction inside it;
 - otherwise the sub-steps: the velocity PI (its derivative is zero while the force
   command is limited, the integral's while it is frozen by the anti-windup), the
@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.simulate import (
+from oga.model.simulate import (
     _A_B0,
     _A_COEF,
     _A_FC,
@@ -75,9 +75,9 @@ __all__ = ["run_tangent", "friction_slope"]
 def friction_slope(params: np.ndarray, v: float) -> float:
     """Slope of the axis friction at velocity ``v`` (m/s).
 
-    Cascade: ``dF_n/dv`` of :func:`oga.simulate.friction_nonlinear` (N s/m; the
+    Cascade: ``dF_n/dv`` of :func:`oga.model.simulate.friction_nonlinear` (N s/m; the
     viscous part is in the linear mechanics); ARX: the derivative of
-    :func:`oga.simulate.friction_command_m_s` ((m/s)/(m/s)).
+    :func:`oga.model.simulate.friction_command_m_s` ((m/s)/(m/s)).
     """
     if params[_KIND] == _ARX:
         inv_eps = params[_A_INV_EPS]
@@ -88,9 +88,9 @@ def friction_slope(params: np.ndarray, v: float) -> float:
 
 @njit(cache=True)
 def _substeps_tangent(params, p, v, f, i, ud, dp, dv, df, di, dud, nd, fn, slope):
-    """:func:`oga.simulate._substeps` (no load) with the tangents of ``(p, v, F, I)`` of the
+    """:func:`oga.model.simulate._substeps` (no load) with the tangents of ``(p, v, F, I)`` of the
     first ``nd`` directions advanced in place; returns the nominal ``(p, v, F, I)``.
-    ``fn, slope``: :func:`oga.simulate.friction_and_slope` at ``v`` (the first sub-step's,
+    ``fn, slope``: :func:`oga.model.simulate.friction_and_slope` at ``v`` (the first sub-step's,
     already known to the caller)."""
     c = _substep_coefs(params)
     pi = _pi_coefs(params)
@@ -121,7 +121,7 @@ def _lifted_tangent(params, dp, dv, df, di, dud, nd):
 
 @njit(cache=True)
 def _arx_tangent(state, params, dst, du, nd):
-    """The tangent of :func:`oga.simulate._arx_drive` (no load) for the first ``nd``
+    """The tangent of :func:`oga.model.simulate._arx_drive` (no load) for the first ``nd``
     directions, in place: ``dst`` (S, D) holds the state's derivatives, ``du`` (D,) the
     command's. Call it before the nominal drive (it reads the state at the period's start)."""
     nv = int(params[_A_NV])
@@ -148,14 +148,14 @@ def _arx_tangent(state, params, dst, du, nd):
 
 @njit(cache=True)
 def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out_u, sp, su):
-    """:func:`oga.simulate.run` and its derivatives along ``D`` gain directions, in one pass.
+    """:func:`oga.model.simulate.run` and its derivatives along ``D`` gain directions, in one pass.
 
     Parameters
     ----------
     state : ndarray, shape (state size,)
         Axis state at sample 0; on return the state at sample N (as ``run``).
     params : ndarray
-        From :func:`oga.simulate.axis_params`.
+        From :func:`oga.model.simulate.axis_params`.
     pd, vd, kp_si, kf : ndarray, shape (N,)
         Setpoints (m, m/s) and the nominal gains (1/s, factor) per sample.
     dkp_si, dkf : ndarray, shape (N, D)
@@ -212,7 +212,7 @@ def run_tangent(state, params, pd, vd, kp_si, kf, dkp_si, dkf, start, out_p, out
                 ud = _delayed(params, ud, state[_LINE + dead - 2 - k])
                 for d in range(nd):
                     dud[d] = frac * dud[d]
-        if _linear_guard(params, v, f, i, ud, 0.0):  # as :func:`oga.simulate._advance`
+        if _linear_guard(params, v, f, i, ud, 0.0):  # as :func:`oga.model.simulate._advance`
             for d in range(nd):
                 dp[d], dv[d], df[d], di[d] = _linear(params, dp[d], dv[d], df[d], di[d], dud[d],
                                                      0.0)

@@ -1,10 +1,10 @@
 """The comparison report: one self-contained HTML file (``oga compare --report``).
 
-Pure: a :class:`oga.compare.Comparison` in, text out. One figure overlays the
+Pure: a :class:`oga.controllers.compare.Comparison` in, text out. One figure overlays the
 contour error of every controller that ran (one line each, a legend naming them;
 decimated keeping the peaks, :func:`oga.report.decimate`), then the table of the
 figures and each controller's parameters and notes. The SVG drawing is the
-optimisation report's (:mod:`oga.report`).
+optimisation report's (:mod:`oga.report.optimize`).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import html
 
 import numpy as np
 
-from oga.compare import Comparison
+from oga.controllers.compare import Comparison
 from oga.defaults import REPORT_MAX_POINTS
-from oga.report import _CSS, _cell, _flatten, _limits, _Panel, _svg, _table, _versions, decimate
+from oga.report.optimize import _CSS, _cell, _flatten, _limits, _Panel, _svg, _table, _versions, decimate
 
 __all__ = ["COLUMNS", "render_compare_report"]
 
@@ -71,7 +71,7 @@ def render_compare_report(cmp: Comparison, *, title: str | None = None,
     Parameters
     ----------
     cmp : Comparison
-        From :func:`oga.compare.compare`.
+        From :func:`oga.controllers.compare.compare`.
     title : str, optional
         Page title (default: the toolpath's name).
     max_points : int

@@ -19,7 +19,7 @@ Figures (x axis: path length s in mm unless stated):
 6. per contouring axis, the phase and gain margins against Kp with the stable
    range, the criteria and the gains used;
 
-and, for a table of the robust search (:mod:`oga.robust`), its certificate:
+and, for a table of the robust search (:mod:`oga.search.robust`), its certificate:
 
 7. the distribution of the MSE ratio schedule / baseline over the plants of the
    uncertainty set (sorted, with its median, 90th percentile, worst and the bound 1);
@@ -40,8 +40,8 @@ import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import REPORT_MAX_POINTS
-from oga.machine import Machine
-from oga.verify import Verification
+from oga.model.machine import Machine
+from oga.verify.replay import Verification
 
 __all__ = ["CertificateData", "ReportData", "curvature", "decimate", "render_report",
            "replay_report_data", "report_data"]
@@ -61,7 +61,7 @@ class CertificateData:
     Attributes
     ----------
     summary : dict
-        The summary's ``certificate`` (:meth:`oga.robust.certificate.Certificate.summary`).
+        The summary's ``certificate`` (:meth:`oga.verify.certificate.Certificate.summary`).
     ratio : ndarray, shape (P,)
         MSE ratio schedule / baseline per plant.
     schedule, baseline : Verification
@@ -150,8 +150,8 @@ def replay_report_data(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm: 
     figure 8 shows the baseline alone.
     """
     from oga.errors import PlanError
-    from oga.optimize import setpoints_digest
-    from oga.verify import verify
+    from oga.search.result import setpoints_digest
+    from oga.verify.replay import verify
 
     if setpoints_digest(setpoints) != summary["setpoints_sha256"]:
         raise PlanError("report: the toolpath planned again gives other setpoints than the job's")
@@ -162,8 +162,8 @@ def replay_report_data(setpoints: Setpoints, machine: Machine, kp_m_min_per_mm: 
     cert = None
     sc = summary.get("certificate", {})
     if "ratio_per_plant" in sc:
-        from oga.robust.plants import scenario_set
-        from oga.stability import stable_range
+        from oga.search.robust.plants import scenario_set
+        from oga.model.stability import stable_range
 
         scen = scenario_set(machine, n=sc["monte_carlo"], seed=sc["seed"],
                             corners=sc["corners"] > 0)
@@ -580,7 +580,7 @@ def _fig_following(d: ReportData, max_points: int) -> tuple[str, str]:
 
 
 def _fig_stability(d: ReportData) -> tuple[str, str]:
-    from oga.stability import stable_range
+    from oga.model.stability import stable_range
 
     sp = d.setpoints
     moving = [AXES[k] for k in sp.moving_axes]
@@ -616,7 +616,7 @@ def _fig_stability(d: ReportData) -> tuple[str, str]:
 
 
 def _fig_ratio(c: CertificateData) -> tuple[str, str]:
-    from oga.robust.certificate import confidence_text
+    from oga.verify.certificate import confidence_text
 
     sc = c.summary
     ratio = np.sort(c.ratio)

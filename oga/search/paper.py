@@ -44,7 +44,7 @@ with its exact distance to that segment's line: ``|P (p - q)|^2`` with
 distance is a quadratic form in the axes' predicted positions, so it splits
 into per-axis terms and pairwise cross terms: all combinations of two axes cost
 one small matrix product, and three adjusted axes are searched by coordinate
-descent over the axes. The verification (:mod:`oga.verify`) replays the chosen
+descent over the axes. The verification (:mod:`oga.verify.replay`) replays the chosen
 schedule and measures the true point-to-polyline contour error.
 """
 
@@ -53,10 +53,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import nearest_segment
-from oga.kinematics import eq2_excess
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
-from oga.simulate import step, window
+from oga.model.contour import nearest_segment
+from oga.model.kinematics import eq2_excess
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.model.simulate import step, window
 
 __all__ = ["apply_gains", "search_chunk", "MAX_CANDIDATES", "STAT_FALLBACK", "STAT_WINDOWS"]
 
@@ -180,7 +180,7 @@ def _candidates(
 @njit(cache=True)
 def _window_violation(p_now, pred, pd, vd, k, n, kp_si, kf, u1, u2, vmax, amax, jmax, te, u,
                       every, ferror_max):
-    """Eq. 2 excess (:func:`oga.kinematics.eq2_excess`) of a candidate's predicted commands.
+    """Eq. 2 excess (:func:`oga.model.kinematics.eq2_excess`) of a candidate's predicted commands.
 
     The commands of the window's samples ``k .. k+n-1`` are rebuilt into ``u`` from
     the predicted positions (``p_now`` at k, then ``pred[m-1]``) with the candidate
@@ -229,7 +229,7 @@ def search_chunk(
     pdT, vdT : ndarray, shape (3, N)
         Desired positions (m) and velocities (m/s) per axis, contiguous rows.
     params : ndarray, shape (3, P)
-        Packed axis parameters (:func:`oga.simulate.axis_params`).
+        Packed axis parameters (:func:`oga.model.simulate.axis_params`).
     states : ndarray, shape (3, S)
         True axis states at sample k0 (advanced in place).
     kp, kf : ndarray, shape (3,)
@@ -261,7 +261,7 @@ def search_chunk(
     ferror_max : ndarray, shape (3,)
         Following-error limit per axis, m (``inf``: none); a candidate's predicted
         excess over it counts as an eq. 2 excess does (at every sample, as in
-        :mod:`oga.verify`).
+        :mod:`oga.verify.replay`).
     """
     n_total = pd.shape[0]
     ncand = np.ones(3, dtype=np.int64)

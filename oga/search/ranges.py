@@ -2,7 +2,7 @@
 
 For every fixed configuration (Kp, Kf) of a grid, each contouring (moving)
 axis is simulated on the setpoints with the nonlinear cascade
-(:mod:`oga.simulate`), and the configuration is kinematically feasible for that
+(:mod:`oga.model.simulate`), and the configuration is kinematically feasible for that
 axis when its velocity command ``u`` meets paper eq. 2 at every sample::
 
     |u_k| <= Vmax,   |u_k - u_{k-1}| / Te <= Amax,   |u_k - 2 u_{k-1} + u_{k-2}| / Te^2 <= Jmax
@@ -19,7 +19,7 @@ controllers require equal Kv on interpolating axes) that is feasible on all of
 them, with the least MSE of the contour error over the feed samples.
 
 Grids: Kp over each axis's stable range (the grid values of
-:func:`oga.stability.stable_range` inside it, ``kp_step_m_min_per_mm`` apart); Kf
+:func:`oga.model.stability.stable_range` inside it, ``kp_step_m_min_per_mm`` apart); Kf
 over ``machine.gains.kf_range`` in ``kf_step`` steps; values are exact decimals
 (``1.1``, not ``1.1000000000000001``).
 Every axis configuration is simulated once; the equal-gain contour error combines
@@ -42,14 +42,14 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import ce2_at, ce_series, contour_error_of, path_index, plane_axes
+from oga.model.contour import ce2_at, ce_series, contour_error_of, path_index, plane_axes
 from oga.defaults import CE_WINDOW_SAMPLES
 from oga.errors import InputError, OptionError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
-from oga.metrics import ContourMetrics, contour_metrics
-from oga.simulate import axis_params, rest_state, run, run_axes, simulate, simulate_axis
-from oga.kinematics import command_peaks
-from oga.stability import decimal_grid
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.model.metrics import ContourMetrics, contour_metrics
+from oga.model.simulate import axis_params, rest_state, run, run_axes, simulate, simulate_axis
+from oga.model.kinematics import command_peaks
+from oga.model.stability import decimal_grid
 
 __all__ = [
     "KinematicRange",
@@ -157,7 +157,7 @@ class Ranges:
     axes : tuple of str
         Contouring (moving) axes.
     stability : dict of str to StabilityRange
-        Stable Kp range per contouring axis (:func:`oga.stability.stable_range`).
+        Stable Kp range per contouring axis (:func:`oga.model.stability.stable_range`).
     kinematic : dict of str to KinematicRange
         Per contouring axis, over its own stable Kp grid.
     kp_grid : ndarray, shape (P,)
@@ -357,7 +357,7 @@ def kinematic_range(
     """
     machine.axis(axis)
     if kp_grid is None:
-        from oga.stability import stable_range
+        from oga.model.stability import stable_range
 
         kp_grid = _stable_grid(stable_range(machine, axis))
     kp_grid = np.asarray(kp_grid, dtype=np.float64).reshape(-1)
@@ -374,7 +374,7 @@ def _equal_grid(setpoints: Setpoints, machine: Machine):
     Returns ``(axes, stability, grids, common, kf_grid)``; InputError when no axis
     moves, MachineError when the machine lacks a moving axis.
     """
-    from oga.stability import stable_range
+    from oga.model.stability import stable_range
 
     axes = tuple(AXES[c] for c in setpoints.moving_axes)
     if not axes:
@@ -570,7 +570,7 @@ class EqualGainMemo:
         sample of the chunk it was abandoned in (-1: none), the running sum, the axes'
         states and the two commands before that sample.
     index : tuple
-        The path's index (:func:`oga.contour.path_index`, window
+        The path's index (:func:`oga.model.contour.path_index`, window
         :data:`oga.defaults.CE_WINDOW_SAMPLES`), built once per setpoints.
     """
 
@@ -626,7 +626,7 @@ def _checked(pd, p_act, u, te, lim, k0, k1, check, pk) -> bool:
     """Check eq. 2 and the following-error limit over samples ``k0 .. k1 - 1`` of one
     simulated axis.
 
-    :func:`oga.kinematics.command_peaks` checks the new samples with the same arithmetic
+    :func:`oga.model.kinematics.command_peaks` checks the new samples with the same arithmetic
     as :func:`_sweep`, the two commands before ``k0`` taken as history (they were checked
     with the previous samples).
 
@@ -710,17 +710,17 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     of larger sum is simulated only until its running sum passes the least sum (times ``1
     + slack``, to within a chunk), whichever order the grid would be visited in. The
     moving axes are simulated together, ``_CHUNK`` samples at a time (the cascade ones side by side:
-    :func:`oga.simulate.run_axes`, the same bits as :func:`oga.simulate.run` axis by axis),
+    :func:`oga.model.simulate.run_axes`, the same bits as :func:`oga.model.simulate.run` axis by axis),
     and checked axis after axis (:func:`_checked`); a configuration is dropped at its
     first violation of eq. 2 or of the following-error limit (at any sample, rapids
     included). After each chunk the squared contour error of its feed samples is added to
-    a running sum, in time order (:func:`oga.contour.ce2_at`, each sample's search hinted
+    a running sum, in time order (:func:`oga.model.contour.ce2_at`, each sample's search hinted
     with the previous sample's nearest segment).
 
     Pruning: a sum of non-negative terms only grows, so once the running sum exceeds
     the best complete sum (times ``1 + slack``, covering the rounding of both sums and
     the 2 ulp by which each term may differ from the square of
-    :func:`oga.contour.ce_series`) the configuration's MSE is provably larger than that
+    :func:`oga.model.contour.ce_series`) the configuration's MSE is provably larger than that
     of a feasible configuration; it cannot be the least, feasible or not, and is
     abandoned there (checked after every term), its simulation too.
 
@@ -738,7 +738,7 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
     Parameters
     ----------
     params : ndarray, shape (3, P)
-        Row ``c``: packed parameters (:func:`oga.simulate.axis_params`) of the axis of
+        Row ``c``: packed parameters (:func:`oga.model.simulate.axis_params`) of the axis of
         column ``c``, for the moving ones.
     fused : ndarray of int64
         The columns of the moving cascade axes (run side by side; the others one by one).
@@ -759,8 +759,8 @@ def _equal_gain_search(params, fused, cols, pos, vel, feed, te, kp_si, kf, limit
         Vmax (m/s), Amax (m/s^2), Jmax (m/s^3) and the following-error limit (m, inf:
         none) of each moving axis.
     tree, lo, hi
-        The path's index (:func:`oga.contour.path_index` of ``pos``, the contour-error
-        window of :func:`oga.contour.ce_series`).
+        The path's index (:func:`oga.model.contour.path_index` of ``pos``, the contour-error
+        window of :func:`oga.model.contour.ce_series`).
     visit : ndarray of int, shape (M, 2)
         Grid indices ``(i, j)``, in the order that breaks ties of ``lower`` (speed only).
     slack : float

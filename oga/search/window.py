@@ -1,6 +1,6 @@
 """Full mode: the gain trajectory over a moving window, planned by sequential QP, compiled.
 
-The paper's search (:mod:`oga.search`) tries five increments per sample, each
+The paper's search (:mod:`oga.search.paper`) tries five increments per sample, each
 held over the horizon. On jerk-limited setpoints that held-gain prediction
 misleads it: it moves a gain far while an axis is idle (the kinematic bound is
 void there), then cannot bring it back once the axis moves (the bound is tight
@@ -15,7 +15,7 @@ contours), coming to rest one interval before the window's end, and recedes:
    current plan on the exact nonlinear model (the nominal prediction) and, in the
    same pass, the derivatives of its predicted positions and velocity commands with
    respect to every free control point of its gains (forward mode,
-   :func:`oga.tangent.run_tangent`; one pass instead of a re-simulation per point)
+   :func:`oga.model.tangent.run_tangent`; one pass instead of a re-simulation per point)
    (an axis whose setpoint stands still over the whole window and which has settled
    on it, :data:`oga.defaults.MPC_SETTLED_M`, is not adjusted); where an adjusted
    axis's setpoint comes to rest inside the window, the prediction runs ``tail``
@@ -25,10 +25,10 @@ contours), coming to rest one interval before the window's end, and recedes:
    (on a corner of 25 um segments the ratio fell from 0.51 to 0.30 with it);
 2. the predicted contour error of the window's feed samples (those the metric counts:
    not rapids, nothing past the program's end) is linearised around the nominal prediction
-   (distance to the line of the nearest path segment, as in :mod:`oga.search`;
+   (distance to the line of the nearest path segment, as in :mod:`oga.search.paper`;
    that segment, here and in the line search's exact cost, is the one the replay
    measures against: the exact nearest over the sample's contour-error window,
-   :func:`oga.contour.nearest_at`. A local walk from the previous sample's segment,
+   :func:`oga.model.contour.nearest_at`. A local walk from the previous sample's segment,
    as this search once did, is not enough: where the planner stops at a sharp
    corner, the standstill's zero-length segments fill the neighbourhood and a point
    leaving along the next segment was measured against the line of the last one,
@@ -68,10 +68,10 @@ contours), coming to rest one interval before the window's end, and recedes:
 Planning a whole window and committing a part of it costs a few window
 simulations per sample where re-planning every sample cost about fifty, and the
 iterations converge the plan where a single linearised step per sample could not.
-Every figure a user sees still comes from the replay in :mod:`oga.verify`.
+Every figure a user sees still comes from the replay in :mod:`oga.verify.replay`.
 
 Several plants at once (:func:`mpc_multi_chunk`, the robust search's kernel,
-:mod:`oga.robust.multi`): every plant's true state is carried along the one plan; steps 1-2
+:mod:`oga.search.robust.multi`): every plant's true state is carried along the one plan; steps 1-2
 are made on every plant (the weighted Hessians and gradients summed), step 3 has every
 plant's limit rows, step 4 the weighted exact cost and the largest excess over the plants.
 :func:`mpc_chunk` is its one-plant case, with the arithmetic of the one-plant search.
@@ -82,12 +82,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import ce2_at, nearest_at
-from oga.kinematics import eq2_excess
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
-from oga.search import apply_gains
-from oga.simulate import run
-from oga.tangent import run_tangent
+from oga.model.contour import ce2_at, nearest_at
+from oga.model.kinematics import eq2_excess
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.search.paper import apply_gains
+from oga.model.simulate import run
+from oga.model.tangent import run_tangent
 
 __all__ = ["mpc_chunk", "mpc_multi_chunk", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
 
@@ -512,21 +512,21 @@ def mpc_multi_chunk(
     (ValueError otherwise): the plan carried to the next call is shifted by whole
     commits only.
 
-    The arguments shared with :func:`oga.search.search_chunk` mean the same there
+    The arguments shared with :func:`oga.search.paper.search_chunk` mean the same there
     (``pdT``/``vdT`` padded by ``w + tail + 1`` samples past the end); ``kp_base``,
     ``kf_base`` (3,) are the baseline gains the anchor pulls to; ``w`` the window,
     ``kspace`` the samples between points, ``commit`` the samples applied per window
     (a multiple of ``kspace``), ``iters`` the iterations per window at most,
     ``trust_kp``/``trust_kf`` the trust region of one iteration's control-point change
     ((m/min)/mm, 1), ``tree, win_lo, win_hi`` the path's index and every sample's
-    contour-error window (:func:`oga.contour.path_index`).
+    contour-error window (:func:`oga.model.contour.path_index`).
     ``points`` (3, 2, w // kspace) carries the plan between calls: the control points
     ``c_{-1}, c_0, ...`` of :func:`_plan_at` (the first two fixed: with them the
     applied gains and their slope, the rest free); it is shifted by ``commit``
     samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where
     the contour error counts (feed moves; not rapids, not the padding), ``live`` (likewise)
     those where eq. 2 and the following-error limit apply: every sample of the program,
-    rapids included, as in :mod:`oga.verify` (not the padding); ``stop`` is
+    rapids included, as in :mod:`oga.verify.replay` (not the padding); ``stop`` is
     :data:`oga.defaults.MPC_STOP`,
     ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (S, 3) each plant's
     following-error limit per axis (m, ``inf``: none), kept at the window's live samples
@@ -534,7 +534,7 @@ def mpc_multi_chunk(
     is :data:`oga.defaults.MPC_RESTORE`; ``tail`` the samples a window whose adjusted
     axis comes to rest inside it looks further (:data:`oga.defaults.MPC_SETTLE_TAIL`,
     0: none); ``hold_in_rapids``: a window of rapid samples only commits the plan as it
-    is, no step searched (the robust search, :mod:`oga.robust.multi`).
+    is, no step searched (the robust search, :mod:`oga.search.robust.multi`).
     """
     n_s = params.shape[0]
     if (k1 - k0) % commit != 0 and k1 < pd.shape[0]:

@@ -1,6 +1,6 @@
 """The robustness certificate of a gain table: its replay on every plant of an uncertainty set.
 
-On each plant of a :class:`oga.robust.plants.ScenarioSet` the schedule and the fixed
+On each plant of a :class:`oga.search.robust.plants.ScenarioSet` the schedule and the fixed
 baseline are replayed from rest by :func:`oga.verify.verify` (the same replay and the
 same checks as the nominal verification), with the plant's own stable Kp range as the
 stability bound. Per plant: the ratio MSE(CE) schedule / baseline, the largest contour
@@ -32,11 +32,11 @@ from scipy.special import betaincinv
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import OptionError
-from oga.machine import Machine
+from oga.model.machine import Machine
 from oga.parallel import thread_map
-from oga.robust.plants import ScenarioSet, scenario_set
-from oga.stability import stable_ends
-from oga.verify import Verification, verify
+from oga.search.robust.plants import ScenarioSet, scenario_set
+from oga.model.stability import stable_ends
+from oga.verify.replay import Verification, verify
 
 __all__ = ["PlantReplay", "Certificate", "share_bound", "confidence_text", "plant_bounds",
            "certify", "certify_result"]
@@ -219,7 +219,7 @@ def confidence_text(cert: dict) -> str:
 def plant_bounds(scenarios: ScenarioSet, axes, threads: int = 1
                  ) -> tuple[dict[str, tuple[float, float]], ...]:
     """Each plant's stable Kp range per axis of ``axes``, (m/min)/mm: the ends of
-    :func:`oga.stability.stable_range`, by :func:`oga.stability.stable_ends` (compute once
+    :func:`oga.model.stability.stable_range`, by :func:`oga.model.stability.stable_ends` (compute once
     per set: a range costs a margin sweep), the plants on ``threads`` threads."""
     ends = thread_map(lambda plant: {a: tuple(float(k) for k in stable_ends(plant, a))
                                      for a in axes}, scenarios.plants, threads)
@@ -253,7 +253,7 @@ def certify(
     baseline_kp_m_min_per_mm, baseline_kf : ndarray, shape (N, 3)
         The fixed baseline's gains per sample.
     scenarios : ScenarioSet, optional
-        Default :func:`oga.robust.plants.scenario_set` of ``machine`` (its default count,
+        Default :func:`oga.search.robust.plants.scenario_set` of ``machine`` (its default count,
         seed and corners).
     bounds : tuple of dict, optional
         :func:`plant_bounds` of ``scenarios`` over the moving axes (computed when omitted).

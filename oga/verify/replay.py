@@ -22,11 +22,11 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import contour_error_of
-from oga.machine import Machine, machine_memo
-from oga.metrics import ContourMetrics, nan_max, contour_metrics
-from oga.kinematics import command_peaks
-from oga.simulate import simulate
+from oga.model.contour import contour_error_of
+from oga.model.machine import Machine, machine_memo
+from oga.model.metrics import ContourMetrics, nan_max, contour_metrics
+from oga.model.kinematics import command_peaks
+from oga.model.simulate import simulate
 
 __all__ = ["Verification", "command_ratios", "ferror_ratios", "verify"]
 
@@ -37,7 +37,7 @@ _SLACK = 1e-9
 def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.ndarray:
     """Largest ratio of the velocity command's |v|, |a|, |j| to the axis limits (paper eq. 2).
 
-    Checked over every sample, rapids included, as the kinematic range is (:mod:`oga.ranges`).
+    Checked over every sample, rapids included, as the kinematic range is (:mod:`oga.search.ranges`).
 
     Parameters
     ----------
@@ -68,7 +68,7 @@ def command_ratios(u: np.ndarray, setpoints: Setpoints, machine: Machine) -> np.
 
 
 def _limits(machine: Machine) -> np.ndarray:
-    """``[axis, (vmax, amax, jmax)]`` of :meth:`oga.machine.Machine.axis_limits`, shape (3, 3),
+    """``[axis, (vmax, amax, jmax)]`` of :meth:`oga.model.machine.Machine.axis_limits`, shape (3, 3),
     read-only."""
     lim = machine.axis_limits()
     limits = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
@@ -103,7 +103,7 @@ def ferror_ratios(track_max_m, machine: Machine) -> np.ndarray:
     """Largest following error per axis (x, y, z) over the machine's limit (``ferror_max_m``).
 
     ``track_max_m`` (3,), m: the largest following error of each axis over every sample,
-    rapids included (``ContourMetrics.track_max_m``, :func:`oga.metrics.contour_metrics`).
+    rapids included (``ContourMetrics.track_max_m``, :func:`oga.model.metrics.contour_metrics`).
 
     Returns
     -------

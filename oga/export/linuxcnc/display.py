@@ -2,7 +2,7 @@
 """oga's headless LinuxCNC display: runs a program and records HAL pins, no GUI.
 
 This file is a script for LinuxCNC's own Python (its ``linuxcnc`` and ``hal`` modules);
-it imports nothing of oga. ``oga.linuxcnc.session`` copies it next to a configuration and
+it imports nothing of oga. ``oga.export.linuxcnc.session`` copies it next to a configuration and
 names it as the ``[DISPLAY] DISPLAY`` program, so LinuxCNC's start script runs it as any
 display: ``display.py -ini INIFILE``. The job is the JSON file named by ``[OGA] JOB``:
 

@@ -5,7 +5,7 @@ LinuxCNC's position loop is the ``pid`` HAL component; in a velocity-mode loop i
     ``output = Pgain * error + FF1 * commandD``  (machine units per second)
 
 with ``commandD`` the ``command-deriv`` pin when it is connected. oga's law is
-``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (:mod:`oga.simulate`), so per servo period k the
+``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` (:mod:`oga.model.simulate`), so per servo period k the
 stream holds, per axis: the position command (machine units), the setpoint velocity for
 ``command-deriv`` (units/s), ``Pgain = Kp`` in 1/s (``Kp`` in (m/min)/mm times 1000/60: the
 same number in mm and inch machines) and ``FF1 = Kf``. With ``error-previous-target`` TRUE
@@ -33,8 +33,8 @@ import numpy as np
 from feedplan.setpoints import AXES
 from oga.defaults import LINUXCNC
 from oga.errors import InputError, MachineError, OptionError
-from oga.linuxcnc.halfile import printable
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.export.linuxcnc.halfile import printable
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 
 __all__ = [
     "UNIT_M",
@@ -190,7 +190,7 @@ def replay_feedback(table, machine, axes=None) -> dict[str, np.ndarray]:
     InputError
         The table's period is not the machine's Te.
     """
-    from oga.simulate import axis_params, simulate_axis
+    from oga.model.simulate import axis_params, simulate_axis
 
     digest = table.meta.get("machine_sha256")
     if digest and digest != machine.digest():

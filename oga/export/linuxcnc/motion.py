@@ -46,14 +46,14 @@ import numpy as np
 from feedplan.setpoints import AXES
 from oga.defaults import LINUXCNC, LINUXCNC_MOTION
 from oga.errors import InputError, OptionError
-from oga.linuxcnc.export import (STREAM, UNIT_M, LinuxcncExport, _baseline, _column,
+from oga.export.linuxcnc.export import (STREAM, UNIT_M, LinuxcncExport, _baseline, _column,
                                  _period_ns)
-from oga.linuxcnc.halfile import HalCommands, hal_number, printable
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.export.linuxcnc.halfile import HalCommands, hal_number, printable
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 
 __all__ = ["MOTION_TCL", "FEEDER", "motion_export"]
 
-#: File names of a production export (the stream is :data:`oga.linuxcnc.STREAM`).
+#: File names of a production export (the stream is :data:`oga.export.linuxcnc.STREAM`).
 MOTION_TCL, FEEDER = "oga_table.tcl", "oga_feeder.py"
 #: ``ddt`` of a standing command is exactly 0; a moving one's first step is far above this
 #: (units/s).
@@ -198,7 +198,7 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
     OptionError
         Bad joints, tolerances or baseline.
     """
-    from oga.optimize import setpoints_digest
+    from oga.search.result import setpoints_digest
 
     d = LINUXCNC_MOTION
     tols = {"pos_tol_m": d["pos_tol_m"] if pos_tol_m is None else pos_tol_m,
@@ -262,7 +262,7 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
     stream += "\n".join(" ".join(row) for row in body) + "\n"
     tcl = _motion_tcl(about, axes, joints, base, lc.error_previous_target, period_ns, depth,
                       len(names), tols, unit)
-    feeder = resources.files("oga.linuxcnc").joinpath("feeder.py").read_text()
+    feeder = resources.files("oga.export.linuxcnc").joinpath("feeder.py").read_text()
     return LinuxcncExport(files={STREAM: stream, MOTION_TCL: tcl, FEEDER: feeder}, axes=axes,
                           joints=joints, rows=n, units=units,
                           error_previous_target=all(lc.error_previous_target[a] for a in axes),

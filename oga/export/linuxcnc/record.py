@@ -25,9 +25,9 @@ import numpy as np
 from feedplan.setpoints import AXES
 from oga.defaults import LINUXCNC_MOTION, LINUXCNC_RECORD
 from oga.errors import InputError, OptionError
-from oga.linuxcnc.export import UNIT_M
-from oga.linuxcnc.halfile import HalCommands, printable
-from oga.linuxcnc.session import LinuxcncError, run_session
+from oga.export.linuxcnc.export import UNIT_M
+from oga.export.linuxcnc.halfile import HalCommands, printable
+from oga.export.linuxcnc.session import LinuxcncError, run_session
 from oga.recorded.lcnc import HEADER
 
 __all__ = ["Recording", "ini_value", "ini_axes", "record_program", "recorder_tcl"]

@@ -3,7 +3,7 @@
 The session starts ``linuxcnc`` (the start script: ``milltask``, ``io``, ``halui``, the
 realtime ``motmod``, the configuration's HAL files) on a copy of the user's INI file, written
 next to it (its relative paths stay valid) with ``[DISPLAY] DISPLAY`` set to oga's display
-(:mod:`oga.linuxcnc.display`, a script for LinuxCNC's own Python), ``[OGA] JOB`` naming the
+(:mod:`oga.export.linuxcnc.display`, a script for LinuxCNC's own Python), ``[OGA] JOB`` naming the
 job, and oga's HAL files added after the configuration's. Standard input is closed and the
 whole session bounded by a timeout.
 
@@ -170,7 +170,7 @@ def run_session(ini: str | os.PathLike, job: dict, *, halfiles: dict[str, str] |
     ini : path
         The configuration's INI file.
     job : dict
-        The display's job (:mod:`oga.linuxcnc.display`) without ``out``; its ``program`` is
+        The display's job (:mod:`oga.export.linuxcnc.display`) without ``out``; its ``program`` is
         copied into the session (LinuxCNC runs the copy).
     halfiles : dict of str to str, optional
         HAL files (name -> text; ``.hal`` or ``.tcl``) added after the configuration's.
@@ -217,7 +217,7 @@ def run_session(ini: str | os.PathLike, job: dict, *, halfiles: dict[str, str] |
     proc = None
     try:
         display = work / "display.py"
-        source = resources.files("oga.linuxcnc").joinpath("display.py").read_text()
+        source = resources.files("oga.export.linuxcnc").joinpath("display.py").read_text()
         display.write_text(f"#!{python}\n" + source.split("\n", 1)[1])
         display.chmod(0o755)
         hal_paths = []

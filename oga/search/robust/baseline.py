@@ -28,7 +28,7 @@ the nonlinear model on a plant):
    one that breaks a limit on a screened or *critical* plant is refused.
 2. **Refinement**: a trust-region SQP from there. At each point every modelled plant is
    replayed once with the derivatives of its positions and commands along Kp and Kf
-   (:func:`oga.tangent.run_tangent`): each plant's sum of squared contour errors gets its
+   (:func:`oga.model.tangent.run_tangent`): each plant's sum of squared contour errors gets its
    Gauss-Newton model, each limit ratio (eq. 2, following error, at its peak sample) its
    slope; the 2-D QP of the aggregate's model under the linearised limits (kept
    :data:`oga.defaults.ROBUST_BASELINE_MARGIN` clear) and the trust region gives the
@@ -58,16 +58,16 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
-from oga.contour import _point_d2, ce2_at, nearest_at, path_index
+from oga.model.contour import _point_d2, ce2_at, nearest_at, path_index
 from oga.errors import OptionError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.parallel import resolve_threads, thread_map
-from oga.ranges import _checked, _holds
-from oga.robust.plants import ScenarioSet, perturbed_machine
-from oga.simulate import axis_params, rest_state, run, run_axes
-from oga.tangent import run_tangent
-from oga.stability import decimal_grid
-from oga.verify import Verification, verify
+from oga.search.ranges import _checked, _holds
+from oga.search.robust.plants import ScenarioSet, perturbed_machine
+from oga.model.simulate import axis_params, rest_state, run, run_axes
+from oga.model.tangent import run_tangent
+from oga.model.stability import decimal_grid
+from oga.verify.replay import Verification, verify
 
 __all__ = ["BaselineResult", "robust_baseline"]
 
@@ -202,9 +202,9 @@ def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo
     limit chunk by chunk and (``with_ce``) summing the squared contour error of the feed
     samples in time order.
 
-    The simulation is :func:`oga.simulate.run_axes` (the moving cascade axes side by side;
-    others :func:`oga.simulate.run`), the checks :func:`oga.ranges._checked`, the contour
-    error :func:`oga.contour.ce2_at`: the figures of :func:`oga.verify.verify` (its
+    The simulation is :func:`oga.model.simulate.run_axes` (the moving cascade axes side by side;
+    others :func:`oga.model.simulate.run`), the checks :func:`oga.search.ranges._checked`, the contour
+    error :func:`oga.model.contour.ce2_at`: the figures of :func:`oga.verify.verify` (its
     squared contour error to 2 ulp per sample).
 
     Returns
@@ -258,8 +258,8 @@ def _replay(params, fused, cols, pos, vel, feed, te, kp_si, kf, limits, tree, lo
 def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, lo, hi,
                     with_ce, peaks, slopes, model):
     """Replay equal fixed gains on one plant from rest with the derivatives of every position
-    and command along Kp ((m/min)/mm) and Kf (:func:`oga.tangent.run_tangent`: the same
-    positions and commands as :func:`oga.simulate.run`, to the last bit).
+    and command along Kp ((m/min)/mm) and Kf (:func:`oga.model.tangent.run_tangent`: the same
+    positions and commands as :func:`oga.model.simulate.run`, to the last bit).
 
     Parameters
     ----------
@@ -281,7 +281,7 @@ def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, 
         Sum the contour error's model (else ``model`` is zero).
     peaks : ndarray, shape (A, 4)
         Receives per axis the largest ``|u|``, ``|du|/Te``, ``|d2u|/Te^2`` (over every
-        sample, the axis at rest before: :func:`oga.kinematics.command_peaks`' numbers) and
+        sample, the axis at rest before: :func:`oga.model.kinematics.command_peaks`' numbers) and
         ``|pd - p|``.
     slopes : ndarray, shape (A, 4, 2)
         Receives their derivatives along Kp and Kf (at the sample of the peak).
@@ -325,7 +325,7 @@ def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, 
         bi, bt, d2 = nearest_at(pos, tree, lo[k], hi[k], k, x, y, z, near)
         near = bi
         tx, ty, tz = 0.0, 0.0, 0.0
-        if bi < 0:  # standing still over the window (as :func:`oga.contour.ce2_at`)
+        if bi < 0:  # standing still over the window (as :func:`oga.model.contour.ce2_at`)
             d2 = _point_d2(pos, lo[k], x, y, z)
             qx, qy, qz = pos[lo[k], 0], pos[lo[k], 1], pos[lo[k], 2]
         else:
@@ -353,7 +353,7 @@ def _tangent_replay(params, cols, pos_t, vel_t, pos, feed, te, kp_si, kf, tree, 
 
 @njit(cache=True, nogil=True)
 def _peak_slopes(u, su, p, sp, pd, te, peaks, slopes):
-    """The peaks of one axis's command (as :func:`oga.kinematics.command_peaks`, every
+    """The peaks of one axis's command (as :func:`oga.model.kinematics.command_peaks`, every
     sample checked) and following error, and their derivatives at the sample of each peak
     (the first of the largest)."""
     v_pk, da_pk, dj_pk, e_pk = 0.0, 0.0, 0.0, 0.0
@@ -605,10 +605,10 @@ def robust_baseline(
         The nominal machine (its Kp and Kf grids and Kf range; its nominal plant is a
         constraint too).
     plants : ScenarioSet
-        The plants (:func:`oga.robust.plants.scenario_set`).
+        The plants (:func:`oga.search.robust.plants.scenario_set`).
     bounds : tuple of dict, optional
         Each plant's stable Kp range per moving axis
-        (:func:`oga.robust.certificate.plant_bounds`; computed when omitted).
+        (:func:`oga.verify.certificate.plant_bounds`; computed when omitted).
     kp_range : (float, float), optional
         The Kp range stable on every plant and the nominal one, (m/min)/mm (computed from
         ``bounds`` and the nominal plant's when omitted).
@@ -624,7 +624,7 @@ def robust_baseline(
         ``status "none"`` with a message naming the gains tried last, the plants they
         break and a remedy, when none keep every plant's checks.
     """
-    from oga.robust.certificate import plant_bounds
+    from oga.verify.certificate import plant_bounds
 
     threads = resolve_threads(threads)
     moving = tuple(AXES[i] for i in setpoints.moving_axes)

@@ -1,6 +1,6 @@
 """The multi-scenario window search: one gain plan searched on several plants at once.
 
-:func:`multi_search` runs the full-mode window search (:func:`oga.mpc.mpc_multi_chunk`) on
+:func:`multi_search` runs the full-mode window search (:func:`oga.search.window.mpc_multi_chunk`) on
 S plants at once, the nominal one first: every plant's true state is carried along the
 committed gains (the table is open-loop: every plant runs the same gains), each window's
 plan is linearised on every plant around its own prediction, and
@@ -9,7 +9,7 @@ plan is linearised on every plant around its own prediction, and
   each plant's divided by the fixed baseline's MSE on that plant (so the cost is a mean
   of the certificate's ratios, not dominated by the plants of largest error): the nominal
   plant with weight :data:`oga.defaults.ROBUST_NOMINAL_WEIGHT`, the others sharing the
-  rest. The caller (:func:`oga.robust.search.robust_optimize`) puts into the set the
+  rest. The caller (:func:`oga.search.robust.search.robust_optimize`) puts into the set the
   plants where the previous schedule did worst, so the mean over them is a CVaR of the
   set's tail, in a smooth form the sequential QP handles (a max or a true CVaR over the
   plants is non-smooth in the gains: the linearised QP would chase the active plant);
@@ -19,7 +19,7 @@ plan is linearised on every plant around its own prediction, and
   following-error limits times a ``reserve`` (<= 1) that covers the plants outside the
   set; the Kp bounds are the range stable on every plant of the whole scenario set.
 - a window whose samples are all a rapid's commits the plan as it is, no step searched
-  (``hold_in_rapids`` of :func:`oga.mpc.mpc_multi_chunk`): no contour error counts there,
+  (``hold_in_rapids`` of :func:`oga.search.window.mpc_multi_chunk`): no contour error counts there,
   and in a long rapid at a low Kf the following error is 15-25 mm, so a gain change at
   speed moves the command by dKp times that; where the windows searched there, on
   LinuxCNC's plasmatest (baseline Kp 1.6, Kf 0) the second round raised Kp 1.07 -> 1.62
@@ -66,12 +66,12 @@ import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
-from oga.contour import path_index
-from oga.machine import Machine
-from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_multi_chunk
+from oga.model.contour import path_index
+from oga.model.machine import Machine
+from oga.search.window import STAT_FALLBACK, STAT_WINDOWS, mpc_multi_chunk
 from oga.options import OptimizeOptions
-from oga.simulate import axis_params, rest_state
-from oga.verify import Verification
+from oga.model.simulate import axis_params, rest_state
+from oga.verify.replay import Verification
 
 __all__ = ["MultiSearch", "multi_search"]
 
@@ -88,7 +88,7 @@ class MultiSearch:
     kp, kf : ndarray, shape (N, 3)
         The searched schedule, Kp in (m/min)/mm.
     fallbacks, windows : int
-        Kernel counters (:mod:`oga.mpc`).
+        Kernel counters (:mod:`oga.search.window`).
     time_s : float
         Wall time of the search.
     """

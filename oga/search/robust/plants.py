@@ -1,6 +1,6 @@
 """Scenario plants: concrete machines drawn from a machine's uncertainty set.
 
-A machine's cascade axes may carry an :class:`oga.machine.Uncertainty`: per parameter a
+A machine's cascade axes may carry an :class:`oga.model.machine.Uncertainty`: per parameter a
 ``(low, high)`` factor range on its nominal value, and extra dead-time samples. This
 module turns that set into concrete machines (no uncertainty of their own):
 
@@ -31,7 +31,7 @@ Every plant carries the simulation setting :data:`oga.defaults.ROBUST_FRICTION_L
 (``timing.friction_linear_below_m_s``, unless the machine sets its own): the hundreds of
 replays of a robust search then advance the periods where an axis stands still with one
 linear map (the friction taken as its tangent at rest, within the bound of
-:class:`oga.machine.Timing`) instead of the sub-steps.
+:class:`oga.model.machine.Timing`) instead of the sub-steps.
 
 Pure functions: the same machine, count and seed give the same plants.
 """
@@ -45,7 +45,7 @@ import numpy as np
 
 from oga import defaults
 from oga.errors import MachineError
-from oga.machine import FACTOR_FIELDS, Machine, machine_from_dict
+from oga.model.machine import FACTOR_FIELDS, Machine, machine_from_dict
 
 __all__ = [
     "ScenarioSet",
@@ -126,7 +126,7 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
     machine : Machine
         The nominal machine.
     factors : dict
-        ``{axis: {field: factor}}``, fields of :data:`oga.machine.FACTOR_FIELDS`; axes or
+        ``{axis: {field: factor}}``, fields of :data:`oga.model.machine.FACTOR_FIELDS`; axes or
         fields left out stay nominal.
     dead_extra : int
         Samples added to each axis's dead time, within the axis's own
@@ -136,7 +136,7 @@ def perturbed_machine(machine: Machine, factors: dict[str, dict[str, float]],
         Name of the plant (default ``"<machine>-perturbed"``).
     friction_linear_below_m_s : float or None
         The plant's simulation setting ``timing.friction_linear_below_m_s``
-        (:class:`oga.machine.Timing`) where ``machine`` sets none (its own value wins), at
+        (:class:`oga.model.machine.Timing`) where ``machine`` sets none (its own value wins), at
         most :data:`oga.defaults.FRICTION_LINEAR_MAX_SHARE` of every cascade axis's
         ``friction_smoothing_m_s`` and ``stribeck_m_s`` (where the friction is linear); None:
         unset (the exact kernel).

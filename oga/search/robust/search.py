@@ -3,14 +3,14 @@
 1. **Kp range**: the stable range common to every plant of the scenario set and the
    nominal plant (the least ``kp_max``, the largest ``kp_min`` over them and the moving
    axes).
-2. **Baseline** (:func:`oga.robust.baseline.robust_baseline`): the equal fixed gains of least
+2. **Baseline** (:func:`oga.search.robust.baseline.robust_baseline`): the equal fixed gains of least
    geometric-mean MSE(CE) over the set's Monte Carlo plants among those that keep every
    plant's limits and stable range (checked on the plants themselves). Its replays on the
    set are kept: every certificate below reuses them.
 3. **Rounds** (:data:`oga.defaults.ROBUST_ROUNDS` at most; on the set's first
    :data:`oga.defaults.ROBUST_SEARCH_PLANTS` Monte Carlo plants and its corners, the kept
    round's table then certified on the whole set) of the multi-scenario search
-   (:func:`oga.robust.multi.multi_search`): the first on the nominal plant alone, each
+   (:func:`oga.search.robust.multi.multi_search`): the first on the nominal plant alone, each
    next one on the nominal plant and the plants of the set where the previous schedule
    did worst (the set refreshed round by round, :data:`oga.defaults.ROBUST_ACTIVE` plants
    at most, the oldest leaving; a plant whose joining doubled the median ratio leaves for
@@ -18,7 +18,7 @@
    cut after a round whose schedule breaks a limit on a plant where the baseline keeps it
    (by the largest such excess, and a margin doubling per cut; floored on each searched
    plant near the baseline's own peak there). Each schedule is certified on those plants
-   (:func:`oga.robust.certificate.certify`), the first round's on a screen first (the
+   (:func:`oga.verify.certificate.certify`), the first round's on a screen first (the
    corners and typical plants: where it fails there, as the nominal plant's schedule
    does, the whole set's certificate would fail too, :class:`_Round`; the exported
    table's certificate is always the whole set's); the rounds stop at the first that breaks
@@ -35,7 +35,7 @@
    plant where it alone breaks a check) and its nominal replay passes; else the baseline.
 
 Why rounds and not a set refreshed inside a run, why the mean, why a reserve: measured
-in :mod:`oga.robust.multi`'s doc.
+in :mod:`oga.search.robust.multi`'s doc.
 """
 
 from __future__ import annotations
@@ -49,15 +49,15 @@ import numpy as np
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import OptionError
-from oga.machine import Machine
-from oga.optimize import GainSchedule, OptimizeResult
+from oga.model.machine import Machine
+from oga.search.result import GainSchedule, OptimizeResult
 from oga.options import OptimizeOptions, options_from_dict
 from oga.parallel import resolve_threads
-from oga.robust.baseline import BaselineResult, robust_baseline
-from oga.robust.certificate import Certificate, certify, plant_bounds
-from oga.robust.multi import multi_search
-from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
-from oga.verify import verify
+from oga.search.robust.baseline import BaselineResult, robust_baseline
+from oga.verify.certificate import Certificate, certify, plant_bounds
+from oga.search.robust.multi import multi_search
+from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_set
+from oga.verify.replay import verify
 
 __all__ = ["RobustResult", "robust_optimize"]
 
@@ -88,7 +88,7 @@ class RobustResult:
     alpha : (float, float)
         Shares of the searched schedule's departure from the baseline that are kept, Kp and Kf.
     baseline : BaselineResult
-        The robust baseline (:func:`oga.robust.baseline.robust_baseline`).
+        The robust baseline (:func:`oga.search.robust.baseline.robust_baseline`).
     active : tuple of str
         Labels of the plants the kept round searched on besides the nominal one.
     """
@@ -132,7 +132,7 @@ def robust_optimize(
     options : OptimizeOptions or dict, optional
         Full-mode options; ``baseline`` is set by the robust search.
     scenarios : ScenarioSet, optional
-        Default :func:`oga.robust.plants.scenario_set` of ``machine`` with ``options.certify``
+        Default :func:`oga.search.robust.plants.scenario_set` of ``machine`` with ``options.certify``
         Monte Carlo plants.
     progress : callable, optional
         Called with the fraction done (0..1, never falling) after each replay or search step:
@@ -247,7 +247,7 @@ def robust_optimize(
                               cert, base_replays, threads)
     kp, kf = _shrunk(searched_schedule, bkp, bkf, alpha)
     # the result's nominal figures on the machine itself: the exact kernel (the plants, the
-    # nominal one included, take the linear friction map at standstill: oga.robust.plants)
+    # nominal one included, take the linear friction map at standstill: oga.search.robust.plants)
     searched = verify(setpoints, machine, kp, kf, kp_bounds)
     base_exact = verify(setpoints, machine, bkp, bkf, kp_bounds)
     ok = cert.status == "ok" and searched.ok
