@@ -162,7 +162,7 @@ def test_docs_library_example_runs_after_import_oga_alone(tmp_path, job):
 
 
 def test_oga_optimize_stays_the_function_whatever_loads_its_module_first():
-    """``oga.optimize``/``oga.model.simulate`` are functions with submodules of the same name: a
+    """``oga.optimize()``, ``oga.simulate()`` are functions with submodules of the same name: a
     submodule loaded first (by ``oga.run_job`` or ``import oga.pipeline``) must not take
     the function's place."""
     import sys
@@ -170,7 +170,7 @@ def test_oga_optimize_stays_the_function_whatever_loads_its_module_first():
     code = ("import oga\n"
             "oga.run_job\n"
             "import oga.pipeline, oga.optimize, oga.model.simulate\n"
-            "print(oga.optimize.__module__, oga.optimize.__name__, oga.model.simulate.__name__)\n"
+            "print(oga.optimize.__module__, oga.optimize.__name__, oga.simulate.__name__)\n"
             "from oga import optimize\n"
             "print(callable(optimize), sorted(set(dir(oga)) & {'export', 'optimize'}))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

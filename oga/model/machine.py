@@ -60,7 +60,7 @@ __all__ = [
 #: 1 (m/min)/mm expressed in 1/s.
 KP_SI_PER_M_MIN_PER_MM = 1000.0 / 60.0
 
-_PRESET_DIR = FilePath(__file__).with_name("presets")
+_PRESET_DIR = FilePath(__file__).parents[1] / "presets"  # oga/presets
 #: Names of the shipped presets.
 PRESETS: tuple[str, ...] = tuple(sorted(p.stem for p in _PRESET_DIR.glob("*.toml")))
 
