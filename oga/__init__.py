@@ -75,7 +75,7 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return __all__ + list(_SUBMODULES)
+    return sorted(set(__all__) | set(_SUBMODULES))
 
 
 class _Package(types.ModuleType):
