@@ -5,7 +5,7 @@ worker (the fit)."""
 from __future__ import annotations
 
 from api.store import TRACE_PREFIX
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["identify_options", "read_job_trace", "run_identification", "identification_report"]
 

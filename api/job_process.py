@@ -106,7 +106,7 @@ def _run_law(store: Store, job: JobRow, machine, progress) -> str:
 
 def _run_schedule(store: Store, job: JobRow, machine, progress) -> str:
     """An optimisation: the summary and the table, or the verification's violations."""
-    from oga.export import table_npz
+    from oga.export.table import table_npz
     from oga.pipeline import run_job, stored_options
 
     # one thread per job unless its options say otherwise: jobs run side by side
@@ -132,7 +132,7 @@ def _run_schedule(store: Store, job: JobRow, machine, progress) -> str:
 def _run_kind(store: Store, job: JobRow, progress) -> str:
     """Run the job by its kind (identification, control law, schedule) and store its result."""
     from api.law import is_law
-    from oga.machine import machine_from_dict
+    from oga.model.machine import machine_from_dict
 
     machine = machine_from_dict(job.machine)
     if is_identification(job):

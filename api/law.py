@@ -13,7 +13,7 @@ import zipfile
 
 from oga import defaults
 from oga.errors import OptionError
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["LAW_FORMAT", "is_law", "law_job", "check_law", "run_law"]
 
@@ -71,7 +71,7 @@ def run_law(text: str, machine: Machine, options: dict, progress=None) -> tuple[
     """Search and certify the job's law; returns its summary and the zip of its files."""
     from oga.law.export import law_files
     from oga.law.run import law_optimize
-    from oga.robust.plants import scenario_set
+    from oga.search.robust.plants import scenario_set
 
     paths = check_law(text, machine, options)
     tol_m = defaults.TOL_M if options["tolerance"] is None else options["tolerance"] * 1e-3

@@ -39,8 +39,8 @@ from api.schemas import (
 from api.store import FINISHED, STATUSES, TRACE_PREFIX, JobRow, Store, is_identification
 from feedplan.setpoints import AXES
 from oga.errors import MachineError, ToolpathError
-from oga.export import C_NAME, TABLE_FORMATS, render_table, table_from_npz
-from oga.machine import PRESETS, Machine, load_machine, machine_from_dict
+from oga.export.table import C_NAME, TABLE_FORMATS, render_table, table_from_npz
+from oga.model.machine import PRESETS, Machine, load_machine, machine_from_dict
 
 __all__ = ["router"]
 
@@ -190,7 +190,7 @@ def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Respo
     if fmt == "linuxcnc" and row.toolpath_format == "setpoints-halsampler":
         # a table computed on a LinuxCNC recording: the production files (oga export
         # --recording), the recording read again from the job
-        from oga.linuxcnc import baseline_gains, motion_export
+        from oga.export.linuxcnc import baseline_gains, motion_export
         from oga.pipeline import stored_options
         from oga.recorded import read_setpoints
 
@@ -202,7 +202,7 @@ def _table_response(request: Request, row: JobRow, fmt: str, name: str) -> Respo
         data = motion_export(table, *baseline_gains(table, row.summary), rec).zip_bytes()
         suffix, media = ".zip", "application/zip"
     elif fmt == "linuxcnc":  # a zip of the LinuxCNC files (oga export --format linuxcnc)
-        from oga.linuxcnc import export_table
+        from oga.export.linuxcnc import export_table
 
         # no simulated feedback: that is a replay, which no handler runs (oga export
         # --with-feedback on the npz table gives it)
@@ -311,7 +311,7 @@ async def get_report(job_id: str, request: Request) -> Response:
 
 def _report(request: Request, job_id: str) -> Response:
     from oga.pipeline import SETPOINTS_PREFIX, plan_toolpath, read_program, stored_options
-    from oga.report import render_report, replay_report_data
+    from oga.report.optimize import render_report, replay_report_data
 
     store = _store(request)
     row = store.get(job_id, with_toolpath=True)

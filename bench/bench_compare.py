@@ -22,9 +22,9 @@ from pathlib import Path
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 from feedplan.read import load_toolpath  # noqa: E402
-from oga.compare import compare  # noqa: E402
+from oga.controllers.compare import compare  # noqa: E402
 from oga.defaults import TOL_M  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
+from oga.model.machine import load_machine  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"

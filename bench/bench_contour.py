@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from oga.contour import contour_error
+from oga.model.contour import contour_error
 from oga.defaults import CE_WINDOW_SAMPLES
 
 N = 100_000

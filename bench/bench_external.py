@@ -29,8 +29,8 @@ import numpy as np
 from feedplan.plan import plan
 from feedplan.read import SUFFIXES, load_toolpath
 from oga import optimize
-from oga.machine import load_machine
-from oga.ranges import best_fixed_gains
+from oga.model.machine import load_machine
+from oga.search.ranges import best_fixed_gains
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DEFAULT = ROOT.parent / "shared" / "toolpaths" / "external"

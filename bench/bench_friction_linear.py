@@ -9,11 +9,11 @@ taken as its tangent at rest) instead of the sub-steps. Per program (reference_x
 cncjs_toolpath) over the 96 plants of the machine's seeded set, each with the setting and
 without it (the exact kernel), three fixed gain pairs:
 
-- CPU per replay (:func:`oga.simulate.simulate`, all axes; the least of
+- CPU per replay (:func:`oga.model.simulate.simulate`, all axes; the least of
   ``bench_optimize.REPEATS`` sweeps over the plants, one thread, after a warm-up);
 - the largest ``|dp|`` (m) and ``|du|`` (m/s) between the two, and the largest relative
   change of MSE(CE), of the eq. 2 command ratios and of the largest following error;
-- the certificate of the nominal schedule (:func:`oga.robust.certificate.certify_result`) on
+- the certificate of the nominal schedule (:func:`oga.verify.certificate.certify_result`) on
   the plants with and without the setting: median, p90, worst, breaks, and the largest
   relative change of a plant's ratio.
 
@@ -31,13 +31,13 @@ for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from oga.contour import contour_error_of  # noqa: E402
-from oga.metrics import contour_metrics  # noqa: E402
+from oga.model.contour import contour_error_of  # noqa: E402
+from oga.model.metrics import contour_metrics  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
-from oga.robust.certificate import certify_result  # noqa: E402
-from oga.robust.plants import scenario_set  # noqa: E402
-from oga.simulate import simulate  # noqa: E402
-from oga.verify import command_ratios  # noqa: E402
+from oga.verify.certificate import certify_result  # noqa: E402
+from oga.search.robust.plants import scenario_set  # noqa: E402
+from oga.model.simulate import simulate  # noqa: E402
+from oga.verify.replay import command_ratios  # noqa: E402
 
 from bench_optimize import REPEATS  # noqa: E402
 from bench_replay import programs  # noqa: E402  (--machine, --only and the programs)

@@ -29,7 +29,7 @@ from oga.identify.excite import excite_program
 from oga.identify.fit import fit_axis
 from oga.identify.sim import random_cascade, synthetic_trace
 from oga.identify.trace import AxisTrace
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.pipeline import plan_toolpath
 
 

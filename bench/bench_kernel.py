@@ -1,4 +1,4 @@
-"""Speed of the compiled axis kernel (oga.simulate): ``run`` and ``window``, one thread.
+"""Speed of the compiled axis kernel (oga.model.simulate): ``run`` and ``window``, one thread.
 
 Two motions, each axis separately, figures after warm-up (compilation excluded):
 
@@ -34,8 +34,8 @@ from numba import njit
 
 from feedplan import load_toolpath
 from feedplan.plan import plan
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
-from oga.simulate import axis_params, rest_state, run, step, window
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.simulate import axis_params, rest_state, run, step, window
 
 NP = 50
 KP = 3.0 * KP_SI_PER_M_MIN_PER_MM

@@ -8,7 +8,7 @@ Per program (the benchmark programs of bench_robust.py and two real programs of 
 read from ../shared/toolpaths/external, never copied: GPL), on ``ucp710`` and its
 uncertainty set (96 plants: 64 Monte Carlo, seed 17, and 32 corners):
 
-- ``table``: the robust table (:func:`oga.robust.search.robust_optimize`) at 100 % feed, its
+- ``table``: the robust table (:func:`oga.search.robust.search.robust_optimize`) at 100 % feed, its
   certificate's median ratio (a table is indexed by time: it runs at 100 % only);
 - ``law``: the law searched on the program at every override (:func:`oga.law.search.
   search_law`), then certified on the whole set at every override against the program's
@@ -37,9 +37,9 @@ from oga import defaults  # noqa: E402
 from oga.errors import OgaError  # noqa: E402
 from oga.law.override import plan_override  # noqa: E402
 from oga.law.search import Program, search_law  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
-from oga.robust.plants import scenario_set  # noqa: E402
-from oga.robust.search import robust_optimize  # noqa: E402
+from oga.model.machine import load_machine  # noqa: E402
+from oga.search.robust.plants import scenario_set  # noqa: E402
+from oga.search.robust.search import robust_optimize  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The real programs (GPL: read in place): beside the repository, as in /work/main, or in the

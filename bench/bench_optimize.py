@@ -42,9 +42,9 @@ for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
 
 from feedplan.plan import plan  # noqa: E402
 from feedplan.read import load_toolpath  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
+from oga.model.machine import load_machine  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
-from oga.ranges import best_fixed_gains  # noqa: E402
+from oga.search.ranges import best_fixed_gains  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 PAPER = dict(mode="paper", baseline="1.6,0.9", adjust="z", gains="kp", kp_range="1.0,2.7",

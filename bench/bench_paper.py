@@ -8,7 +8,7 @@ tests/data, then one thing changed at a time:
 
 - the horizon Np (100);
 - the candidate fractions (a1 = a2 / 5) of the stability interval, each candidate
-  then held inside the kinematic bound (:mod:`oga.search`);
+  then held inside the kinematic bound (:mod:`oga.search.paper`);
 - the machine's velocity-loop bandwidth (ucp710 assumes 25 Hz: kv = m 2 pi f) and its
   Coulomb/Stribeck friction (off);
 - for reference, full mode with the same freedom (Z's Kp only, no anchor): what the
@@ -36,7 +36,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 from feedplan.plan import plan  # noqa: E402
 from feedplan.read import load_toolpath  # noqa: E402
 from oga import defaults  # noqa: E402
-from oga.machine import load_machine, machine_from_dict  # noqa: E402
+from oga.model.machine import load_machine, machine_from_dict  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"

@@ -5,9 +5,9 @@ Run:  python bench/bench_perturb.py [--only NAME,..] [--fields kv_n_s_m,..] [--a
                                     [--scales 0.999,0.9999,1.0001,1.001] [--threads N]
 
 Per program of ``bench/bench_robust.py`` and per cascade value of a moving axis (every
-field of :data:`oga.machine.FACTOR_FIELDS`), the machine (default ``ucp710``) with that one
+field of :data:`oga.model.machine.FACTOR_FIELDS`), the machine (default ``ucp710``) with that one
 value scaled, its uncertainty set kept (the set's plants scale with it), is searched by the
-robust ``oga optimize`` (:func:`oga.robust.search.robust_optimize`). Per run: the baseline,
+robust ``oga optimize`` (:func:`oga.search.robust.search.robust_optimize`). Per run: the baseline,
 the status, the exported table's certificate median / p90 / worst (1 where the baseline is
 kept), and its MSE(CE) ratio on the machine itself (its "predicted ratio"); per program, the largest departure of each figure from
 the unperturbed machine's, and the runs that left the band (``--band``: the ratios within
@@ -30,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_robust import PROGRAMS, _path  # noqa: E402
 from oga.errors import OgaError  # noqa: E402
-from oga.machine import FACTOR_FIELDS, Machine, load_machine, machine_from_dict  # noqa: E402
+from oga.model.machine import FACTOR_FIELDS, Machine, load_machine, machine_from_dict  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
-from oga.robust.search import robust_optimize  # noqa: E402
+from oga.search.robust.search import robust_optimize  # noqa: E402
 
 #: Relative band of the ratios around the unperturbed machine's, per size of the change.
 BAND = {1e-4: 0.1, 1e-3: 0.2}

@@ -67,7 +67,7 @@ from feedplan.limits import AxisLimits
 from feedplan.path import Line, Path
 from feedplan.plan import plan, program_tolerance_m
 from oga.defaults import TOL_M
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"

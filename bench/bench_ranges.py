@@ -1,6 +1,6 @@
 """Gain-ranges speed: the full Kp x Kf grid on reference_xz (target: under 10 s), and the
 best-fixed-gains stage of ``oga optimize`` before (``gain_ranges(..).best_fixed``) and
-after (:func:`oga.ranges.best_fixed_gains`) per team toolpath, with its real-time factor
+after (:func:`oga.search.ranges.best_fixed_gains`) per team toolpath, with its real-time factor
 (toolpath duration over compute time; the whole optimize targets 20x).
 
 Run: python bench/bench_ranges.py   (prints figures; no assertion)
@@ -14,9 +14,9 @@ from pathlib import Path
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
 from oga.defaults import TOL_M
-from oga.machine import load_machine
-from oga.ranges import best_fixed_gains, gain_ranges, kinematic_range
-from oga.stability import stable_range
+from oga.model.machine import load_machine
+from oga.search.ranges import best_fixed_gains, gain_ranges, kinematic_range
+from oga.model.stability import stable_range
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 TOOLPATH = DATA / "reference_xz.ngc"

@@ -5,9 +5,9 @@ Run:  python bench/bench_replay.py [--machine ucp710] [--only NAME,..]
 Per program (reference_xz and cncjs_toolpath, tests/data) and plant (the nominal machine
 and 4 plants of its seeded uncertainty set: two Monte Carlo draws and two corners, the
 friction low and high), the CPU time (one thread, after a warm-up; the least of
-``bench_optimize.REPEATS`` runs) per sample of :func:`oga.simulate.simulate` (all axes: ns
-per sample, and per moving axis and sample), :func:`oga.contour.contour_error_of`,
-:func:`oga.metrics.contour_metrics`, :func:`oga.verify.command_ratios` and a whole
+``bench_optimize.REPEATS`` runs) per sample of :func:`oga.model.simulate.simulate` (all axes: ns
+per sample, and per moving axis and sample), :func:`oga.model.contour.contour_error_of`,
+:func:`oga.model.metrics.contour_metrics`, :func:`oga.verify.command_ratios` and a whole
 :func:`oga.verify.verify`, with fixed gains of 3 (m/min)/mm and Kf 0.8. The figures of the
 replays are the same to the last bit whatever the kernels' speed
 (tests/test_replay_speed.py). A benchmark prints figures; it asserts nothing.
@@ -25,13 +25,13 @@ for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
 import numpy as np  # noqa: E402
 
 from feedplan.read import load_toolpath  # noqa: E402
-from oga.contour import contour_error_of  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
-from oga.metrics import contour_metrics  # noqa: E402
+from oga.model.contour import contour_error_of  # noqa: E402
+from oga.model.machine import load_machine  # noqa: E402
+from oga.model.metrics import contour_metrics  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
-from oga.robust.plants import scenario_set  # noqa: E402
-from oga.simulate import simulate  # noqa: E402
-from oga.verify import command_ratios, verify  # noqa: E402
+from oga.search.robust.plants import scenario_set  # noqa: E402
+from oga.model.simulate import simulate  # noqa: E402
+from oga.verify.replay import command_ratios, verify  # noqa: E402
 
 from bench_optimize import timed  # noqa: E402  (the least CPU time of a few runs)
 

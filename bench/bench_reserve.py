@@ -8,11 +8,11 @@ The planner plans with shares of the axis acceleration and jerk (``[planner]``
 ``accel_fraction``, ``jerk_fraction``); the rest is left to the position loop, whose velocity
 command ``u = Kp (pd - p) + Kf vd`` must keep paper eq. 2 too (``|u| <= V``, ``|du|/Te <= A``,
 ``|d2u|/Te^2 <= J`` at every sample). Per program (``bench_plan``'s, planned as ``oga plan``
-plans them) this takes the nominal best fixed gains (:func:`oga.ranges.best_fixed_gains`, the
+plans them) this takes the nominal best fixed gains (:func:`oga.search.ranges.best_fixed_gains`, the
 baseline every search starts from) and simulates them on every plant of the machine's robust
-scenario set (:func:`oga.robust.plants.scenario_set`: Monte Carlo draws and corners) and on the
+scenario set (:func:`oga.search.robust.plants.scenario_set`: Monte Carlo draws and corners) and on the
 nominal plant. Per plant and moving axis it takes the command's peaks over every sample
-(:func:`oga.kinematics.command_peaks`) and the setpoints' own peaks (finite differences of the
+(:func:`oga.model.kinematics.command_peaks`) and the setpoints' own peaks (finite differences of the
 positions, as the planner checks them), and prints, over the plants:
 
 - ``eq2 a/j``: the largest command acceleration and jerk over the axis limits (<= 1: eq. 2 holds
@@ -43,10 +43,10 @@ from bench_plan import MACHINE, ROOT, programs  # noqa: E402
 
 from feedplan.gcode import parse_gcode  # noqa: E402
 from feedplan.plan import plan  # noqa: E402
-from oga.kinematics import command_peaks  # noqa: E402
-from oga.ranges import best_fixed_gains  # noqa: E402
-from oga.robust.plants import scenario_set  # noqa: E402
-from oga.simulate import simulate  # noqa: E402
+from oga.model.kinematics import command_peaks  # noqa: E402
+from oga.search.ranges import best_fixed_gains  # noqa: E402
+from oga.search.robust.plants import scenario_set  # noqa: E402
+from oga.model.simulate import simulate  # noqa: E402
 
 #: Program classes (bench_plan's names).
 CLASSES = {

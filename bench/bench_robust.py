@@ -4,7 +4,7 @@ threads.
 Run:  python bench/bench_robust.py [--only NAME,..] [--threads 1,2] [--certify N] [--nominal]
 
 Per program, on the machine (default ``ucp710``, with its documented default uncertainty set),
-the robust ``oga optimize`` (:func:`oga.robust.search.robust_optimize`: the set's stable
+the robust ``oga optimize`` (:func:`oga.search.robust.search.robust_optimize`: the set's stable
 ranges, the robust baseline, the rounds of the multi-scenario search and their certificates,
 the shrink) is run once per thread count, every run from cold memos as a fresh ``oga
 optimize`` process starts (the stable ranges, packed parameters and sub-step matrices
@@ -16,7 +16,7 @@ emptied; numba's compiled kernels are warm). It prints:
   binomial upper bound at 95 % on the share of the set's machines where the table is worse
   than the baseline or breaks a check the baseline keeps);
 - the price: MSE(CE) of the exported table on the nominal machine over that of the nominal
-  best fixed gains (:func:`oga.ranges.best_fixed_gains`);
+  best fixed gains (:func:`oga.search.ranges.best_fixed_gains`);
 - RT = motion time / time taken: ``RT cpu`` over the process's CPU time on one thread, ``par``
   the share of that CPU time spent in the independent replays that run on threads (the
   rest, the multi-plant window search above all, runs on one), ``RT 2*`` the RT on two
@@ -52,14 +52,14 @@ import numpy as np  # noqa: E402
 
 from feedplan.read import load_toolpath, read_toolpath  # noqa: E402
 from oga.errors import OgaError  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
+from oga.model.machine import load_machine  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
-from oga.ranges import best_fixed_gains  # noqa: E402
-from oga.robust.certificate import certify_result  # noqa: E402
-from oga.robust.plants import scenario_set  # noqa: E402
-from oga.robust.search import robust_optimize  # noqa: E402
-from oga.verify import verify  # noqa: E402
+from oga.search.ranges import best_fixed_gains  # noqa: E402
+from oga.verify.certificate import certify_result  # noqa: E402
+from oga.search.robust.plants import scenario_set  # noqa: E402
+from oga.search.robust.search import robust_optimize  # noqa: E402
+from oga.verify.replay import verify  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -89,10 +89,10 @@ def _cold() -> None:
     """Empty the in-process memos (module doc): the stability loops, margin tables and
     ends, the packed axis parameters and plants, the sub-step matrices and the machines'
     digests and limits."""
-    stability = importlib.import_module("oga.stability")
-    simulate = importlib.import_module("oga.simulate")  # the module, not oga's function
-    linear = importlib.import_module("oga.linear")
-    machine = importlib.import_module("oga.machine")
+    stability = importlib.import_module("oga.model.stability")
+    simulate = importlib.import_module("oga.model.simulate")  # the module, not oga's function
+    linear = importlib.import_module("oga.model.linear")
+    machine = importlib.import_module("oga.model.machine")
     plant = importlib.import_module("oga.model.plant")
     for memo in (stability._LOOPS, stability._TABLES, stability._ENDS, simulate._PARAMS,
                  machine._MACHINE_MEMOS, plant._PLANTS):
@@ -104,7 +104,7 @@ def _cold() -> None:
 class _Timed:
     """``thread_map`` of the robust modules, timed: the wall time spent inside it."""
 
-    modules = ("oga.robust.certificate", "oga.robust.baseline")
+    modules = ("oga.verify.certificate", "oga.search.robust.baseline")
 
     def __init__(self):
         self.inside = 0.0

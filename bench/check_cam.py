@@ -27,7 +27,7 @@ from feedplan.path import Arc  # noqa: E402
 from feedplan.plan import program_tolerance_m  # noqa: E402
 from oga.defaults import TOL_M  # noqa: E402
 from oga.errors import GcodeError  # noqa: E402
-from oga.machine import load_machine  # noqa: E402
+from oga.model.machine import load_machine  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
 
 CAM = ROOT / "tests" / "data" / "cam"

@@ -8,7 +8,7 @@ from pathlib import Path
 from feedplan import load_toolpath
 from feedplan.plan import plan
 from oga import load_machine, optimize
-from oga.export import table_csv
+from oga.export.table import table_csv
 
 here = Path(__file__).parent
 machine = load_machine("ucp710")

@@ -7,7 +7,7 @@ import tomllib
 from pathlib import Path
 
 from oga import MachineError, load_machine, stable_range
-from oga.machine import machine_from_dict
+from oga.model.machine import machine_from_dict
 
 preset = Path(__file__).parents[1] / "oga" / "presets" / "ucp710.toml"
 data = tomllib.loads(preset.read_text())

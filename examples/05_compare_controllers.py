@@ -6,9 +6,9 @@ Run:  python examples/05_compare_controllers.py
 from pathlib import Path
 
 from feedplan.read import load_toolpath
-from oga.compare import compare
+from oga.controllers.compare import compare
 from oga.defaults import TOL_M
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.pipeline import plan_toolpath
 
 machine = load_machine("mcv-op")  # the CCC/ZPETC paper's ARX velocity loops

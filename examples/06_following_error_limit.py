@@ -14,7 +14,7 @@ from pathlib import Path
 from feedplan import load_toolpath
 from feedplan.plan import plan
 from oga import optimize
-from oga.machine import machine_from_dict
+from oga.model.machine import machine_from_dict
 
 here = Path(__file__).parent
 data = tomllib.loads((here.parent / "oga" / "presets" / "ucp710.toml").read_text())

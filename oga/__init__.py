@@ -19,16 +19,16 @@ __version__ = "0.1.0"
 
 # name -> module that defines it
 _EXPORTS = {
-    "Machine": "oga.machine",
-    "load_machine": "oga.machine",
+    "Machine": "oga.model.machine",
+    "load_machine": "oga.model.machine",
     "OptimizeOptions": "oga.options",
-    "OptimizeResult": "oga.optimize",
+    "OptimizeResult": "oga.search.result",
     "optimize": "oga.optimize",
     "run_job": "oga.pipeline",
-    "simulate": "oga.simulate",
-    "stable_range": "oga.stability",
-    "gain_ranges": "oga.ranges",
-    "contour_error": "oga.contour",
+    "simulate": "oga.model.simulate",
+    "stable_range": "oga.model.stability",
+    "gain_ranges": "oga.search.ranges",
+    "contour_error": "oga.model.contour",
     "OgaError": "oga.errors",
     "InputError": "oga.errors",
     "GcodeError": "oga.errors",
@@ -41,9 +41,24 @@ _EXPORTS = {
 }
 
 #: Submodules a library user reaches as ``oga.<name>`` without importing them first
-#: (``oga.export.table_csv(result)``); loaded on first use, like the names above.
-_SUBMODULES = ("compare", "defaults", "export", "identify", "machine", "options", "pipeline",
-               "ranges", "report", "verify")
+#: (``oga.export.table_csv(result)``), name -> module; loaded on first use, like the names
+#: above. ``compare``, ``machine`` and ``ranges`` are the names they had before the tree of
+#: issue 31 (``oga.controllers.compare``, ``oga.model.machine``, ``oga.search.ranges``).
+_SUBMODULES = {
+    "compare": "oga.controllers.compare",
+    "controllers": "oga.controllers",
+    "defaults": "oga.defaults",
+    "export": "oga.export",
+    "identify": "oga.identify",
+    "machine": "oga.model.machine",
+    "model": "oga.model",
+    "options": "oga.options",
+    "pipeline": "oga.pipeline",
+    "ranges": "oga.search.ranges",
+    "report": "oga.report",
+    "search": "oga.search",
+    "verify": "oga.verify",
+}
 
 __all__ = sorted(_EXPORTS) + ["identify", "__version__"]
 
@@ -53,12 +68,14 @@ _export = lazy_exports(globals(), _EXPORTS)[0]
 
 def __getattr__(name: str):
     if name in _SUBMODULES:
-        return importlib.import_module(f"oga.{name}")  # the import binds it here
+        module = importlib.import_module(_SUBMODULES[name])
+        globals()[name] = module  # bound here (a subpackage's import binds only its own name)
+        return module
     return _export(name)
 
 
 def __dir__():
-    return __all__ + list(_SUBMODULES)
+    return sorted(set(__all__) | set(_SUBMODULES))
 
 
 class _Package(types.ModuleType):

@@ -314,7 +314,7 @@ MACHINE_FIELD_RANGES = {
     "force_lag_s": (1e-7, 1.0),
     "force_limit_n": (1e-3, 1e15),
     "friction_smoothing_m_s": (1e-9, 1.0),
-    # timing (a simulation setting: oga.machine.Timing)
+    # timing (a simulation setting: oga.model.machine.Timing)
     "friction_linear_below_m_s": (1e-9, 1e-3),
     # arx
     "arx_coefficient": (-1e6, 1e6),
@@ -322,7 +322,7 @@ MACHINE_FIELD_RANGES = {
     "coulomb_m_s": (0.0, 10.0),
     "viscous_ratio": (0.0, 100.0),
     "load_m_s_per_n": (0.0, 1.0),
-    # G-code home positions and work offsets (oga.machine.Home), mm
+    # G-code home positions and work offsets (oga.model.machine.Home), mm
     "position_mm": (-1e6, 1e6),
     # gains
     "kp_m_min_per_mm": (1e-3, 50.0),
@@ -373,7 +373,7 @@ ROBUST_MC_PLANTS_MAX = 5000
 #: Seed of that draw (a certificate is reproducible).
 ROBUST_SEED = 17
 #: Level of the certificate's upper confidence bound on the share of the set's machines where
-#: the table fails (oga.robust.certificate).
+#: the table fails (oga.verify.certificate).
 ROBUST_CONFIDENCE = 0.95
 #: Groups of uncertain parameters whose set corners are added to the Monte Carlo plants, all
 #: axes at the same end of their own ranges (2^groups corners): the parameters that move the
@@ -382,7 +382,7 @@ ROBUST_CORNER_GROUPS = (("coulomb_n", "static_n"), ("mass_kg",), ("kv_n_s_m",), 
                         ("dead_time_extra_samples",))
 #: The scenario plants' simulation setting ``timing.friction_linear_below_m_s`` (m/s): below
 #: it the kernel may take the friction as its tangent at rest over a period
-#: (:class:`oga.machine.Timing`), which covers most periods of an axis standing still.
+#: (:class:`oga.model.machine.Timing`), which covers most periods of an axis standing still.
 ROBUST_FRICTION_LINEAR_BELOW_M_S = 1e-6
 #: ``timing.friction_linear_below_m_s`` at most this share of every cascade axis's
 #: ``friction_smoothing_m_s`` and ``stribeck_m_s``: the tangent at rest is then the friction
@@ -395,7 +395,7 @@ FRICTION_LINEAR_MAX_SHARE = 0.01
 ROBUST_ROUNDS = 5
 ROBUST_RESERVE_MARGIN = 0.02
 #: Robust search: bisection steps of the share of the searched schedule's departure from the
-#: baseline kept where its certificate fails (oga.robust.search._shrink: to 1/128).
+#: baseline kept where its certificate fails (oga.search.robust.search._shrink: to 1/128).
 ROBUST_SHRINK_STEPS = 7
 #: Robust search: the typical Monte Carlo plants the first round's schedule is screened on.
 ROBUST_SUBSET = 8
@@ -406,7 +406,7 @@ ROBUST_SEARCH_PLANTS = 64
 ROBUST_WORST_GOAL = 0.9
 
 # robust search -------------------------------------------------------------------------------
-#: Multi-scenario search (:mod:`oga.robust.multi`): plants searched at once at most (the
+#: Multi-scenario search (:mod:`oga.search.robust.multi`): plants searched at once at most (the
 #: nominal one included; the plants where the schedule did worst join it round by round).
 ROBUST_ACTIVE = 4
 #: Weight of the nominal plant in the window cost (the worst active plants share the rest).
@@ -416,9 +416,9 @@ ROBUST_NOMINAL_WEIGHT = 0.5
 ROBUST_MEDIAN_GOAL = 0.3
 ROBUST_P90_GOAL = 0.5
 #: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
-#: on each searched plant that its limits keep, whatever the reserve (oga.robust.multi).
+#: on each searched plant that its limits keep, whatever the reserve (oga.search.robust.multi).
 ROBUST_BASELINE_FLOOR = 0.85
-#: Robust baseline (:mod:`oga.robust.baseline`): the Monte Carlo plants whose geometric mean
+#: Robust baseline (:mod:`oga.search.robust.baseline`): the Monte Carlo plants whose geometric mean
 #: MSE(CE) it minimises (the first ones of the set), and those of them its grid is screened
 #: on; the refinement's steps at most, the step (in grid steps) below which it stops, and the
 #: share of each limit its models keep clear of; the confirmations on every plant at most.
@@ -445,7 +445,7 @@ BLEND_MIN_SPEED_SHARE = 0.15
 IDENT_PROGRESS_EVERY_S = 0.5
 
 # robust default ------------------------------------------------------------------------------
-#: ``nominal`` option's default: False, the robust search (:mod:`oga.robust`) wherever the
+#: ``nominal`` option's default: False, the robust search (:mod:`oga.search.robust`) wherever the
 #: machine has an uncertainty set (a machine without one is always searched nominally); True
 #: searches the exact model only, as before issue 17.
 NOMINAL = False

@@ -2,11 +2,11 @@
 
 The stages: the allowed gain ranges (stability per axis, and the best fixed
 gains when the baseline is ``"best"``), the receding-horizon search
-(:mod:`oga.search`), then a replay of both the baseline and the schedule from
-scratch (:mod:`oga.verify`). Every figure of the result comes from the replays.
+(:mod:`oga.search.paper`), then a replay of both the baseline and the schedule from
+scratch (:mod:`oga.verify.replay`). Every figure of the result comes from the replays.
 
 Where the machine has an uncertainty set (and the ``nominal`` option is off, the
-default), the search is the robust one (:func:`oga.robust.robust_optimize`): the table is
+default), the search is the robust one (:func:`oga.search.robust.robust_optimize`): the table is
 the robust schedule only if its certificate passes (worst MSE ratio <= 1 over the set's
 plants, no plant where it alone breaks a limit), else the robust baseline's fixed gains,
 exactly as a nominal schedule that fails its replay is refused (``kept_baseline``).
@@ -14,23 +14,19 @@ exactly as a nominal schedule that fails its replay is refused (``kept_baseline`
 
 from __future__ import annotations
 
-import hashlib
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import MachineError, OptionError
-from oga.machine import Machine
+from oga.model.machine import Machine
 from oga.model.plant import plant_of
 from oga.options import OptimizeOptions, options_from_dict
-from oga.verify import Verification, verify
-
-if TYPE_CHECKING:
-    from oga.robust.certificate import Certificate
+from oga.search.result import GainSchedule, OptimizeResult, setpoints_digest
+from oga.verify.replay import verify
 
 __all__ = ["GainSchedule", "OptimizeResult", "optimize", "setpoints_digest"]
 
@@ -42,198 +38,9 @@ _CHUNK = 2000
 _BASELINE_SHARE = 0.5
 
 
-@dataclass(frozen=True, eq=False)
-class GainSchedule:
-    """Gains per sample and axis (columns x, y, z).
-
-    Attributes
-    ----------
-    kp_m_min_per_mm : ndarray, shape (N, 3)
-        Position-loop gain, (m/min)/mm.
-    kf : ndarray, shape (N, 3)
-        Velocity feed-forward factor.
-    """
-
-    kp_m_min_per_mm: np.ndarray
-    kf: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class OptimizeResult:
-    """What :func:`optimize` found, and the replays that judge it.
-
-    Attributes
-    ----------
-    status : {"ok", "failed"}
-        ``"ok"`` when the schedule passed every check of its replay; a failed
-        schedule must never be exported as valid.
-    setpoints : Setpoints
-        The setpoints the schedule belongs to.
-    machine : Machine
-        The machine it was computed for.
-    options : OptimizeOptions
-        The options used.
-    schedule : GainSchedule
-        The gains to export: the searched schedule when it passed verification and
-        beat the baseline, else the baseline's fixed gains (``kept_baseline``).
-    baseline_kp, baseline_kf : dict
-        The fixed gains per machine axis it starts from and is compared with.
-    baseline, optimized : Verification
-        Replays of the fixed baseline and of ``schedule``.
-    searched_schedule : GainSchedule
-        What the search found (equal to ``schedule`` unless ``kept_baseline``).
-    searched : Verification
-        Its replay.
-    kept_baseline : bool
-        True when the searched schedule failed verification or did not lower
-        MSE(CE): then the table holds the fixed baseline gains, never worse gains.
-    adjusted : tuple of str
-        Axes whose gains the search moved.
-    kp_bounds : dict
-        Allowed Kp range per contouring axis, (m/min)/mm.
-    optimize_time_s : float
-        Wall time of the search and its verification, s.
-    fallbacks : int
-        Paper mode: samples where no candidate met eq. 2 and the least violating was
-        taken; full mode: iterations where even the current plan broke eq. 2 over the
-        window (the replay still checks every committed sample).
-    windows : int
-        Prediction windows simulated.
-    certificate : Certificate or None
-        Robust search: the candidate schedule against the fixed baseline on every plant
-        of the machine's uncertainty set (:mod:`oga.robust.certificate`); None when the
-        search was nominal (``nominal`` option, or a machine without a set).
-    refusal : tuple of str
-        Robust search: why its schedule was refused (the certificate's reasons), empty
-        when it was not.
-    """
-
-    status: str
-    setpoints: Setpoints
-    machine: Machine
-    options: OptimizeOptions
-    schedule: GainSchedule
-    baseline_kp: dict[str, float]
-    baseline_kf: dict[str, float]
-    baseline: Verification
-    optimized: Verification
-    searched_schedule: GainSchedule
-    searched: Verification
-    kept_baseline: bool
-    adjusted: tuple[str, ...]
-    kp_bounds: dict[str, tuple[float, float]]
-    optimize_time_s: float
-    fallbacks: int
-    windows: int
-    certificate: Certificate | None = None
-    refusal: tuple[str, ...] = ()
-
-    @property
-    def robust(self) -> bool:
-        """True when the robust search ran (the result carries a certificate)."""
-        return self.certificate is not None
-
-    @property
-    def kept_baseline_reason(self) -> str:
-        """Why the table holds the baseline's fixed gains ("" when it holds the schedule)."""
-        if not self.kept_baseline:
-            return ""
-        if self.refusal:
-            return "robustness certificate failed: " + "; ".join(self.refusal)
-        if not self.searched.ok:
-            return "failed verification: " + "; ".join(self.searched.violations)
-        return f"MSE ratio {self.search_ratio_mse:.3f} >= 1"
-
-    def search_kind(self) -> str:
-        """How the schedule was searched, in words (for the summary and the CLI)."""
-        if self.robust:
-            return "robust"
-        from oga.robust.plants import uncertain_axes
-
-        if uncertain_axes(self.machine):
-            return "nominal (requested: nominal option)"
-        return "nominal (the machine has no uncertainty set)"
-
-    @property
-    def ratio_mse(self) -> float:
-        """MSE(CE) of the exported schedule over MSE(CE) of the baseline."""
-        return self.optimized.metrics.mse_m2 / self.baseline.metrics.mse_m2
-
-    @property
-    def search_ratio_mse(self) -> float:
-        """MSE(CE) of the searched schedule over MSE(CE) of the baseline."""
-        return self.searched.metrics.mse_m2 / self.baseline.metrics.mse_m2
-
-    def summary(self, toolpath: str = "", toolpath_sha256: str | None = None) -> dict:
-        """The summary JSON (users' units), as written by ``oga optimize --summary``."""
-        from oga.identify.coverage import model_coverage
-
-        def metrics(v: Verification) -> dict:
-            m = v.metrics.to_dict()
-            return {k: m[k] for k in ("mse_ce_um2", "rms_ce_um", "max_ce_um", "p95_ce_um",
-                                      "track_max_um")}
-
-        moving = [AXES[i] for i in self.setpoints.moving_axes]
-
-        def command_ratio(v: Verification) -> dict:  # over every sample, rapids included
-            return {a: dict(zip(("v", "a", "j"), v.command_ratio[i].tolist()))
-                    for i, a in enumerate(AXES) if a in moving}
-
-        return {
-            "toolpath": toolpath or self.setpoints.source,
-            "toolpath_sha256": toolpath_sha256,
-            "setpoints_sha256": setpoints_digest(self.setpoints),
-            "machine": self.machine.name,
-            "machine_sha256": self.machine.digest(),
-            "status": self.status,
-            "samples": len(self.setpoints),
-            "duration_s": self.setpoints.duration,
-            "contouring_axes": moving,
-            "adjusted": list(self.adjusted),
-            "gains": list(self.options.gains),
-            "kp_bounds_m_min_per_mm": {a: list(b) for a, b in self.kp_bounds.items()},
-            "baseline": {"kp": self.baseline_kp, "kf": self.baseline_kf,
-                         **metrics(self.baseline), "violations": list(self.baseline.violations),
-                         "command_ratio_to_limits": command_ratio(self.baseline)},
-            "optimized": metrics(self.optimized),
-            "ratio_mse": self.ratio_mse,
-            "kept_baseline": self.kept_baseline,
-            "kept_baseline_reason": self.kept_baseline_reason,
-            "search": {"kind": self.search_kind(), "status": self.searched.status,
-                       "ratio_mse": self.search_ratio_mse,
-                       "violations": list(self.searched.violations)},
-            "certificate": (self.certificate.summary() if self.robust
-                            else {"status": "none", "reasons": [self.search_kind()]}),
-            "model": model_coverage(self.machine, moving),
-            "limits_ok": self.optimized.limits_ok,
-            "stability_ok": self.optimized.stability_ok,
-            "violations": list(self.optimized.violations),
-            "command_ratio_to_limits": command_ratio(self.optimized),
-            "ferror_ratio_to_limit": {
-                a: (float(r) if np.isfinite(r) else None)
-                for a, r in zip(AXES, self.optimized.ferror_ratio) if a in moving
-            },
-            "max_dkp_per_sample": {a: float(self.optimized.max_dkp_per_sample[i])
-                                   for i, a in enumerate(AXES) if a in moving},
-            "max_dkf_per_sample": {a: float(self.optimized.max_dkf_per_sample[i])
-                                   for i, a in enumerate(AXES) if a in moving},
-            "fallback_samples": self.fallbacks,
-            "optimize_time_s": self.optimize_time_s,
-            "options": self.options.as_dict(),
-        }
-
-
-def setpoints_digest(sp: Setpoints) -> str:
-    """SHA-256 of the setpoint positions and period (identifies the motion a table belongs to)."""
-    h = hashlib.sha256()
-    h.update(np.float64(sp.dt).tobytes())
-    h.update(np.ascontiguousarray(sp.pos).tobytes())
-    return h.hexdigest()
-
-
 def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, float]]:
     """Allowed Kp per contouring axis: its stable range, or ``kp_range`` for adjusted axes."""
-    from oga.stability import stable_range
+    from oga.model.stability import stable_range
 
     bounds = {}
     for a in moving:
@@ -258,8 +65,8 @@ def _kp_bounds(machine, options, moving, adjusted) -> dict[str, tuple[float, flo
 
 def _baseline(setpoints, machine, options, moving, progress=None):
     if options.baseline == "best":
-        from oga.ranges import best_fixed_gains
-        from oga.stability import stable_range
+        from oga.search.ranges import best_fixed_gains
+        from oga.model.stability import stable_range
 
         best = best_fixed_gains(setpoints, machine, progress=progress)
         if best is None:
@@ -333,7 +140,7 @@ def optimize(
     moving, adjusted = _axes(setpoints, machine, options)
     kp_bounds = _kp_bounds(machine, options, moving, adjusted)
     if not options.nominal:  # the checks above hold for the robust search too
-        from oga.robust.plants import uncertain_axes
+        from oga.search.robust.plants import uncertain_axes
 
         if uncertain_axes(machine):
             return _robust(setpoints, machine, options, progress, t0)
@@ -421,7 +228,7 @@ def _search(setpoints, plant, options, box, moving, report):
     """Run the chunked search (paper mode or the windowed search) from rest with the
     baseline gains, ``report = (progress, share done before)``; returns the searched
     ``(kp, kf)`` (N, 3), read-only, and ``(fallbacks, windows)``."""
-    from oga.simulate import rest_state
+    from oga.model.simulate import rest_state
 
     n = len(setpoints)
     machine = plant.machine
@@ -453,8 +260,8 @@ def _search(setpoints, plant, options, box, moving, report):
 
 def _paper_advance(setpoints, params, options, box, checks):
     """``(advance(k0, k1, run), chunk, (STAT_FALLBACK, STAT_WINDOWS))`` of the paper mode
-    (:func:`oga.search.search_chunk`)."""
-    from oga.search import STAT_FALLBACK, STAT_WINDOWS, search_chunk
+    (:func:`oga.search.paper.search_chunk`)."""
+    from oga.search.paper import STAT_FALLBACK, STAT_WINDOWS, search_chunk
 
     pd = np.ascontiguousarray(setpoints.pos)
     pdT = np.ascontiguousarray(setpoints.pos.T)
@@ -474,9 +281,9 @@ def _paper_advance(setpoints, params, options, box, checks):
 
 def _window_advance(setpoints, params, options, box, checks):
     """``(advance(k0, k1, run), chunk, (STAT_FALLBACK, STAT_WINDOWS))`` of the full mode's
-    windowed search (:func:`oga.mpc.mpc_chunk`)."""
-    from oga.contour import path_index
-    from oga.mpc import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
+    windowed search (:func:`oga.search.window.mpc_chunk`)."""
+    from oga.model.contour import path_index
+    from oga.search.window import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
 
     n = len(setpoints)
     pd = np.ascontiguousarray(setpoints.pos)
@@ -520,7 +327,7 @@ def _window_advance(setpoints, params, options, box, checks):
 def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:
     """:func:`optimize` by the robust search: its schedule if certified, else its baseline,
     verified on the nominal machine (the same replays and summary as the nominal path)."""
-    from oga.robust.search import robust_optimize
+    from oga.search.robust.search import robust_optimize
 
     for field, given, why in (
             ("mode", options.mode != "full", "the paper's search sees the nominal model only"),

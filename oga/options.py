@@ -30,9 +30,9 @@ class OptimizeOptions(BaseModel):
     mode : {"full", "paper"}
         ``"full"``: the gain trajectory over a window is planned by sequential
         QP on the exact model, partly applied, and planned again as the window
-        recedes (:mod:`oga.mpc`); ``"paper"``: the published method, five candidate
+        recedes (:mod:`oga.search.window`); ``"paper"``: the published method, five candidate
         increments per gain and sample, each held over the horizon
-        (:mod:`oga.search`).
+        (:mod:`oga.search.paper`).
     baseline : "best" or (kp_m_min_per_mm, kf)
         The fixed gains the schedule starts from and is compared with: ``"best"``
         (the best equal fixed gains of the ranges stage) or one explicit pair
@@ -68,12 +68,12 @@ class OptimizeOptions(BaseModel):
     nominal : bool
         True: search the machine's nominal model only (bit-identical to the search before
         the robust one). False (:data:`oga.defaults.NOMINAL`): where the machine has an
-        uncertainty set, the robust search (:mod:`oga.robust`) and its certificate; a
+        uncertainty set, the robust search (:mod:`oga.search.robust`) and its certificate; a
         machine without a set is searched nominally either way.
     certify : int or None
         Robust search: the Monte Carlo plants of the certificate's set (its corners come on
         top); None: :data:`oga.defaults.ROBUST_MC_PLANTS`. More plants tighten the
-        certificate's confidence bound (:mod:`oga.robust.certificate`) and cost time.
+        certificate's confidence bound (:mod:`oga.verify.certificate`) and cost time.
     threads : int or None
         Threads for the independent work of the robust search (the certificate's replays,
         the set's stable ranges, the baseline's candidates); None: the cores this process may

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Callable
 from feedplan.path import Path
 from feedplan.read import read_toolpath
 from feedplan.setpoints import Setpoints
-from oga.machine import Machine
+from oga.model.machine import Machine
 from oga.optimize import OptimizeResult, optimize
 from oga.options import OptimizeOptions
 

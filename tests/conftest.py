@@ -8,7 +8,7 @@ import pytest
 
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 
 DATA = Path(__file__).parent / "data"
 

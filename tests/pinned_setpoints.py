@@ -40,7 +40,7 @@ def pinned_setpoints(name: str) -> Setpoints:
 
 def main() -> None:
     from feedplan.read import load_toolpath
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
     from oga.pipeline import plan_toolpath
 
     m = load_machine("ucp710")

@@ -22,7 +22,7 @@ import numpy as np
 from feedplan.plan import plan
 from feedplan.read import load_toolpath, read_toolpath
 from feedplan.setpoints import Setpoints
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 
 ROOT = FilePath(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"

@@ -113,7 +113,7 @@ def search_arrays(result) -> dict:
 
 
 def _search_case(name: str, mode: str = "full") -> dict:
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
     from oga.optimize import optimize
 
     r = optimize(pinned_setpoints(name), load_machine("ucp710"), {"mode": mode, "nominal": True})
@@ -130,8 +130,8 @@ def verify_gains(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
 
 def verify_plant(i: int):
     """Plant ``i`` of :data:`VERIFY_PLANTS` (the exact kernel: no linear friction setting)."""
-    from oga.machine import load_machine
-    from oga.robust.plants import scenario_set
+    from oga.model.machine import load_machine
+    from oga.search.robust.plants import scenario_set
 
     ucp = load_machine("ucp710")
     plant = ucp if i == 0 else scenario_set(ucp, n=64, seed=17).plants[i - 1]
@@ -140,7 +140,7 @@ def verify_plant(i: int):
 
 
 def _verify_case(i: int) -> dict:
-    from oga.verify import verify
+    from oga.verify.replay import verify
 
     sp = pinned_setpoints("reference_xz.ngc")
     kp, kf = verify_gains(len(sp))
@@ -159,7 +159,7 @@ def _verify_case(i: int) -> dict:
 
 
 def robust_arrays(rob) -> dict:
-    """What the suite keeps of a :class:`oga.robust.search.RobustResult`: its status, the
+    """What the suite keeps of a :class:`oga.search.robust.search.RobustResult`: its status, the
     robust baseline (Kp, Kf), every :data:`SEARCH_STRIDE`-th row of the exported table, the
     kept shares and reserve, the rounds, the certificate's per-plant MSE ratio, and the
     nominal MSE/RMS/max of the table and the baseline (the summary's figures)."""
@@ -177,8 +177,8 @@ def robust_arrays(rob) -> dict:
 
 def robust_case(name: str):
     """The robust search of program ``name`` (pinned setpoints), ucp710, default options."""
-    from oga.machine import load_machine
-    from oga.robust.search import robust_optimize
+    from oga.model.machine import load_machine
+    from oga.search.robust.search import robust_optimize
 
     return robust_optimize(pinned_setpoints(name), load_machine("ucp710"), threads=2)
 

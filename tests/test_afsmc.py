@@ -1,7 +1,7 @@
 """afsmc: adaptive fuzzy sliding-mode control with velocity-scheduled dynamic compensation.
 
 The paper's claims, on ucp710 (circle R50 F3000, reference_xz), against references
-computed here: the uncoupled P + feed-forward of oga.simulate.simulate at the best
+computed here: the uncoupled P + feed-forward of oga.model.simulate.simulate at the best
 fixed gains, tracking and contour errors recomputed from the positions.
 """
 
@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import afsmc
 from oga.controllers.base import baseline_si, path_frame, score
 from oga.defaults import TOL_M
 from oga.errors import OptionError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
-from oga.ranges import gain_ranges
-from oga.simulate import simulate
+from oga.search.ranges import gain_ranges
+from oga.model.simulate import simulate
 
 DATA = Path(__file__).parent / "data"
 MACHINE = load_machine("ucp710")

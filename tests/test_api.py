@@ -19,8 +19,8 @@ from api import Settings, create_app
 from api.schemas import TableFormat
 from api.storage import Owner, SqliteStore, StoreError, open_store
 from api.workers import MAX_ATTEMPTS, WorkerPool, run_claimed
-from oga.export import TABLE_FORMATS, table_csv, table_from_npz, table_columns
-from oga.machine import load_machine, machine_from_dict
+from oga.export.table import TABLE_FORMATS, table_csv, table_from_npz, table_columns
+from oga.model.machine import load_machine, machine_from_dict
 from oga.options import options_from_dict
 from oga.pipeline import run_job
 
@@ -546,7 +546,7 @@ def test_progress_moves_through_planning_the_baseline_and_the_search():
     best fixed gains as in one pass."""
     from feedplan.read import read_toolpath
     from oga.pipeline import PLAN_SHARE, plan_toolpath
-    from oga.ranges import best_fixed_gains
+    from oga.search.ranges import best_fixed_gains
 
     text = (DATA / "reference_xz.ngc").read_text()
     machine, seen = load_machine("ucp710"), []

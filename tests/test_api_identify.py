@@ -18,7 +18,7 @@ from feedplan.read import read_toolpath
 from oga.identify.excite import excite_program
 from oga.identify.sim import synthetic_trace
 from oga.identify.trace import trace_csv
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.pipeline import plan_toolpath
 
 OWNER = Owner(socket.gethostname(), 12345, "t", 12345)

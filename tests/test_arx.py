@@ -15,9 +15,9 @@ from scipy import signal
 from scipy.optimize import brentq
 
 from oga.errors import MachineError
-from oga.linear import lifted_axis, position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
-from oga.simulate import (
+from oga.model.linear import lifted_axis, position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.simulate import (
     axis_arrays,
     axis_params,
     drive,
@@ -28,7 +28,7 @@ from oga.simulate import (
     state_size,
     step,
 )
-from oga.stability import margins, stable_range
+from oga.model.stability import margins, stable_range
 
 MCV = load_machine("mcv-op")
 UCP = load_machine("ucp710")

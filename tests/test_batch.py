@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from oga.export import table_c_header, table_csv, table_json
-from oga.machine import load_machine
+from oga.export.table import table_c_header, table_csv, table_json
+from oga.model.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import run_job
 

@@ -1,6 +1,6 @@
 """Koren's cross-coupled control: the paper's claim on our plant, against independent references.
 
-References: the uncoupled P + FFW loops of :func:`oga.simulate.simulate` (same Kp, Kf),
+References: the uncoupled P + FFW loops of :func:`oga.model.simulate.simulate` (same Kp, Kf),
 exact circle/line geometry for the contour-error estimate, and python-control closed-loop
 poles for the stability of the coupled loop.
 """
@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import ccc
 from oga.controllers.base import score
 from oga.defaults import TOL_M
 from oga.errors import InputError, OptionError
-from oga.linear import position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.linear import position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
-from oga.ranges import gain_ranges
-from oga.simulate import simulate
+from oga.search.ranges import gain_ranges
+from oga.model.simulate import simulate
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

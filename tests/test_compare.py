@@ -13,17 +13,17 @@ import pytest
 
 import oga.cli as cli
 from feedplan.read import load_toolpath
-from oga.compare import compare
+from oga.controllers.compare import compare
 from oga.controllers.base import score
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import CONTROLLERS, load_controller
 from oga.controllers.afsmc import run as afsmc_run
 from oga.defaults import TOL_M
 from oga.errors import OptionError
-from oga.machine import load_machine, machine_from_dict
+from oga.model.machine import load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
-from oga.ranges import gain_ranges
-from oga.simulate import simulate
+from oga.search.ranges import gain_ranges
+from oga.model.simulate import simulate
 
 DATA = Path(__file__).parent / "data"
 MACHINE = load_machine("ucp710")
@@ -174,6 +174,6 @@ def test_a_diverged_run_scores_as_infeasible_and_fails_its_row(setpoints, monkey
         return type(run)(name=run.name, pos=pos, u=run.u, needs_firmware=False)
 
     broken = dataclasses.replace(fixed, run=diverging)
-    monkeypatch.setattr("oga.compare.load_controller", lambda name: broken)
+    monkeypatch.setattr("oga.controllers.compare.load_controller", lambda name: broken)
     (row,) = compare(setpoints, MACHINE, ["fixed"]).rows
     assert row.status == "failed" and "diverged" in row.message

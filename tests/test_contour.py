@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from feedplan.path import PLANES, Arc
-from oga.contour import (
+from oga.model.contour import (
     ce2_at,
     ce_at,
     ce_point,
@@ -21,7 +21,7 @@ from oga.contour import (
     window_bounds,
 )
 from oga.errors import InputError, OptionError
-from oga.metrics import contour_metrics
+from oga.model.metrics import contour_metrics
 
 UM = 1e-6
 

@@ -11,12 +11,12 @@ import pytest
 
 from feedplan.read import load_toolpath
 from oga.errors import MachineError
-from oga.linear import dead_line, position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.linear import dead_line, position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
-from oga.robust.plants import perturbed_machine, scenario_set
-from oga.simulate import axis_params, simulate, simulate_axis
-from oga.stability import margins, stable_range
+from oga.search.robust.plants import perturbed_machine, scenario_set
+from oga.model.simulate import axis_params, simulate, simulate_axis
+from oga.model.stability import margins, stable_range
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")
@@ -80,7 +80,7 @@ def test_a_fractional_dead_time_is_continuous_and_between_its_whole_neighbours(s
 @pytest.mark.parametrize("d", [0.3, 1.0, 1.6, 2.5])
 def test_the_linear_model_holds_the_fractional_dead_time(d):
     """On the linear plant (no Coulomb friction, no force limit) the kernel is the lifted
-    model with the dead-time line of :func:`oga.linear.position_open_loop`, closed by the
+    model with the dead-time line of :func:`oga.model.linear.position_open_loop`, closed by the
     position loop: positions within 1e-9 of the motion."""
     lin = _with({"x": {"dead_time_samples": d,
                        "cascade": {**UCP.axes["x"].cascade.model_dump(), "coulomb_n": 0.0,

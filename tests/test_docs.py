@@ -169,7 +169,7 @@ def test_reference_holds_every_flag_command_route_and_field(site):
     assert not missing, f"REST reference lacks {missing}"
 
     from oga.defaults import MACHINE_FIELD_RANGES
-    from oga.machine import Machine
+    from oga.model.machine import Machine
 
     ref = _module(ROOT / "docs" / "hooks" / "reference.py")
     machine = _text(site / "reference" / "machine-file" / "index.html")
@@ -250,6 +250,6 @@ def test_figure_script_draws_with_names_the_report_code_has():
     tree = ast.parse((ROOT / "docs" / "scripts" / "figures.py").read_text())
     imports = [(n.module, a.name) for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
                and n.module and n.module.split(".")[0] in ("oga", "feedplan") for a in n.names]
-    assert ("oga.report", "_fig_ratio") in imports
+    assert ("oga.report.optimize", "_fig_ratio") in imports
     missing = [f"{m}.{a}" for m, a in imports if not hasattr(importlib.import_module(m), a)]
     assert not missing, f"docs/scripts/figures.py imports names that no longer exist: {missing}"

@@ -3,7 +3,7 @@
 A program with long rapids between two cuts (tests/data/rapids_xy.ngc): its rapids
 run the axes at their speed and acceleration, where the position loop's velocity
 command is hardest to keep within paper eq. 2. The references are independent of
-oga's checks: a fresh simulation of the exported gains (:func:`oga.simulate.simulate`,
+oga's checks: a fresh simulation of the exported gains (:func:`oga.model.simulate.simulate`,
 not :func:`oga.verify.verify`'s replay) and plain numpy differences of its velocity
 command over every sample, the axes at rest before the start.
 """
@@ -19,14 +19,14 @@ import pytest
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
 from oga.errors import MachineError
-from oga.machine import load_machine, machine_from_dict
+from oga.model.machine import load_machine, machine_from_dict
 from oga.optimize import optimize
-from oga.ranges import best_fixed_gains
-from oga.simulate import simulate
-from oga.verify import verify
+from oga.search.ranges import best_fixed_gains
+from oga.model.simulate import simulate
+from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"
-#: float64 rounding of the limit checks (as oga.verify's slack)
+#: float64 rounding of the limit checks (as oga.verify.replay's slack)
 SLACK = 1e-9
 
 
@@ -157,7 +157,7 @@ def test_an_impossible_stability_margin_is_named(ucp, tmp_path, capsys):
 
 
 def test_report_shades_the_rapids_on_the_command_and_following_error_figures(ucp, rapids):
-    from oga.report import render_report
+    from oga.report.optimize import render_report
 
     r = optimize(rapids, ucp, {"nominal": True})
     edges = np.flatnonzero(np.diff(np.r_[0, rapids.rapid.astype(int), 0]))
@@ -173,7 +173,7 @@ def test_report_shades_the_rapids_on_the_command_and_following_error_figures(ucp
 
 
 def test_ranges_name_the_stability_margins_when_no_kp_is_stable(ucp):
-    from oga.ranges import gain_ranges
+    from oga.search.ranges import gain_ranges
 
     data = ucp.model_dump(mode="json")
     data["gains"]["pm_min_deg"] = 89.0

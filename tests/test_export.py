@@ -12,7 +12,7 @@ import pytest
 
 from feedplan.setpoints import AXES
 from oga.errors import OptimizeError, OptionError
-from oga.export import (
+from oga.export.table import (
     TABLE_FORMATS,
     gain_table,
     render_table,
@@ -23,7 +23,7 @@ from oga.export import (
     table_json,
     table_npz,
 )
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import run_job
 
@@ -150,7 +150,7 @@ def test_docs_library_example_runs_after_import_oga_alone(tmp_path, job):
     code += ("import sys\n"
              "print(oga.export.table_csv(result).splitlines()[0])\n"
              "print(result.summary()['ratio_mse'] == result.ratio_mse)\n"
-             "print(sorted(m for m in ('matplotlib', 'plotly', 'fastapi', 'uvicorn', 'oga.report')"
+             "print(sorted(m for m in ('matplotlib', 'plotly', 'fastapi', 'uvicorn', 'oga.report.optimize')"
              " if m in sys.modules))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
                        timeout=600)
@@ -162,14 +162,14 @@ def test_docs_library_example_runs_after_import_oga_alone(tmp_path, job):
 
 
 def test_oga_optimize_stays_the_function_whatever_loads_its_module_first():
-    """``oga.optimize``/``oga.simulate`` are functions with submodules of the same name: a
+    """``oga.optimize()``, ``oga.simulate()`` are functions with submodules of the same name: a
     submodule loaded first (by ``oga.run_job`` or ``import oga.pipeline``) must not take
     the function's place."""
     import sys
 
     code = ("import oga\n"
             "oga.run_job\n"
-            "import oga.pipeline, oga.optimize, oga.simulate\n"
+            "import oga.pipeline, oga.optimize, oga.model.simulate\n"
             "print(oga.optimize.__module__, oga.optimize.__name__, oga.simulate.__name__)\n"
             "from oga import optimize\n"
             "print(callable(optimize), sorted(set(dir(oga)) & {'export', 'optimize'}))\n")

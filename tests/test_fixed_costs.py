@@ -1,17 +1,17 @@
 """The robust search's fixed costs, cut, give the bits of the paths they replace.
 
 - the stable Kp range: the loop's response from the shared table of ``z`` and ``z^-d``
-  against :func:`oga.stability._h_modal_grid`, its gain margin (compiled phase crossovers)
+  against :func:`oga.model.stability._h_modal_grid`, its gain margin (compiled phase crossovers)
   against the Python path (scipy's ``brentq`` on ``Im H``), and the ends of the compiled walk
   (blocks without a sign change skipped, the closed loop's eigenvalues by the real ``geev``
-  away from the unit circle) against the Python walk over :func:`oga.stability._margins`, on
+  away from the unit circle) against the Python walk over :func:`oga.model.stability._margins`, on
   the 96 plants of ucp710's default set, and that stability decision against the complex
   ``geev``'s;
 - the sub-step matrices, memoised and shared by the packed parameters and the stability
   loops, against a fresh ``scipy.linalg.expm`` and the sequence composed here, on the same
   plants and the presets; the packed parameters whichever asks first;
-- the replay's checks: the percentiles of :func:`oga.metrics.contour_metrics` against
-  ``np.percentile``, the rest test of :func:`oga.simulate.simulate` against numpy's, the
+- the replay's checks: the percentiles of :func:`oga.model.metrics.contour_metrics` against
+  ``np.percentile``, the rest test of :func:`oga.model.simulate.simulate` against numpy's, the
   machine's memoised digest and limits against fresh ones.
 """
 
@@ -26,14 +26,14 @@ from numba import njit
 from scipy.linalg import expm
 from scipy.optimize import brentq
 
-import oga.linear as linear
-import oga.machine as machine_mod
-import oga.stability as stability
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, PRESETS, load_machine
-from oga.metrics import _QUANTILES, _percentiles
-from oga.robust.plants import scenario_set
+import oga.model.linear as linear
+import oga.model.machine as machine_mod
+import oga.model.stability as stability
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, PRESETS, load_machine
+from oga.model.metrics import _QUANTILES, _percentiles
+from oga.search.robust.plants import scenario_set
 
-sim = importlib.import_module("oga.simulate")  # the module, not oga's function
+sim = importlib.import_module("oga.model.simulate")  # the module, not oga's function
 
 UCP = load_machine("ucp710")
 PLANTS = scenario_set(UCP).plants  # the default set: 64 Monte Carlo plants, 32 corners
@@ -51,7 +51,7 @@ def _bits(x):
 
 
 def _python_gain_margin(loop):
-    """The gain margin as :class:`oga.stability._Loop` computed it in Python."""
+    """The gain margin as :class:`oga.model.stability._Loop` computed it in Python."""
     w, h = loop.w, loop.h
     turns = np.floor((loop.phase + math.pi) / (2.0 * math.pi))
     crossings = [
@@ -233,7 +233,7 @@ def test_machine_memos_are_fresh_values_and_go_with_the_machine():
 
 
 def test_verify_limit_matrix_is_the_stacked_axis_limits():
-    from oga.verify import _limits
+    from oga.verify.replay import _limits
 
     for machine in MACHINES[:: 5]:
         lim = machine.axis_limits()

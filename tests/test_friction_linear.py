@@ -14,14 +14,14 @@ from scipy.signal import cont2discrete
 
 from feedplan.read import load_toolpath
 from feedplan.setpoints import Setpoints
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.defaults import ROBUST_FRICTION_LINEAR_BELOW_M_S
 from oga.errors import MachineError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
-from oga.metrics import contour_metrics
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.metrics import contour_metrics
 from oga.pipeline import plan_toolpath
-from oga.robust.plants import scenario_set
-from oga.simulate import (
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import (
     _LA,
     _NA,
     _VLIN,
@@ -36,8 +36,8 @@ from oga.simulate import (
     step,
     window,
 )
-from oga.tangent import run_tangent
-from oga.verify import command_ratios
+from oga.model.tangent import run_tangent
+from oga.verify.replay import command_ratios
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

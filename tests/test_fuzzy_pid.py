@@ -1,7 +1,7 @@
 """Fuzzy self-tuning PID: the paper's claim on our plant, against independent references.
 
-References: the P + FFW loops of :func:`oga.simulate.simulate`, and the discrete PID
-closed loop of python-control on :func:`oga.linear.position_open_loop`.
+References: the P + FFW loops of :func:`oga.model.simulate.simulate`, and the discrete PID
+closed loop of python-control on :func:`oga.model.linear.position_open_loop`.
 """
 
 from __future__ import annotations
@@ -14,16 +14,16 @@ import pytest
 
 from feedplan.read import load_toolpath
 from feedplan.setpoints import Setpoints
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import fuzzy_pid
 from oga.controllers.base import score
 from oga.defaults import TOL_M
 from oga.errors import OptionError, TuneError
-from oga.linear import position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.linear import position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
-from oga.ranges import gain_ranges
-from oga.simulate import simulate
+from oga.search.ranges import gain_ranges
+from oga.model.simulate import simulate
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")
@@ -49,7 +49,7 @@ def _step(height_m, n=1500):
 
 @pytest.fixture(scope="module", params=["circle_r50_f3000.ngc", "reference_xz.ngc"])
 def path(request):
-    """A test toolpath and its best fixed gains (oga.ranges)."""
+    """A test toolpath and its best fixed gains (oga.search.ranges)."""
     sp = plan_toolpath(load_toolpath(DATA / request.param), UCP, feed_m_s=None, tol_m=TOL_M)
     return sp, gain_ranges(sp, UCP).best_fixed
 

@@ -24,7 +24,7 @@ from feedplan.path import Path
 from feedplan.plan import move_times_s, program_tolerance_m
 from oga.cli import main
 from oga.defaults import TOL_M
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.optimize import optimize
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath

@@ -326,7 +326,7 @@ def test_reader_and_tool_table_errors_name_what_and_where():
 
 
 def test_machine_file_home_section():
-    from oga.machine import load_machine, machine_from_dict
+    from oga.model.machine import load_machine, machine_from_dict
 
     base = load_machine("ucp710").model_dump(mode="json", exclude_none=True)
     home = {"g28_mm": [1, 2, 3], "work_offsets_mm": {"g55": [10, 20, -30], "g59_3": [1, 1, 1]}}

@@ -47,7 +47,7 @@ WORKER = textwrap.dedent(
     from feedplan.plan import plan
     from feedplan.read import read_toolpath
     from oga.errors import OgaError
-    from oga.machine import load_machine, machine_from_dict
+    from oga.model.machine import load_machine, machine_from_dict
 
     # smaller plans than a service allows (the same checks, at a size the per-case time fits)
     planner = sys.modules["feedplan.plan"]

@@ -22,9 +22,9 @@ from oga.identify.excite import excite_program
 from oga.identify.fit import fit_axis
 from oga.identify.sim import random_cascade, simulate_forces, synthetic_trace
 from oga.identify.trace import AxisTrace, TraceError, read_trace, trace_csv
-from oga.machine import load_machine, machine_from_dict
+from oga.model.machine import load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
-from oga.simulate import axis_params, simulate_axis
+from oga.model.simulate import axis_params, simulate_axis
 
 
 @pytest.fixture(scope="module")

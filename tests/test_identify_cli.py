@@ -12,7 +12,7 @@ from feedplan.read import load_toolpath
 from oga.cli import main
 from oga.identify.sim import synthetic_trace
 from oga.identify.trace import trace_csv
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.pipeline import plan_toolpath
 
 

@@ -22,10 +22,10 @@ from oga.identify.excite import excite_program
 from oga.identify.sim import synthetic_trace
 from oga.identify.trace import read_trace, trace_csv
 from oga.identify.workflow import identify
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.optimize import optimize
 from oga.pipeline import plan_toolpath
-from oga.verify import verify
+from oga.verify.replay import verify
 
 DATA = "tests/data/reference_xz.ngc"
 

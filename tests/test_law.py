@@ -18,7 +18,7 @@ from api.workers import run_claimed
 from feedplan.read import load_toolpath
 from feedplan.setpoints import AXES
 from oga.cli import main
-from oga.contour import contour_error_of, path_index
+from oga.model.contour import contour_error_of, path_index
 from oga.law.export import law_files
 from oga.law.export.heidenhain import heidenhain_text
 from oga.law.export.linuxcnc import law_hal
@@ -27,12 +27,12 @@ from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
 from oga.law.law import AxisLaw, Law, basis, interp, law_gains, quantized
 from oga.law.override import override_path, plan_override
 from oga.law.search import Program, search_law
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.errors import OptionError
-from oga.robust.baseline import robust_baseline
-from oga.robust.plants import scenario_set
-from oga.simulate import simulate
-from oga.verify import verify
+from oga.search.robust.baseline import robust_baseline
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import simulate
+from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"
 MACHINE = load_machine("ucp710")
@@ -187,7 +187,7 @@ def test_search_certifies_a_law_better_than_the_baseline(searched, short):
 
 def test_the_laws_baseline_is_the_robust_searchs(searched, short):
     """The law is judged against the robust baseline itself: the same gains and replays as
-    :func:`oga.robust.baseline.robust_baseline` called directly (its own bounds and Kp range,
+    :func:`oga.search.robust.baseline.robust_baseline` called directly (its own bounds and Kp range,
     on one thread where the law's ran on the default)."""
     res, scen = searched
     law_base = res.baselines["short_xz"]

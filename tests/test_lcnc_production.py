@@ -45,12 +45,12 @@ import pytest
 from feedplan.setpoints import AXES
 from oga.cli import main
 from oga.cli.export import read_table
-from oga.contour import contour_error_of
-from oga.linuxcnc import run_session
-from oga.linuxcnc.session import LinuxcncError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.contour import contour_error_of
+from oga.export.linuxcnc import run_session
+from oga.export.linuxcnc.session import LinuxcncError
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.recorded import read_setpoints
-from oga.simulate import simulate
+from oga.model.simulate import simulate
 from tests.lcnc_sim import write_config
 from tests.test_linuxcnc import _LOCK
 

@@ -26,10 +26,10 @@ from feedplan.read import read_file
 from feedplan.setpoints import AXES
 from oga.cli import main
 from oga.errors import MachineError, OptionError
-from oga.export import gain_table, render_table, table_csv
-from oga.linuxcnc import (BENCH_HAL, STREAM, TABLE_HAL, UNIT_M, export_table, linuxcnc_export,
+from oga.export.table import gain_table, render_table, table_csv
+from oga.export.linuxcnc import (BENCH_HAL, STREAM, TABLE_HAL, UNIT_M, export_table, linuxcnc_export,
                           replay_feedback)
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.options import options_from_dict
 from oga.pipeline import run_job
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from oga.errors import MachineError
-from oga.machine import PRESETS, load_machine, machine_from_dict
+from oga.model.machine import PRESETS, load_machine, machine_from_dict
 
 PRESET = Path(__file__).parents[1] / "oga" / "presets" / "ucp710.toml"
 

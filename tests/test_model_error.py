@@ -25,7 +25,7 @@ from oga.identify.fit import AxisFit, _at_bounds, _bounds, correlation_samples, 
 from oga.identify.sim import synthetic_trace
 from oga.identify.trace import AxisTrace
 from oga.identify.write import identified_machine, machine_toml, uncertainty_of
-from oga.machine import FACTOR_FIELDS, load_machine, machine_from_dict
+from oga.model.machine import FACTOR_FIELDS, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
 
 UCP = load_machine("ucp710")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oga.mpc import _qp_active_set
+from oga.search.window import _qp_active_set
 
 
 def random_qp(seed, nv=12, m=60):
@@ -83,7 +83,7 @@ def test_plan_is_the_quadratic_b_spline_of_its_control_points():
     # c_-1, c_0, c_1, ... sit at uniform knots kspace samples apart, and the last repeats
     from scipy.interpolate import BSpline
 
-    from oga.mpc import _plan_at
+    from oga.search.window import _plan_at
 
     kspace, n_pts = 10, 9
     rng = np.random.default_rng(7)
@@ -101,8 +101,8 @@ def test_plan_is_the_quadratic_b_spline_of_its_control_points():
 def test_window_cost_counts_only_the_metrics_samples():
     # the search's exact window cost is the replay's squared contour error (um^2) summed
     # over the feed samples of the window: rapids and the padding past the end count 0
-    from oga.contour import contour_error, path_index
-    from oga.mpc import _window_cost
+    from oga.model.contour import contour_error, path_index
+    from oga.search.window import _window_cost
 
     rng = np.random.default_rng(3)
     t = np.linspace(0.0, 1.0, 400)

@@ -15,15 +15,15 @@ import pytest
 
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga import defaults
 from oga.errors import OptimizeError, OptionError
-from oga.export import table_csv
-from oga.machine import machine_from_dict
+from oga.export.table import table_csv
+from oga.model.machine import machine_from_dict
 from oga.optimize import optimize
 from oga.options import options_from_dict
-from oga.simulate import simulate
-from oga.verify import command_ratios, verify
+from oga.model.simulate import simulate
+from oga.verify.replay import command_ratios, verify
 from pinned_setpoints import pinned_setpoints
 
 DATA = Path(__file__).parent / "data"
@@ -333,7 +333,7 @@ def test_failed_schedule_is_never_exported(short, machine):
 
 
 def test_eq2_excess_matches_numpy():
-    from oga.kinematics import eq2_excess
+    from oga.model.kinematics import eq2_excess
 
     rng = np.random.default_rng(3)
     te = 1e-3

@@ -18,7 +18,7 @@ import plan_reference as ref
 import references
 from feedplan.read import read_toolpath
 from oga.defaults import TOL_M
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 
 
 @pytest.mark.portable

@@ -1,7 +1,7 @@
 """The plant (``oga/model/plant.py``): a machine packed once, shared by every stage.
 
-Checked against the packing it replaces (:func:`oga.simulate.axis_params`, the machine's
-limits and dead times, :func:`oga.stability.stable_ends`) and by running the same replay
+Checked against the packing it replaces (:func:`oga.model.simulate.axis_params`, the machine's
+limits and dead times, :func:`oga.model.stability.stable_ends`) and by running the same replay
 from a machine and from its plant (the same bits: the same kernels on the same numbers).
 """
 
@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from feedplan.setpoints import AXES
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.model.plant import Plant, PlantBatch, machine_of, plant_of
 from oga.pipeline import plan_toolpath
-from oga.robust.plants import scenario_set
-from oga.simulate import axis_params
-from oga.stability import stable_ends
-from oga.verify import verify
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import axis_params
+from oga.model.stability import stable_ends
+from oga.verify.replay import verify
 from feedplan.read import load_toolpath
 
 from conftest import DATA

@@ -10,12 +10,12 @@ import pytest
 
 from feedplan.path import Arc, Line
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.errors import InputError, OptionError
-from oga.machine import load_machine, machine_from_dict
-from oga.ranges import best_fixed_gains, gain_ranges, kinematic_range
-from oga.stability import decimal_grid, stable_range
-from oga.simulate import simulate
+from oga.model.machine import load_machine, machine_from_dict
+from oga.search.ranges import best_fixed_gains, gain_ranges, kinematic_range
+from oga.model.stability import decimal_grid, stable_range
+from oga.model.simulate import simulate
 
 UCP = load_machine("ucp710")
 
@@ -251,7 +251,7 @@ def test_best_fixed_gains_equals_the_tables_when_the_free_minimum_is_infeasible(
 @pytest.mark.parametrize("machine, name", [(UCP, "short_xz.ngc"), (MCV, "circle_r50_f3000.ngc")])
 def test_best_fixed_gains_is_the_brute_force_minimum(machine, name):
     # every equal-gain pair of the grid (stable Kp on every moving axis x Kf range)
-    # simulated, contour error and eq. 2 evaluated independently of oga.ranges
+    # simulated, contour error and eq. 2 evaluated independently of oga.search.ranges
     sp = _planned(name, machine)
     axes = [AXES[c] for c in sp.moving_axes]
     kp_grid = None

@@ -1,6 +1,6 @@
-"""The equal-gain search with the moving axes run side by side (:func:`oga.simulate.run_axes`
+"""The equal-gain search with the moving axes run side by side (:func:`oga.model.simulate.run_axes`
 per chunk, ARX axes one by one) against the per-axis path of the full tables
-(:func:`oga.ranges.gain_ranges`: each axis alone through :func:`oga.simulate.simulate_axis`):
+(:func:`oga.search.ranges.gain_ranges`: each axis alone through :func:`oga.model.simulate.simulate_axis`):
 the same best gains, MSE and metrics to the last bit, on nominal, perturbed and mixed
 (cascade and ARX) machines; and the peaks and sums the search keeps for each complete
 configuration against a fresh per-axis replay."""
@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 
 from feedplan.setpoints import AXES
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.defaults import TOL_M
-from oga.kinematics import command_peaks
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.kinematics import command_peaks
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
 from feedplan.read import load_toolpath
-from oga.ranges import EqualGainMemo, best_fixed_gains, gain_ranges
-from oga.robust.plants import scenario_set
-from oga.simulate import axis_params, simulate_axis
+from oga.search.ranges import EqualGainMemo, best_fixed_gains, gain_ranges
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import axis_params, simulate_axis
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.pipeline import plan_toolpath
-from oga.ranges import EqualGainMemo, best_fixed_gains
-from oga.machine import Machine, machine_from_dict
+from oga.search.ranges import EqualGainMemo, best_fixed_gains
+from oga.model.machine import Machine, machine_from_dict
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

@@ -9,10 +9,10 @@ table CSV and the summary JSON (and the setpoints CSV of ``oga plan``).
 What is independent of what:
 
 - the machine numbers come from ``oga/presets/ucp710.toml`` parsed with
-  :mod:`tomllib`, not from ``oga.machine``;
+  :mod:`tomllib`, not from ``oga.model.machine``;
 - the simulator (:func:`replay_axis`) is written in plain Python/numpy/scipy from
   the model's description (the comments of ``oga/presets/ucp710.toml`` and the module
-  docstring of ``oga/simulate.py``): its sub-step matrices come from
+  docstring of ``oga/model/simulate.py``): its sub-step matrices come from
   :func:`scipy.linalg.expm` of the continuous equations, one sub-step after the
   other everywhere (no lifted step over Te, no compiled code);
 - the contour error (:func:`contour_error`) is the brute-force least distance to
@@ -345,7 +345,7 @@ def mse(ce: np.ndarray) -> float:
     """Mean square of the contour error over the feed samples, m^2.
 
     Every sample of short_xz is a feed sample (oga counts ``~setpoints.rapid``,
-    oga/verify.py, and the program has no G0: :func:`test_every_sample_is_a_feed_sample`).
+    oga/verify/replay.py, and the program has no G0: :func:`test_every_sample_is_a_feed_sample`).
     """
     return float(np.mean(ce * ce))
 

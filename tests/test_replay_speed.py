@@ -1,10 +1,10 @@
 """The fast replay paths give the very bits of the plain ones (and of oga 7adc0aa).
 
-- :func:`oga.simulate.run_axes` (the axes side by side) against :func:`oga.simulate.run`
+- :func:`oga.model.simulate.run_axes` (the axes side by side) against :func:`oga.model.simulate.run`
   axis by axis, on perturbed plants of the uncertainty set;
-- :func:`oga.contour.contour_error_of` with its kept path index against
-  :func:`oga.contour.ce_series`;
-- :func:`oga.metrics.contour_metrics`'s compiled pass against numpy's reductions (the
+- :func:`oga.model.contour.contour_error_of` with its kept path index against
+  :func:`oga.model.contour.ce_series`;
+- :func:`oga.model.metrics.contour_metrics`'s compiled pass against numpy's reductions (the
   code it replaced, kept below);
 - whole :func:`oga.verify.verify` replays against those of oga at commit 7adc0aa (before these
   paths), on the nominal plant and perturbed ones: pinned first as SHA-256 digests, kept as
@@ -20,14 +20,14 @@ from numba import njit
 
 from feedplan.read import load_toolpath
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import ce_series, contour_error_of, plane_axes
+from oga.model.contour import ce_series, contour_error_of, plane_axes
 from oga.defaults import CE_WINDOW_SAMPLES
 from oga.errors import InputError, OptionError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
-from oga.metrics import contour_metrics
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.metrics import contour_metrics
 from oga.pipeline import plan_toolpath
-from oga.robust.plants import scenario_set
-from oga.simulate import axis_params, rest_state, run, simulate
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import axis_params, rest_state, run, simulate
 import references
 
 DATA = Path(__file__).parent / "data"
@@ -95,7 +95,7 @@ def test_simulate_is_run_axis_by_axis_bit_for_bit(sp, plant):
 
 def test_run_axes_leaves_the_states_run_leaves():
     """The end states (the dead-time lines included), cut into pieces and resumed."""
-    from oga.simulate import run_axes
+    from oga.model.simulate import run_axes
 
     sp = _three_axis_setpoints()
     kp, kf = _gains(len(sp), seed=4)
@@ -187,7 +187,7 @@ def test_verify_is_that_of_7adc0aa(i):
 
 
 def test_largest_gain_steps_are_numpys():
-    from oga.verify import _largest_steps
+    from oga.verify.replay import _largest_steps
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 3, 50):
@@ -211,14 +211,14 @@ def _friction_machines():
     return out
 
 
-_R2 = 26  # oga.simulate._R2_CUT
+_R2 = 26  # oga.model.simulate._R2_CUT
 
 
 @pytest.mark.parametrize("machine", _friction_machines(), ids=lambda m: str(m.digest()[:8]))
 def test_branchless_friction_is_friction_nonlinear_bit_for_bit(machine):
     """The sub-steps' friction against friction_nonlinear (unchanged since 7adc0aa: its
     exponentials only where needed)."""
-    from oga.simulate import _friction_flat, friction_nonlinear
+    from oga.model.simulate import _friction_flat, friction_nonlinear
 
     @njit
     def both(params, vs, out):
@@ -244,7 +244,7 @@ def test_branchless_friction_is_friction_nonlinear_bit_for_bit(machine):
 def test_command_peaks_are_the_largest_quotients_bit_for_bit():
     """command_peaks divides the largest differences once: the largest of numpy's quotients
     (a NaN command passed over, as ``max`` passes over it)."""
-    from oga.kinematics import command_peaks
+    from oga.model.kinematics import command_peaks
 
     rng = np.random.default_rng(11)
     for n, te in ((1, 1e-3), (7, 1e-3), (5000, 1e-3), (5000, 7.3e-4), (300, 0.25)):
@@ -264,7 +264,7 @@ def test_command_peaks_are_the_largest_quotients_bit_for_bit():
 def test_eq2_excess_is_the_largest_excess_bit_for_bit():
     """eq2_excess scales the largest differences once: the largest of numpy's per-sample
     excesses (a NaN command passed over)."""
-    from oga.kinematics import eq2_excess
+    from oga.model.kinematics import eq2_excess
 
     rng = np.random.default_rng(12)
     te = 1e-3

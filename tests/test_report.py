@@ -14,11 +14,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from oga.cli import main
-from oga.kinematics import command_peaks
-from oga.machine import load_machine, machine_from_dict
+from oga.model.kinematics import command_peaks
+from oga.model.machine import load_machine, machine_from_dict
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath, run_job
-from oga.report import _command_derivatives, curvature, decimate, render_report
+from oga.report.optimize import _command_derivatives, curvature, decimate, render_report
 
 DATA = Path(__file__).parent / "data"
 PAPER = {"mode": "paper", "baseline": "1.6,0.9", "adjust": "z", "gains": "kp",
@@ -236,7 +236,7 @@ def test_cli_optimize_writes_the_report(tmp_path):
 
 def test_engine_does_not_import_the_report():
     code = ("import sys, oga.optimize, oga.pipeline, oga.cli; "
-            "assert 'oga.report' not in sys.modules, 'report imported'")
+            "assert 'oga.report.optimize' not in sys.modules, 'report imported'")
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

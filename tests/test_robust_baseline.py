@@ -2,7 +2,7 @@
 checks; the robust search gives the same bits on any number of threads; the certificate's
 confidence bound is the exact binomial one.
 
-Every figure here is recomputed by fresh replays (:func:`oga.robust.certificate.certify`
+Every figure here is recomputed by fresh replays (:func:`oga.verify.certificate.certify`
 with no cached replay, :func:`oga.verify.verify`) or by scipy's binomial distribution, not
 taken from the search that produced it.
 """
@@ -20,15 +20,15 @@ from feedplan.read import load_toolpath
 from feedplan.setpoints import AXES
 from oga.cli.optimize import certificate_lines
 from oga.errors import OptionError
-from oga.machine import load_machine, machine_from_dict
+from oga.model.machine import load_machine, machine_from_dict
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath, run_job
-from oga.report import render_report
-from oga.robust.baseline import robust_baseline
-from oga.robust.certificate import certify, plant_bounds, share_bound
-from oga.robust.plants import scenario_set
-from oga.robust.search import robust_optimize
-from oga.verify import verify
+from oga.report.optimize import render_report
+from oga.search.robust.baseline import robust_baseline
+from oga.verify.certificate import certify, plant_bounds, share_bound
+from oga.search.robust.plants import scenario_set
+from oga.search.robust.search import robust_optimize
+from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"
 
@@ -163,7 +163,7 @@ def test_the_confidence_bound_is_in_the_summary_the_cli_and_the_report():
     assert any(pct in line and "95 % confidence" in line for line in certificate_lines(cert))
     assert pct in render_report(job)
     # a table that failed its certificate is not exported: the line says whose bound it is
-    from oga.robust.certificate import confidence_text
+    from oga.verify.certificate import confidence_text
     ok = {**cert, "status": "ok"}
     assert "confidence the table fails" in confidence_text(ok)
     assert "the searched table (not exported)" in confidence_text({**cert, "status": "failed"})
@@ -174,7 +174,7 @@ def test_the_confidence_bound_is_in_the_summary_the_cli_and_the_report():
 
 
 def test_the_refinement_qp_is_the_least_of_a_dense_grid():
-    from oga.robust.baseline import _qp
+    from oga.search.robust.baseline import _qp
 
     rng = np.random.default_rng(1)
     for _ in range(60):

@@ -1,8 +1,8 @@
 """The robustness certificate against fresh simulations on perturbed machine files.
 
 The plants are rebuilt here from the preset's raw TOML and the certificate's draws,
-written to TOML files and loaded back; each is simulated with ``oga.simulate``, its
-contour error computed with ``oga.contour.contour_error`` and eq. 2 checked with numpy
+written to TOML files and loaded back; each is simulated with ``oga.model.simulate``, its
+contour error computed with ``oga.model.contour.contour_error`` and eq. 2 checked with numpy
 differences, none of it through the certificate's or the verification's code.
 """
 
@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.contour import contour_error
-from oga.machine import PRESETS, load_machine
+from oga.model.contour import contour_error
+from oga.model.machine import PRESETS, load_machine
 from oga.optimize import optimize
 from oga.pipeline import plan_toolpath
-from oga.robust.certificate import certify, certify_result
-from oga.robust.plants import scenario_set
-from oga.simulate import simulate
-from oga.stability import stable_range
+from oga.verify.certificate import certify, certify_result
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import simulate
+from oga.model.stability import stable_range
 
 DATA = Path(__file__).parent / "data"
 PRESET = Path(__import__("oga").__file__).parent / "presets" / "ucp710.toml"
@@ -187,7 +187,7 @@ def test_the_baseline_certifies_itself_and_a_worse_schedule_fails(case):
 
 def test_stable_range_is_found_on_every_plant_of_the_default_set():
     # a corner whose phase reaches -900 deg exactly at Nyquist once broke the crossing search
-    from oga.robust.plants import corner_draws, perturbed_machine
+    from oga.search.robust.plants import corner_draws, perturbed_machine
 
     m = load_machine("ucp710")
     for plant in (perturbed_machine(m, f, d) for f, d in corner_draws(m)[1]):

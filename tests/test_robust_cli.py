@@ -25,9 +25,9 @@ from feedplan.plan import plan
 from feedplan.read import load_toolpath
 from oga.cli import main
 from oga.errors import OptionError
-from oga.machine import load_machine, machine_from_dict
+from oga.model.machine import load_machine, machine_from_dict
 from oga.optimize import GainSchedule, optimize
-from oga.robust.plants import scenario_set
+from oga.search.robust.plants import scenario_set
 import references
 from pinned_setpoints import pinned_setpoints
 from test_robust_certificate import PRESET, assert_same_certificate, fresh_certificate
@@ -125,7 +125,7 @@ def test_robust_default_prints_and_writes_a_certificate_fresh_simulations_confir
     fig8 = html.split('<figure id="fig8">')[1].split("</figure>")[0]
     assert c["worst_plant"] in fig8 and fig8.count("<path") >= 2
     # the service rebuilds the report of a stored job from its table and summary alone
-    from oga.report import render_report, replay_report_data
+    from oga.report.optimize import render_report, replay_report_data
 
     rebuilt = render_report(replay_report_data(sp, m, kp, kf, s))
     for n in (7, 8):
@@ -137,11 +137,11 @@ def test_a_table_the_certificate_refuses_is_not_exported_the_baseline_is(tmp_pat
                                                                          monkeypatch):
     """The search proposes a schedule the certificate must refuse (the robust schedule
     without its feed-forward: worse than the baseline on every plant, as the real
-    :func:`oga.robust.certificate.certify` finds on the whole set): the table holds the
+    :func:`oga.verify.certificate.certify` finds on the whole set): the table holds the
     baseline, the summary and the output say why, exit 0 as for any kept baseline. (A wider
     set does not force a refusal: a search may always fall back to the baseline.)"""
-    import oga.robust.search as rs
-    from oga.robust.certificate import certify
+    import oga.search.robust.search as rs
+    from oga.verify.certificate import certify
 
     real = rs.robust_optimize
 
@@ -173,7 +173,7 @@ def test_a_table_the_certificate_refuses_is_not_exported_the_baseline_is(tmp_pat
     np.testing.assert_array_equal(kf, bkf)
     assert s["ratio_mse"] == 1.0
     # nor does the controller export: oga export of the table streams the baseline's gains
-    from oga.linuxcnc import STREAM
+    from oga.export.linuxcnc import STREAM
 
     assert main(["export", str(out), "--summary", str(summ), "--out", str(tmp_path / "lc")]) == 0
     rows = np.array([[float(v) for v in ln.split()] for ln in

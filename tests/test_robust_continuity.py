@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 import references
-from oga.robust.search import robust_optimize
+from oga.search.robust.search import robust_optimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from bench_perturb import figures, scaled  # noqa: E402
@@ -38,7 +38,7 @@ def unperturbed():
 
 @pytest.fixture(scope="module")
 def reference(unperturbed):
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
     from pinned_setpoints import pinned_setpoints
 
     return load_machine("ucp710"), pinned_setpoints(NAME), figures(unperturbed)

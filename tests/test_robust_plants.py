@@ -7,8 +7,8 @@ import pytest
 
 from oga.defaults import ROBUST_FRICTION_LINEAR_BELOW_M_S
 from oga.errors import MachineError
-from oga.machine import FACTOR_FIELDS, PRESETS, load_machine, machine_from_dict
-from oga.robust.plants import (
+from oga.model.machine import FACTOR_FIELDS, PRESETS, load_machine, machine_from_dict
+from oga.search.robust.plants import (
     corner_draws,
     monte_carlo_draws,
     perturbed_machine,

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath, read_toolpath
-from oga.machine import load_machine
+from oga.model.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
-from oga.robust.certificate import certify, plant_bounds
-from oga.robust.multi import multi_search
-from oga.robust.plants import perturbed_machine, scenario_set
-from oga.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
-from oga.stability import stable_range
-from oga.verify import verify
+from oga.verify.certificate import certify, plant_bounds
+from oga.search.robust.multi import multi_search
+from oga.search.robust.plants import perturbed_machine, scenario_set
+from oga.search.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
+from oga.model.stability import stable_range
+from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"
 

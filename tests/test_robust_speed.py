@@ -1,14 +1,14 @@
 """The robust search's faster paths give the numbers of the slower ones they replace.
 
-- the stable Kp range: the loop's response in modal form (``oga.stability._modal``) against
+- the stable Kp range: the loop's response in modal form (``oga.model.stability._modal``) against
   the batched solve of ``C (zI - A)^-1 B``, and the ends walked lazily
-  (:func:`oga.stability.stable_ends`) against the whole margin table of the previous
-  :func:`oga.stability.stable_range` (solve path, fresh memo), over the plants of ucp710's
+  (:func:`oga.model.stability.stable_ends`) against the whole margin table of the previous
+  :func:`oga.model.stability.stable_range` (solve path, fresh memo), over the plants of ucp710's
   default uncertainty set; the loop's shared frequency grid and compiled phase unwrap
   against numpy's, bit for bit;
-- :func:`oga.simulate.simulate` skipping an axis whose setpoint never moves, against the
+- :func:`oga.model.simulate.simulate` skipping an axis whose setpoint never moves, against the
   kernel's own replay of that axis, bit for bit;
-- the largest following error per axis in one compiled pass (:func:`oga.metrics.track_max`)
+- the largest following error per axis in one compiled pass (:func:`oga.model.metrics.track_max`)
   against numpy's.
 """
 
@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import oga.stability as stability
+import oga.model.stability as stability
 from feedplan.read import load_toolpath
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
-from oga.metrics import track_max
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.metrics import track_max
 from oga.pipeline import plan_toolpath
-from oga.robust.plants import scenario_set
-from oga.simulate import axis_params, simulate, simulate_axis
+from oga.search.robust.plants import scenario_set
+from oga.model.simulate import axis_params, simulate, simulate_axis
 
 DATA = Path(__file__).parent / "data"
 ROBUST = load_machine("ucp710")
@@ -109,7 +109,7 @@ def test_still_axis_skipped_gives_the_kernels_bits(program, still):
 
 
 def test_loop_grid_and_unwrapped_phase_are_numpys():
-    """The shared frequency grid and the compiled unwrap (:class:`oga.stability._Loop`) against
+    """The shared frequency grid and the compiled unwrap (:class:`oga.model.stability._Loop`) against
     numpy's geomspace and unwrap, bit for bit: on the loops of the set's plants, and on
     phases with jumps of every size, exactly +-pi among them."""
     for plant in PLANTS[::5]:
@@ -130,7 +130,7 @@ def test_loop_grid_and_unwrapped_phase_are_numpys():
 
 
 def test_track_max_is_numpys_column_max_of_the_abs_error():
-    """The compiled largest following error (:func:`oga.metrics.track_max`) against numpy's,
+    """The compiled largest following error (:func:`oga.model.metrics.track_max`) against numpy's,
     bit for bit, NaN included, on replays of the set's plants and on a column with a NaN."""
     sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), ROBUST, feed_m_s=None, tol_m=2e-5)
     n = len(sp)

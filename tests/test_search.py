@@ -1,4 +1,4 @@
-"""Paper mode's search internals (oga.search): candidates, bounds, eq. 2 checks, choice;
+"""Paper mode's search internals (oga.search.paper): candidates, bounds, eq. 2 checks, choice;
 and on the paper's contour, its MSE reduction and how Z's gain answers the curvature.
 
 References are independent of the code under test: interval membership by the
@@ -20,11 +20,11 @@ from hypothesis import strategies as st
 from feedplan.plan import plan
 from feedplan.read import load_toolpath
 from oga import defaults
-from oga.contour import ce_point
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.model.contour import ce_point
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.optimize import optimize
-from oga.search import _candidates, _fractions, _interval, _window_violation, apply_gains
-from oga.simulate import axis_params, rest_state, step, window
+from oga.search.paper import _candidates, _fractions, _interval, _window_violation, apply_gains
+from oga.model.simulate import axis_params, rest_state, step, window
 
 DATA = Path(__file__).parent / "data"
 C = KP_SI_PER_M_MIN_PER_MM

@@ -22,9 +22,9 @@ import pytest
 from feedplan.read import read_file
 from feedplan.setpoints import AXES
 from oga.cli import main
-from oga.export import gain_table, table_csv
-from oga.linuxcnc import FEEDER, MOTION_TCL, STREAM, UNIT_M
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.export.table import gain_table, table_csv
+from oga.export.linuxcnc import FEEDER, MOTION_TCL, STREAM, UNIT_M
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.options import options_from_dict
 from oga.pipeline import SETPOINTS_PREFIX, run_job
 from oga.recorded import HEADER, SetpointsError, read_setpoints

@@ -8,9 +8,9 @@ from scipy.signal import cont2discrete
 
 from feedplan.setpoints import Setpoints
 from oga.errors import MachineError, OptionError
-from oga.linear import lifted_axis
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
-from oga.simulate import (
+from oga.model.linear import lifted_axis
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.simulate import (
     _lifted_guard,
     axis_params,
     friction_nonlinear,
@@ -54,7 +54,7 @@ def _smooth_move(n, dist, p0=0.0):
 
 
 def _reference_lifted(machine, axis):
-    """The linear cascade lifted over Te, built independently of oga.linear."""
+    """The linear cascade lifted over Te, built independently of oga.model.linear."""
     cas = machine.axes[axis].cascade
     n_sub = machine.timing.substeps
     h = machine.timing.te_s / n_sub
@@ -100,7 +100,7 @@ def test_linear_case_equals_the_lifted_linear_model(axis, lifted):
     # relative to the motion (0.02 m) and to the commands
     assert np.max(np.abs(p_act - p_ref)) <= 1e-9 * 0.02
     assert np.max(np.abs(u - u_ref)) <= 1e-9 * np.max(np.abs(u_ref))
-    # oga.linear builds the same lifted model
+    # oga.model.linear builds the same lifted model
     a, b, _, _ = lifted_axis(LINEAR, axis)
     np.testing.assert_allclose(a, a_te, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(b, b_te, rtol=1e-9, atol=1e-15)
@@ -180,7 +180,7 @@ def test_friction_opposes_motion(axis):
         ffr = friction_nonlinear(params, v) + b * v
         assert math.copysign(1.0, ffr) == math.copysign(1.0, v) and ffr != 0.0
     assert friction_nonlinear(params, 0.0) == 0.0
-    # oga.machine.Cascade's friction formula, with numpy's tanh and exp
+    # oga.model.machine.Cascade's friction formula, with numpy's tanh and exp
     cas = UCP.axes[axis].cascade
     for v in np.linspace(-0.02, 0.02, 4001):
         s = np.tanh(v / cas.friction_smoothing_m_s)

@@ -2,7 +2,7 @@
 
 References: the continuous velocity loop of python-control (for the identified lag),
 exact circle geometry (for the contour-error estimate), and the uncoupled P + FFW loops
-of :func:`oga.simulate.simulate` under the same load.
+of :func:`oga.model.simulate.simulate` under the same load.
 """
 
 from __future__ import annotations
@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import smc_dob_ccc
 from oga.controllers.base import score
 from oga.defaults import TOL_M
 from oga.errors import OptionError, TuneError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
-from oga.ranges import gain_ranges
-from oga.simulate import simulate
-from oga.verify import command_ratios
+from oga.search.ranges import gain_ranges
+from oga.model.simulate import simulate
+from oga.verify.replay import command_ratios
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

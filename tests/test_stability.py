@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from oga.errors import MachineError, OptionError
-from oga.linear import lifted_axis, position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
-from oga.stability import margins, stable_range
+from oga.model.linear import lifted_axis, position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.stability import margins, stable_range
 
 UCP = load_machine("ucp710")
 

@@ -1,17 +1,17 @@
-"""The compiled walk of the stable Kp range (``oga.stability._walk_modal``) gives the ends of
-the Python walk over :func:`oga.stability._margins` (brentq, numpy eigenvalues), on the plants
+"""The compiled walk of the stable Kp range (``oga.model.stability._walk_modal``) gives the ends of
+the Python walk over :func:`oga.model.stability._margins` (brentq, numpy eigenvalues), on the plants
 of ucp710's default set (Monte Carlo and corners, dead time +0 and +1 sample) and under
 stricter criteria and narrower bounds that move the ends; the ARX axes of mcv-op (no modal
-form) keep the Python walk, whose ends are :func:`oga.stability.stable_range`'s."""
+form) keep the Python walk, whose ends are :func:`oga.model.stability.stable_range`'s."""
 
 from collections import OrderedDict
 
 import numpy as np
 import pytest
 
-import oga.stability as stability
-from oga.machine import load_machine, machine_from_dict
-from oga.robust.plants import scenario_set
+import oga.model.stability as stability
+from oga.model.machine import load_machine, machine_from_dict
+from oga.search.robust.plants import scenario_set
 
 UCP = load_machine("ucp710")
 PLANTS = scenario_set(UCP, n=12, seed=23).plants

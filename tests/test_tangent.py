@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
-from oga.simulate import (
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.simulate import (
     axis_params,
     friction_command_m_s,
     friction_nonlinear,
     rest_state,
     run,
 )
-from oga.tangent import friction_slope, run_tangent
+from oga.model.tangent import friction_slope, run_tangent
 
 UCP = load_machine("ucp710")
 MCV = load_machine("mcv-op")

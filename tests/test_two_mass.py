@@ -29,7 +29,7 @@ from feedplan.setpoints import AXES
 from oga.cli import main
 from oga.identify.excite import excite_program
 from oga.identify.trace import trace_csv
-from oga.machine import FACTOR_FIELDS, KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.machine import FACTOR_FIELDS, KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
 from two_mass import TE, TwoMassAxis, simulate_batch
 

@@ -2,7 +2,7 @@
 
 References: the paper's printed low-pass coefficients, python-control frequency
 responses of the closed position loop, the uncoupled P + FFW of
-:func:`oga.simulate.simulate`, and the same law without the observer under a load step.
+:func:`oga.model.simulate.simulate`, and the same law without the observer under a load step.
 """
 
 from __future__ import annotations
@@ -15,16 +15,16 @@ import pytest
 from scipy import signal
 
 from feedplan.read import load_toolpath, read_toolpath
-from oga.contour import contour_error_of
+from oga.model.contour import contour_error_of
 from oga.controllers import zpetc_ccc_ddob as zc
 from oga.controllers.base import score
 from oga.defaults import TOL_M
 from oga.errors import OptionError, TuneError
-from oga.linear import position_open_loop
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
+from oga.model.linear import position_open_loop
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
-from oga.ranges import gain_ranges
-from oga.simulate import simulate
+from oga.search.ranges import gain_ranges
+from oga.model.simulate import simulate
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

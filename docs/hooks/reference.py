@@ -5,7 +5,7 @@
 - ``reference/rest.md``: every route of the service, its parameters, bodies and answers, from
   the OpenAPI schema of :func:`api.app.create_app`, and the routes outside the schema;
 - ``reference/machine-file.md``: every field of a machine file, walked from the pydantic
-  model :class:`oga.machine.Machine` (type, default, accepted range), and
+  model :class:`oga.model.machine.Machine` (type, default, accepted range), and
   ``MACHINE_FIELD_RANGES``;
 - ``reference/python.md``: the library, one mkdocstrings block per name of ``oga``'s public
   API (``oga._EXPORTS``) and per module of :data:`MODULES`;
@@ -33,8 +33,8 @@ if str(ROOT) not in sys.path:  # `mkdocs build` from the checkout, installed or 
     sys.path.insert(0, str(ROOT))
 
 #: Modules of the library documented whole (beside the names of ``oga._EXPORTS``).
-MODULES = ("feedplan", "feedplan.plan", "oga.export", "oga.identify", "oga.robust.plants",
-           "oga.robust.certificate", "oga.robust.search", "oga.report", "oga.defaults")
+MODULES = ("feedplan", "feedplan.plan", "oga.export.table", "oga.identify", "oga.search.robust.plants",
+           "oga.verify.certificate", "oga.search.robust.search", "oga.report.optimize", "oga.defaults")
 
 #: One line per machine-file field whose name alone does not say it (unit in the name
 #: otherwise). A field missing here still appears; a key here that names no field fails the
@@ -350,7 +350,7 @@ def machine_fields():
 
     A model-valued field is listed, then its own fields under its path; ``axes`` is a table
     of axes whose key (``x``, ``y``, ``z``) is written ``<a>``."""
-    from oga.machine import Machine
+    from oga.model.machine import Machine
 
     out = []
 
@@ -375,7 +375,7 @@ def machine_markdown() -> str:
     from pydantic_core import PydanticUndefined
 
     from oga.defaults import MACHINE_FIELD_RANGES
-    from oga.machine import PRESETS
+    from oga.model.machine import PRESETS
 
     sections: dict[str, tuple[type, list[str]]] = {}
     for path, model, annotation, info in machine_fields():
@@ -393,7 +393,7 @@ def machine_markdown() -> str:
                f"{_cell(note)} |")
         sections.setdefault(path.rsplit(".", 1)[0] if "." in path else "", (model, []))[1].append(row)
     lines = ["# Machine file", "",
-             "Generated at build time from the pydantic model `oga.machine.Machine` and "
+             "Generated at build time from the pydantic model `oga.model.machine.Machine` and "
              "`MACHINE_FIELD_RANGES` (`oga/defaults.py`). A machine file is TOML or JSON with "
              "these fields; an unknown key or a value outside its range is refused naming the "
              "field. [Machine files](../howto/machine-files.md) shows how to write one; the "

@@ -2,7 +2,7 @@
 
 Run from the repository root: ``python docs/scripts/figures.py [NAME ...]`` (default: all)
 writes ``docs/figures/NAME.png`` and prints, per figure, the date, the host and the figures it
-shows (the pages quote them). Each figure is an SVG of :mod:`oga.report` (or of the
+shows (the pages quote them). Each figure is an SVG of :mod:`oga.report.optimize` (or of the
 identification report, :mod:`oga.identify.report`, drawn with the same panels), rasterised by
 headless Chromium (Debian's ``chromium``, driven by Playwright, both of the dev setup;
 ``OGA_CHROMIUM`` names another binary). The figures:
@@ -45,7 +45,7 @@ REFERENCE = ROOT / "examples" / "data" / "reference_xz.ngc"
 
 def _job(path: Path, options: dict | None = None):
     from feedplan.read import read_file
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
     from oga.options import OptimizeOptions
     from oga.pipeline import run_job
 
@@ -56,7 +56,7 @@ def _job(path: Path, options: dict | None = None):
 
 def contour_error() -> tuple[list[str], str]:
     """README figure: CE of fixed gains and of the table on cncjs_toolpath, and the gains."""
-    from oga.report import _BASE, _OPT, _UM, _ce_panel, _fig_gains, _svg, report_data
+    from oga.report.optimize import _BASE, _OPT, _UM, _ce_panel, _fig_gains, _svg, report_data
 
     job = _job(CNCJS)
     d = report_data(job)
@@ -80,7 +80,7 @@ def _clip(svg: str, height: int) -> str:
 
 def certificate() -> tuple[list[str], str]:
     """The certificate of the Quickstart's table: ratio distribution and worst plant."""
-    from oga.report import _fig_ratio, _fig_worst_plant, report_data
+    from oga.report.optimize import _fig_ratio, _fig_worst_plant, report_data
 
     d = report_data(_job(REFERENCE))
     c = d.summary["certificate"]
@@ -97,7 +97,7 @@ def identification_fit() -> tuple[list[str], str]:
     from oga.identify.sim import synthetic_trace
     from oga.identify.trace import read_trace, trace_csv
     from oga.identify.workflow import identify
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
     from oga.pipeline import plan_toolpath
 
     base = load_machine("ucp710")
@@ -125,7 +125,7 @@ def cycle_time() -> tuple[list[str], str]:
     """Planned cycle time over toppra's bound per program of bench/bench_plan.py."""
     import math
 
-    from oga.report import _GREY, _LIMIT, _OPT, _Panel, _svg
+    from oga.report.optimize import _GREY, _LIMIT, _OPT, _Panel, _svg
 
     spec = importlib.util.spec_from_file_location("bench_plan", ROOT / "bench" / "bench_plan.py")
     bench = importlib.util.module_from_spec(spec)

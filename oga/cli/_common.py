@@ -137,7 +137,7 @@ _SEARCH_FLAGS = ("mode", "baseline", "adjust", "gains", "kp_range", "np", "knot"
 def load_inputs(args: argparse.Namespace):
     """(path, machine, feed_m_s or None, tol_m) from the common flags; InputError if bad."""
     from feedplan.read import load_toolpath
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
 
     options = options_from_args(args, ("feed", "tolerance", "reader", "tool_table"))
     machine = load_machine(args.machine)

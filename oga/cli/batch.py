@@ -148,7 +148,7 @@ def _store(out: FilePath, task: BatchTask, outcome: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
 
     formats = _formats(args.format)
     jobs = _jobs(args)

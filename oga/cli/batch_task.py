@@ -60,7 +60,7 @@ class Executor(Protocol):
 
 def output_names(stem: str, formats) -> tuple[list[str], str]:
     """The table files of a program (one per format) and its summary file."""
-    from oga.export import TABLE_FORMATS
+    from oga.export.table import TABLE_FORMATS
 
     return [stem + TABLE_FORMATS[f][0] for f in formats], f"{stem}.summary.json"
 
@@ -74,8 +74,8 @@ def run_task(task: BatchTask, progress) -> dict:
     """In a worker: optimise one program; returns its outputs or its failure (the reason
     names the file first)."""
     from feedplan.read import read_file
-    from oga.export import table_c_header, table_csv, table_json
-    from oga.machine import machine_from_dict
+    from oga.export.table import table_c_header, table_csv, table_json
+    from oga.model.machine import machine_from_dict
     from oga.options import options_from_dict
     from oga.pipeline import run_job
 

@@ -59,7 +59,7 @@ def format_table(cmp) -> str:
 def run(args: argparse.Namespace) -> int:
     check_files(args, "json", "report")  # before the compiled kernels load
 
-    from oga.compare import compare, parse_controllers
+    from oga.controllers.compare import compare, parse_controllers
     from oga.pipeline import plan_toolpath
 
     names = parse_controllers(args.controllers)
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         write_json(args.json, cmp.to_dict())
     if args.report:
-        from oga.compare_report import render_compare_report
+        from oga.report.compare import render_compare_report
 
         write_text(args.report, render_compare_report(cmp))
     for w in path.warnings:

@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from feedplan.read import read_toolpath
     from oga.identify.excite import excite_program
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
 
     check_files(args, "out", "setpoints")  # before any work
     machine = load_machine(args.machine)
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     msg = f"{args.out}: {len(text.splitlines())} lines, path {path.length * 1e3:.0f} mm"
     if args.setpoints:
         from oga.defaults import TOL_M
-        from oga.export import setpoints_csv
+        from oga.export.table import setpoints_csv
         from oga.pipeline import plan_toolpath
 
         sp = plan_toolpath(path, machine, feed_m_s=None, tol_m=TOL_M)

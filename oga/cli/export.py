@@ -1,8 +1,8 @@
 """``oga export``: a gain table written by ``oga optimize`` (or the API) as controller files.
 
-``--format linuxcnc`` writes a ``streamer`` data file and HAL files (:mod:`oga.linuxcnc`):
+``--format linuxcnc`` writes a ``streamer`` data file and HAL files (:mod:`oga.export.linuxcnc`):
 with ``--recording`` (the LinuxCNC recording the table was computed on) the production files
-for LinuxCNC's motion controller (:mod:`oga.linuxcnc.motion`), else the bench stream.
+for LinuxCNC's motion controller (:mod:`oga.export.linuxcnc.motion`), else the bench stream.
 The table is a ``.csv`` (``oga optimize --out``), ``.json`` or ``.npz`` (the API's formats,
 with their metadata); the summary JSON (``--summary``) gives the fixed baseline gains the
 loops fall back to and must hash to the same program and machine.
@@ -76,8 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _csv_table(path: FilePath, blob: bytes):
-    from oga.export import GainTable
-    from oga.optimize import setpoints_digest
+    from oga.export.table import GainTable
+    from oga.search.result import setpoints_digest
 
     text = blob.decode("utf-8", errors="replace")
     header = tuple(text.split("\n", 1)[0].strip().split(","))
@@ -104,7 +104,7 @@ def _csv_table(path: FilePath, blob: bytes):
 
 def read_table(path) -> "GainTable":  # noqa: F821
     """A gain table file (``.csv``, ``.json`` or ``.npz``) as a GainTable (InputError if bad)."""
-    from oga.export import GainTable, table_from_npz
+    from oga.export.table import GainTable, table_from_npz
 
     path = FilePath(path)
     blob = read_limited(path, TABLE_MAX_BYTES, InputError, "table")
@@ -145,8 +145,8 @@ def parse_joints(text: str) -> dict[str, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from oga.linuxcnc import export_table
-    from oga.machine import load_machine
+    from oga.export.linuxcnc import export_table
+    from oga.model.machine import load_machine
 
     if not (args.summary or args.baseline):
         raise InputError("the loops fall back to the fixed baseline gains: give --summary "
@@ -195,10 +195,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_motion(args: argparse.Namespace, table, summary) -> int:
-    """``oga export --recording``: the production files (:func:`oga.linuxcnc.motion_export`)."""
+    """``oga export --recording``: the production files (:func:`oga.export.linuxcnc.motion_export`)."""
     from oga.identify.trace import TraceError
-    from oga.linuxcnc.export import baseline_gains
-    from oga.linuxcnc.motion import motion_export
+    from oga.export.linuxcnc.export import baseline_gains
+    from oga.export.linuxcnc.motion import motion_export
     from oga.recorded import read_setpoints, read_setpoints_file
 
     for flag, given in (("--with-feedback", args.with_feedback),

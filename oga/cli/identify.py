@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from oga.identify.trace import load_trace
     from oga.identify.workflow import identify
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
 
     check_files(args, "out", "summary", "report")  # before any work: a fit takes minutes
     machine = load_machine(args.machine)

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from feedplan.read import load_toolpath
     from oga.law.export import law_files
     from oga.law.run import law_optimize
-    from oga.machine import load_machine
+    from oga.model.machine import load_machine
 
     machine = load_machine(args.machine)
     paths = []
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     with ProgressBar("law", enabled=sys.stderr.isatty()) as bar:
         res = law_optimize(paths, machine, args.kind, args.points, overrides=overrides,
                            tol_m=tol_m, progress=bar.update)
-    from oga.robust.plants import scenario_set
+    from oga.search.robust.plants import scenario_set
 
     files = law_files(res, machine.name, len(scenario_set(machine)), units=args.units,
                       joints=joints)

@@ -1,5 +1,5 @@
 """``oga lcnc-record``: a program run through a LinuxCNC configuration headless, its setpoints
-recorded per servo period (:mod:`oga.linuxcnc.record`) for ``oga optimize --setpoints``."""
+recorded per servo period (:mod:`oga.export.linuxcnc.record`) for ``oga optimize --setpoints``."""
 
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from oga.cli.export import parse_joints
     from oga.errors import InputError
-    from oga.linuxcnc.record import record_program
+    from oga.export.linuxcnc.record import record_program
 
     check_files(args, "out")
     if args.timeout is not None and not 0 < args.timeout <= 86400:

@@ -94,8 +94,8 @@ def run(args: argparse.Namespace) -> int:
                          "interpolator applied its tolerance)")
     check_files(args, "out", "summary", "report")  # before the compiled kernels load
 
-    from oga.export import table_csv
-    from oga.machine import load_machine
+    from oga.export.table import table_csv
+    from oga.model.machine import load_machine
 
     machine = load_machine(args.machine)
     job = _run_job(args, machine, options, read_options)
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     if args.summary:
         write_json(args.summary, summary)
     if args.report:
-        from oga.report import render_report
+        from oga.report.optimize import render_report
 
         write_text(args.report, render_report(job))
     _print_result(job, summary, machine)
@@ -191,7 +191,7 @@ def _print_result(job, summary: dict, machine) -> None:
 
 def certificate_lines(cert: dict) -> list[str]:
     """The certificate of a summary (``summary["certificate"]``) as the lines printed."""
-    from oga.robust.certificate import confidence_text
+    from oga.verify.certificate import confidence_text
 
     br = cert["breaks"]
     s, b = cert["schedule"], cert["baseline"]

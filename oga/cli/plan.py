@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
     from feedplan.check import check_setpoints
     from feedplan.plan import program_tolerance_m
-    from oga.export import setpoints_csv
+    from oga.export.table import setpoints_csv
     from oga.pipeline import plan_toolpath
 
     path, machine, feed_m_s, tol_m = load_inputs(args)

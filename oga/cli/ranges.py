@@ -86,9 +86,9 @@ def run(args: argparse.Namespace) -> int:
     check_files(args, "json")  # before the compiled kernels load
 
     from oga.errors import OptionError
-    from oga.machine import load_machine
-    from oga.ranges import gain_ranges, stability_to_dict
-    from oga.stability import stable_range
+    from oga.model.machine import load_machine
+    from oga.search.ranges import gain_ranges, stability_to_dict
+    from oga.model.stability import stable_range
 
     if args.toolpath is None:
         given = [f"--{f}" for f in ("feed", "tolerance") if getattr(args, f) is not None]

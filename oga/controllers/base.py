@@ -3,7 +3,7 @@
 A comparison controller is an alternative position/contour control law simulated on
 the same setpoints and the same plant as the fixed gains and the OGA schedule: it
 computes a velocity command per axis and sample and drives the plant through
-:func:`oga.simulate.drive` (same dead time, inner loops, friction and limits).
+:func:`oga.model.simulate.drive` (same dead time, inner loops, friction and limits).
 
 Each controller module in :mod:`oga.controllers` exposes ``NAME``,
 ``NEEDS_FIRMWARE``, ``PARAMETERS`` (the names ``run`` accepts), and
@@ -20,10 +20,10 @@ from typing import Callable
 import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.contour import contour_error_of, plane_axes
+from oga.model.contour import contour_error_of, plane_axes
 from oga.errors import OptionError, TuneError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
-from oga.verify import command_ratios
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.verify.replay import command_ratios
 
 __all__ = [
     "ControllerRun",
@@ -204,11 +204,11 @@ def grid_tune(
 
 
 def best_fixed(setpoints: Setpoints, machine: Machine):
-    """The best equal fixed gains on this toolpath (:func:`oga.ranges.best_fixed_gains`), memoised.
+    """The best equal fixed gains on this toolpath (:func:`oga.search.ranges.best_fixed_gains`), memoised.
 
     Returns
     -------
-    oga.ranges.BestFixed
+    oga.search.ranges.BestFixed
 
     Raises
     ------
@@ -217,7 +217,7 @@ def best_fixed(setpoints: Setpoints, machine: Machine):
     """
     key = (setpoints, machine.digest())  # Setpoints hash by identity
     if key not in _BEST:
-        from oga.ranges import best_fixed_gains
+        from oga.search.ranges import best_fixed_gains
 
         _BEST[key] = best_fixed_gains(setpoints, machine)
         if len(_BEST) > _BEST_KEPT:

@@ -18,7 +18,7 @@ the contour plane ``(e1, e2)`` of the setpoints:
 
 Axes outside the plane and rapid samples: P + feed-forward only (the integral restarts
 after a rapid). With ``Kc = Ki = 0`` the run is the uncoupled P + FFW of
-:func:`oga.simulate.simulate`.
+:func:`oga.model.simulate.simulate`.
 
 The shared pieces of the cross-coupled laws (:func:`baseline_gains`,
 :func:`cc_correction`, :func:`prepare`) are used by :mod:`oga.controllers.zpetc_ccc_ddob`.
@@ -44,8 +44,8 @@ from oga.controllers.base import (
     path_frame,
 )
 from oga.errors import OptionError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
-from oga.simulate import axis_arrays, drive
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.model.simulate import axis_arrays, drive
 
 __all__ = [
     "NAME",
@@ -84,7 +84,7 @@ KP, KF, KC, KI_TE = 0, 1, 2, 3
 def baseline_gains(setpoints: Setpoints, machine: Machine, given: dict) -> tuple[float, float]:
     """``(kp_m_min_per_mm, kf)``: those in ``given``, else the best fixed gains.
 
-    The best equal fixed gains of :func:`oga.ranges.gain_ranges` (computed only when
+    The best equal fixed gains of :func:`oga.search.ranges.gain_ranges` (computed only when
     ``given`` lacks one of them).
 
     Raises
@@ -107,7 +107,7 @@ class Prepared:
     Attributes
     ----------
     params, states : ndarray, shape (3, P), (3, S)
-        :func:`oga.simulate.axis_arrays` of the machine, states at the first setpoint.
+        :func:`oga.model.simulate.axis_arrays` of the machine, states at the first setpoint.
     present : ndarray of bool, shape (3,)
     pd, vd : ndarray, shape (N, 3)
         Setpoint positions (m) and velocities (m/s).
@@ -316,7 +316,7 @@ def run(
     """
     check_parameters(NAME, parameters, PARAMETERS)
     notes = [
-        "Kp and Kf are the best equal fixed gains of oga.ranges unless given.",
+        "Kp and Kf are the best equal fixed gains of oga.search.ranges unless given.",
         "Contour-error estimate and gains Cx, Cy of Koren and Lo (paper eqs. 7-10) with the "
         "signed curvature of the setpoints for 1/R (0 on lines).",
         "Compensator C = Kc + Ki Te/(1 - z^-1) acting on the estimate, in m/s per m.",

@@ -31,12 +31,12 @@ from numba import njit
 
 from feedplan.setpoints import Setpoints
 from oga import defaults
-from oga.contour import plane_axes
+from oga.model.contour import plane_axes
 from oga.controllers.base import ControllerRun, baseline_si, check_parameters, grid_tune, load_array
 from oga.controllers.fuzzy import RULES, UNIVERSE, mamdani
 from oga.errors import OptionError
-from oga.machine import Machine
-from oga.simulate import axis_arrays, drive
+from oga.model.machine import Machine
+from oga.model.simulate import axis_arrays, drive
 
 __all__ = ["NAME", "NEEDS_FIRMWARE", "PARAMETERS", "run", "law_inputs"]
 

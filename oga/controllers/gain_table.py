@@ -2,9 +2,9 @@
 
 Both are the machine's own P + feed-forward position loop with a table of gains
 (no firmware access): ``fixed`` the best equal fixed gains of the toolpath
-(:func:`oga.ranges.gain_ranges`), ``oga`` the schedule exported by
+(:func:`oga.search.ranges.gain_ranges`), ``oga`` the schedule exported by
 :func:`oga.optimize.optimize` (the baseline's fixed gains when the search did not
-beat them), both as replayed by :func:`oga.verify.verify` / :func:`oga.simulate.simulate`.
+beat them), both as replayed by :func:`oga.verify.verify` / :func:`oga.model.simulate.simulate`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 from feedplan.setpoints import Setpoints
 from oga.controllers.base import ControllerRun, best_fixed, check_parameters
 from oga.errors import OptionError
-from oga.machine import Machine
+from oga.model.machine import Machine
 from oga.options import OptimizeOptions
 
 __all__ = ["FIXED_PARAMETERS", "OGA_PARAMETERS", "run_fixed", "run_oga"]
@@ -28,7 +28,7 @@ OGA_PARAMETERS = tuple(f for f in OptimizeOptions.model_fields
 def _no_load(name: str, load_n) -> None:
     if load_n is not None:
         raise OptionError(f"{name}: load_n is not supported (a gain table is replayed by "
-                          "oga.simulate.simulate, which has no load input)")
+                          "oga.model.simulate.simulate, which has no load input)")
 
 
 def run_fixed(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool = True,
@@ -43,7 +43,7 @@ def run_fixed(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool
     OptionError
         Unknown parameter, a load given, or no fixed gains meet the limits.
     """
-    from oga.simulate import simulate
+    from oga.model.simulate import simulate
 
     check_parameters("fixed", parameters, FIXED_PARAMETERS)
     _no_load("fixed", load_n)
@@ -53,7 +53,7 @@ def run_fixed(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool
         best = best_fixed(setpoints, machine)
         kp = next(iter(best.kp.values())) if kp is None else kp
         kf = next(iter(best.kf.values())) if kf is None else kf
-        notes = ("the best equal fixed gains on this toolpath (oga.ranges.gain_ranges)",)
+        notes = ("the best equal fixed gains on this toolpath (oga.search.ranges.gain_ranges)",)
     sim = simulate(setpoints, machine, kp, kf)
     return ControllerRun(name="fixed", pos=sim.pos, u=sim.u, needs_firmware=False,
                          parameters={"kp_m_min_per_mm": float(kp), "kf": float(kf)},

@@ -6,7 +6,7 @@ forms it cites are used). Our plant input is the velocity command ``u`` into the
 machine's velocity loop, so every law is designed on the position plant seen from
 ``u``: the model ``x'' = (u(t - d Te) - x') / T - dist`` (m/s^2), i.e. the velocity
 loop as a first-order lag ``T`` behind the known dead time of ``d`` samples. ``T`` is
-identified from the linearised lifted velocity loop (:func:`oga.linear.lifted_axis`)
+identified from the linearised lifted velocity loop (:func:`oga.model.linear.lifted_axis`)
 as its 63.2 % step rise time (:func:`velocity_lag_s`).
 
 Per contouring axis and sample k (measured position ``p_k``, velocity estimate
@@ -61,9 +61,9 @@ from oga.controllers.base import ControllerRun, baseline_si, check_parameters, g
 from oga.controllers.fuzzy import RULES, UNIVERSE, memberships
 from oga.controllers.fuzzy_pid import PAPER_RATIOS, law_inputs
 from oga.errors import MachineError, OptionError, TuneError
-from oga.linear import lifted_axis
-from oga.machine import Machine
-from oga.simulate import axis_arrays, drive
+from oga.model.linear import lifted_axis
+from oga.model.machine import Machine
+from oga.model.simulate import axis_arrays, drive
 
 __all__ = [
     "NAME", "NEEDS_FIRMWARE", "PARAMETERS", "run", "velocity_lag_s", "contour_error_estimate",
@@ -101,7 +101,7 @@ def velocity_lag_s(machine: Machine, axis: str, horizon_s: float = 0.2) -> float
     """First-order lag ``T`` (s) of an axis velocity loop: its 63.2 % rise time.
 
     One-point identification on the unit step response of the linearised axis
-    (:func:`oga.linear.lifted_axis`, dead time excluded; any axis model): the mean
+    (:func:`oga.model.linear.lifted_axis`, dead time excluded; any axis model): the mean
     velocity over period k, ``(p_{k+1} - p_k) / Te``, is taken at ``(k + 1/2) Te`` and
     interpolated up to its first crossing of 63.2 %. (The method of moments does not
     suit a PI velocity loop: its zero makes the first moment almost zero although the

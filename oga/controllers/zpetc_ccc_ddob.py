@@ -1,7 +1,7 @@
 """ZPETC feed-forward, digital disturbance observer, CCC and friction compensation.
 
 Paper: zpetc_ccc_ddob_friction.txt (integrated controller, Fig. 21). Per contour-plane
-axis, designed offline on the linearised plant of :func:`oga.linear.position_open_loop`
+axis, designed offline on the linearised plant of :func:`oga.model.linear.position_open_loop`
 (``G(z)``: velocity command -> measured position, dead time included):
 
 - **ZPETC** (paper eqs. 1-6, Tomizuka) on the closed position loop
@@ -26,7 +26,7 @@ axis, designed offline on the linearised plant of :func:`oga.linear.position_ope
   the inverse of the velocity PI ``Kv (1 + 1/(Tn s))``, ``u_f = F_n / Kv * Tn s / (1 + Tn s)``
   (backward Euler at Te; the PI's integral then carries the steady part, so ``u_f`` never
   biases the velocity); ARX: the input-equivalent Coulomb command itself (the model
-  subtracts it from the command). Both from :func:`oga.simulate.friction_command_m_s`
+  subtracts it from the command). Both from :func:`oga.model.simulate.friction_command_m_s`
   minus its viscous term.
 
 Rapid samples and axes outside the plane: P + feed-forward at the baseline gains; the
@@ -47,9 +47,9 @@ from oga import defaults
 from oga.controllers.base import ControllerRun, check_parameters, grid_tune, score
 from oga.controllers.ccc import KF, KP, Prepared, add_coupling, baseline_gains, prepare
 from oga.errors import OptionError, TuneError
-from oga.linear import position_open_loop
-from oga.machine import Machine
-from oga.simulate import drive, friction_command_m_s
+from oga.model.linear import position_open_loop
+from oga.model.machine import Machine
+from oga.model.simulate import drive, friction_command_m_s
 
 __all__ = [
     "NAME",
@@ -409,11 +409,11 @@ def run(
     if not 0.0 < given.get("accept_radius", DEFAULTS["accept_radius"]) <= 1.0:
         raise OptionError(f"accept_radius: must lie in (0, 1], got {given['accept_radius']}")
     notes = [
-        "Kp and Kf are the best equal fixed gains of oga.ranges unless given; the ZPETC is "
+        "Kp and Kf are the best equal fixed gains of oga.search.ranges unless given; the ZPETC is "
         "designed on the closed loop with that Kp and replaces Kf on the plane axes.",
         "ZPETC needs preview of the setpoints (d + unacceptable zeros samples), computed "
         "offline over the whole toolpath.",
-        "Observer and ZPETC use the linearised plant of oga.linear (friction -> viscous).",
+        "Observer and ZPETC use the linearised plant of oga.model.linear (friction -> viscous).",
         "Friction compensation: the nonlinear friction at the setpoint velocity d samples "
         "ahead; on a cascade axis its force through the inverse velocity PI "
         "(Tn s/(1 + Tn s))/Kv, on an ARX axis its input-equivalent command.",

@@ -2,7 +2,7 @@
 model covers the plant (for the summary of a table made with it).
 
 ``oga identify`` writes, into each fitted axis's uncertainty section, the fit's status and
-its model-error share (:class:`oga.machine.Uncertainty`): ``ok``, ``model-error`` (the set
+its model-error share (:class:`oga.model.machine.Uncertainty`): ``ok``, ``model-error`` (the set
 widened by the evidence, :func:`oga.identify.write.uncertainty_of`) or ``poor`` (the model
 does not explain the trace: a certificate on its set promises nothing on the machine). An
 axis whose section has no status carries an assumed set (a preset's, or a user's); an axis
@@ -11,7 +11,7 @@ without a section has none (its nominal model alone).
 
 from __future__ import annotations
 
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["model_coverage"]
 

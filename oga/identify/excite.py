@@ -27,7 +27,7 @@ from oga.defaults import (
     EXCITE_VMAX_FRACTIONS,
 )
 from oga.errors import OptionError
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["excite_program"]
 

@@ -1,6 +1,6 @@
 """The grey-box fit of one cascade axis to a recorded trace, through the optimizer's simulator.
 
-The model is exactly :mod:`oga.simulate`'s cascade (velocity PI ``Kv``/``Tn``, force lag,
+The model is exactly :mod:`oga.model.simulate`'s cascade (velocity PI ``Kv``/``Tn``, force lag,
 mass, Coulomb/static/Stribeck/viscous friction, dead time ``d`` samples), closed by the
 recorded position loop: ``u_k = Kp_k (cmd_k - p_k) + Kf_k ff_k`` with the recorded gains
 and setpoints. The simulated positions, shifted by ``l`` samples of measurement lag (a
@@ -59,7 +59,7 @@ from oga.defaults import (
 )
 from oga.errors import InputError, OgaError
 from oga.identify.trace import AxisTrace, TraceError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Cascade, Machine, Timing
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Cascade, Machine, Timing
 
 __all__ = ["AxisFit", "fit_axis", "check_fit_input", "axis_inputs", "PARAMETERS"]
 
@@ -224,7 +224,7 @@ class _Model:
     def params(self, x, dead: int, frac: bool = False) -> np.ndarray:
         """Packed parameters; ``frac``: the dead time is ``dead + x[-1]`` (its fraction last
         in ``x``, inside (0, 1))."""
-        from oga.simulate import _pack
+        from oga.model.simulate import _pack
 
         total = dead + float(x[-1]) if frac else dead
         return _pack(_machine(self.base, self.axis, self.cascade(x), total), self.axis, True)
@@ -243,7 +243,7 @@ class _Model:
         exponentials each; one-sided where a clamped entry sits at 0); a fractional dead
         time's is its own packed entry."""
         from oga.identify.sensitivity import forces_and_sensitivities
-        from oga.simulate import _FRAC
+        from oga.model.simulate import _FRAC
 
         params = self.params(x, dead, frac)
         npl = 7  # plant entries of x (then x[7]: the force's scale; last: the fraction)
@@ -282,7 +282,7 @@ class _Model:
     def residual(self, x, dead: int, lag: int, frac: bool = False) -> np.ndarray:
         """Simulated minus measured positions, um (the simulation ``lag`` samples earlier),
         shape (N - lag,); with the force channel followed by the weighted force residual."""
-        from oga.simulate import simulate_axis
+        from oga.model.simulate import simulate_axis
 
         if self.force is None:
             p, _ = simulate_axis(self.params(x, dead, frac), self.p0, self.cmd, self.ff,

@@ -15,8 +15,8 @@ import numpy as np
 from oga.defaults import IDENT_CONFIDENCE
 from oga.identify.fit import PARAMETERS, axis_inputs
 from oga.identify.workflow import Identification
-from oga.report import _CSS, _Panel, _limits, _svg, _versions, decimate
-from oga.simulate import axis_params, friction_command_m_s, simulate_axis
+from oga.report.optimize import _CSS, _Panel, _limits, _svg, _versions, decimate
+from oga.model.simulate import axis_params, friction_command_m_s, simulate_axis
 
 __all__ = ["identify_report"]
 

@@ -2,15 +2,15 @@
 parameters: the fit's Jacobian in one pass instead of a re-simulation per parameter.
 
 :func:`positions_and_sensitivities` simulates the axis exactly as
-:func:`oga.simulate.simulate_axis` does (the same arithmetic: the same positions to the last
+:func:`oga.model.simulate.simulate_axis` does (the same arithmetic: the same positions to the last
 bit) and carries, beside the state ``(p, v, F, I)`` and the dead-time line, its derivatives
-along ``D`` directions of the packed parameters (:func:`oga.simulate.axis_params`): the
+along ``D`` directions of the packed parameters (:func:`oga.model.simulate.axis_params`): the
 sub-step mechanics' coefficients, ``Kv``, ``1/Tn``, the friction's ``Fc``, ``Fs - Fc`` and
 ``1/vs``, the lifted map over Te (and the linear friction map, on a machine that sets
 ``timing.friction_linear_below_m_s``; identification's do not). The derivative follows
 the branch the nominal simulation takes at each period (the lifted map where it is exact,
 else the sub-steps with the velocity PI, its force limit and anti-windup, and the friction
-through its slope), as :mod:`oga.tangent` does for the gains; it is exact for the
+through its slope), as :mod:`oga.model.tangent` does for the gains; it is exact for the
 computation performed, except where the axis sticks (the friction's slope there limited:
 see :func:`_advance_sens`).
 """
@@ -23,7 +23,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from oga.simulate import (
+from oga.model.simulate import (
     _DEAD,
     _DFS,
     _FC,
@@ -73,10 +73,10 @@ Sensitivities = namedtuple("Sensitivities", ["p", "dp", "f", "df"])
 
 @njit(cache=True)
 def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
-    """:func:`oga.simulate._advance` (no load) of one Te from ``state`` ``(p, v, f, i)``;
+    """:func:`oga.model.simulate._advance` (no load) of one Te from ``state`` ``(p, v, f, i)``;
     the tangents ``tangents`` (4, D) (rows p, v, f, i) advanced in place; ``dud`` (D,) the
     derivatives of the command ``ud``; ``dc`` (D, 10) the directions'
-    :func:`oga.simulate._substep_coefs`. Returns the next state."""
+    :func:`oga.model.simulate._substep_coefs`. Returns the next state."""
     p, v, f, i = state
     dp, dv, df, di = tangents[0], tangents[1], tangents[2], tangents[3]
     nd = dpar.shape[0]
@@ -185,7 +185,7 @@ def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: flo
     Parameters
     ----------
     params : ndarray
-        :func:`oga.simulate.axis_params` of a cascade axis (its dead time included).
+        :func:`oga.model.simulate.axis_params` of a cascade axis (its dead time included).
     dparams : ndarray, shape (D, len(params))
         Directions in the packed parameters (e.g. their derivatives with respect to D
         fitted quantities); only the entries the kernel uses matter (mechanics, PI,
@@ -197,7 +197,7 @@ def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: flo
     Returns
     -------
     p : ndarray, shape (N,)
-        Positions, m (equal to :func:`oga.simulate.simulate_axis`'s).
+        Positions, m (equal to :func:`oga.model.simulate.simulate_axis`'s).
     dp : ndarray, shape (N, D)
         Their derivatives along each direction, m per unit of the direction.
     """

@@ -1,6 +1,6 @@
 """The simulator's cascade with its drive force recorded, and synthetic traces from it.
 
-:func:`simulate_forces` is :func:`oga.simulate.simulate_axis` (the same :func:`oga.simulate.drive`
+:func:`simulate_forces` is :func:`oga.model.simulate.simulate_axis` (the same :func:`oga.model.simulate.drive`
 per sample, so the same positions) that also records the force-lag output, the force a
 drive reports. :func:`synthetic_trace` makes the trace a machine would record on planned
 setpoints: for tests, the benchmark, and trying the workflow without a machine.
@@ -12,12 +12,12 @@ import numpy as np
 from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
-from oga.machine import KP_SI_PER_M_MIN_PER_MM, Machine
-from oga.simulate import axis_params, drive, rest_state
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
+from oga.model.simulate import axis_params, drive, rest_state
 
 __all__ = ["simulate_forces", "ideal_loop_positions", "synthetic_trace", "random_cascade"]
 
-_P, _F = 0, 2  # position and force in the cascade state (oga.simulate's layout)
+_P, _F = 0, 2  # position and force in the cascade state (oga.model.simulate's layout)
 
 
 @njit(cache=True)
@@ -45,7 +45,7 @@ def _ideal_loop(p0, pd, vd, kp_si, kf, te, line, frac, out_p):
 def ideal_loop_positions(p0: float, pd, vd, kp_si, kf, te: float, dead_time_samples: float):
     """The positions of the recorded position loop around an ideal velocity loop (the axis
     moves at the command it receives, ``dead_time_samples`` late; a fraction interpolated as
-    :mod:`oga.simulate` does): what the positions would be without the velocity loop's
+    :mod:`oga.model.simulate` does): what the positions would be without the velocity loop's
     dynamics. Their difference to the measured ones is the velocity loop's imprint, which an
     axis model has to predict.
 
@@ -78,7 +78,7 @@ def simulate_forces(params: np.ndarray, p0: float, pd, vd, kp_si, kf):
     Parameters
     ----------
     params : ndarray
-        :func:`oga.simulate.axis_params` of a cascade axis.
+        :func:`oga.model.simulate.axis_params` of a cascade axis.
     p0 : float
     pd, vd, kp_si, kf : ndarray, shape (N,), float64, contiguous
         Setpoints (m, m/s) and gains (1/s, factor).

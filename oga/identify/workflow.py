@@ -11,7 +11,7 @@ from oga.errors import InputError
 from oga.identify.fit import AxisFit, axis_inputs, check_fit_input, fit_axis
 from oga.identify.trace import AxisTrace, Trace
 from oga.identify.write import identified_machine, machine_toml
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["Identification", "identify", "axes_to_fit", "identification_from_summary"]
 
@@ -90,7 +90,7 @@ def identification_from_summary(summary: dict, trace: Trace, base: Machine,
     import math
     import tomllib
 
-    from oga.machine import machine_from_dict
+    from oga.model.machine import machine_from_dict
 
     def numbers(table: dict) -> dict:  # a stored summary holds None for inf and nan (JSON)
         return {k: math.nan if v is None else float(v) for k, v in table.items()}
@@ -187,7 +187,7 @@ def identify(trace: Trace, machine: Machine, *, axes=None, name: str | None = No
                                             progress=share(k)) for k, a in enumerate(names)}
     holdout = {}
     if holdout_fraction > 0:
-        from oga.simulate import axis_params, simulate_axis
+        from oga.model.simulate import axis_params, simulate_axis
 
         n_fit = int(round(trace.n * (1 - holdout_fraction)))
         for k, a in enumerate(names):

@@ -17,7 +17,7 @@ from oga.defaults import (
     IDENT_UNCERTAINTY_WIDTHS,
 )
 from oga.identify.fit import PARAMETERS, AxisFit
-from oga.machine import FACTOR_FIELDS, Machine, Uncertainty, machine_from_dict
+from oga.model.machine import FACTOR_FIELDS, Machine, Uncertainty, machine_from_dict
 
 __all__ = ["uncertainty_of", "identified_machine", "machine_toml"]
 
@@ -151,7 +151,7 @@ def _value(v) -> str:
 
 
 def machine_toml(machine: Machine, fits: dict[str, AxisFit]) -> str:
-    """The machine as TOML that :func:`oga.machine.load_machine` reads, each fitted value
+    """The machine as TOML that :func:`oga.model.machine.load_machine` reads, each fitted value
     with its confidence interval and the fit's residual in a comment beside it."""
     data = machine.model_dump(mode="json", exclude_none=True)
     pct = f"{IDENT_CONFIDENCE * 100:g} %"

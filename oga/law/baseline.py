@@ -1,8 +1,8 @@
 """The fixed gains a law is judged against: the robust baseline of each program.
 
 :func:`program_baseline` calls the robust search's own baseline
-(:func:`oga.robust.baseline.robust_baseline`, with the arguments
-:func:`oga.robust.search.robust_optimize` gives it: the equal fixed gains of least
+(:func:`oga.search.robust.baseline.robust_baseline`, with the arguments
+:func:`oga.search.robust.search.robust_optimize` gives it: the equal fixed gains of least
 geometric-mean MSE(CE) over the set's objective plants among those that keep eq. 2, the
 following-error limit and the stable range on every plant of the set and the nominal one),
 found on the program at 100 % feed and replayed at every override.
@@ -12,17 +12,17 @@ from __future__ import annotations
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import OptionError
-from oga.machine import Machine
-from oga.robust.baseline import BaselineResult, robust_baseline
-from oga.robust.certificate import plant_bounds
-from oga.robust.plants import ScenarioSet, perturbed_machine
+from oga.model.machine import Machine
+from oga.search.robust.baseline import BaselineResult, robust_baseline
+from oga.verify.certificate import plant_bounds
+from oga.search.robust.plants import ScenarioSet, perturbed_machine
 
 __all__ = ["program_baseline", "common_kp_range"]
 
 
 def common_kp_range(machine: Machine, scenarios: ScenarioSet, bounds, axes) -> tuple[float, float]:
     """The Kp range stable on every plant of ``scenarios`` (``bounds``: their
-    :func:`oga.robust.certificate.plant_bounds`) and on the nominal plant, over ``axes``,
+    :func:`oga.verify.certificate.plant_bounds`) and on the nominal plant, over ``axes``,
     (m/min)/mm (as the robust search takes it)."""
     nominal = perturbed_machine(machine, {}, 0, machine.name)
     nb = plant_bounds(ScenarioSet(status="nominal-only", nominal=machine, plants=(nominal,),
@@ -35,7 +35,7 @@ def common_kp_range(machine: Machine, scenarios: ScenarioSet, bounds, axes) -> t
 def program_baseline(name: str, setpoints: Setpoints, machine: Machine, scenarios: ScenarioSet,
                      bounds, *, threads: int | None = None) -> BaselineResult:
     """The robust baseline of program ``name`` (``setpoints`` at 100 % feed) on
-    ``machine``'s set (module doc); ``bounds`` its :func:`oga.robust.certificate.plant_bounds`.
+    ``machine``'s set (module doc); ``bounds`` its :func:`oga.verify.certificate.plant_bounds`.
 
     Raises
     ------

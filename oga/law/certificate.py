@@ -4,7 +4,7 @@ was made for and at every feed override.
 For each program and override the law's gains at every sample (:func:`oga.law.law.law_gains`
 on that plan) and the program's robust baseline are replayed from rest on every plant of the
 machine's set, with the same replay and checks as a table's certificate
-(:func:`oga.robust.certificate.certify`: paper eq. 2 on every sample, the following-error
+(:func:`oga.verify.certificate.certify`: paper eq. 2 on every sample, the following-error
 limit, Kp inside each plant's own stable range): per case the MSE(CE) ratio's median, 90th
 percentile and worst, and the plants where a replay breaks a check. The law passes when
 every case passes (worst ratio <= 1, no plant where the law breaks a check the baseline
@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from oga import defaults
-from oga.robust.certificate import Certificate, certify
-from oga.robust.plants import ScenarioSet
+from oga.verify.certificate import Certificate, certify
+from oga.search.robust.plants import ScenarioSet
 from oga.law.law import Law, law_gains
-from oga.verify import verify
+from oga.verify.replay import verify
 
 __all__ = ["LawCertificate", "certify_law"]
 
@@ -134,9 +134,9 @@ def certify_law(law: Law, cases, machine, scenarios: ScenarioSet,
     law : Law
     cases : list of tuple
         ``(program, override, setpoints, baseline, baseline_replays, bounds)``: the
-        program's :class:`oga.robust.baseline.BaselineResult`, its replays by plant index (filled
+        program's :class:`oga.search.robust.baseline.BaselineResult`, its replays by plant index (filled
         in here where missing) and the set's stable ranges over the program's moving axes
-        (:func:`oga.robust.certificate.plant_bounds`).
+        (:func:`oga.verify.certificate.plant_bounds`).
     machine : Machine
     scenarios : ScenarioSet
     screen : bool

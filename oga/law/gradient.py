@@ -4,13 +4,13 @@ A law's gain at sample ``k`` is a fixed convex combination of its support values
 (:func:`oga.law.law.basis`: the weights depend only on the planned ``|v|``, ``|a|``), so
 the derivative of every replayed position and velocity command with respect to one
 support value is the forward-mode tangent of the simulation along that weight sequence
-(:func:`oga.tangent.run_tangent`, the window search's sensitivities, here over the whole
-program in one pass: the same positions and commands as :func:`oga.simulate.simulate`,
+(:func:`oga.model.tangent.run_tangent`, the window search's sensitivities, here over the whole
+program in one pass: the same positions and commands as :func:`oga.model.simulate.simulate`,
 to the bit).
 
-The contour error is linearised as the window search does (:mod:`oga.mpc`): at each feed
+The contour error is linearised as the window search does (:mod:`oga.search.window`): at each feed
 sample, the distance to the nearest path segment the replay measures against
-(:func:`oga.contour.nearest_at`), through the projection ``P = I - t t'`` off that segment's
+(:func:`oga.model.contour.nearest_at`), through the projection ``P = I - t t'`` off that segment's
 tangent ``t``: ``|CE|^2 ~ |P (dq + S d)|^2``, ``dq`` the offset from the nearest point and
 ``S`` the positions' sensitivities. :func:`gauss_newton` sums the Gauss-Newton Hessian
 ``S' P S`` and gradient ``S' P dq`` over the samples.
@@ -21,10 +21,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from oga.contour import contour_offset
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
-from oga.simulate import axis_params, rest_state
-from oga.tangent import run_tangent
+from oga.model.contour import contour_offset
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.model.simulate import axis_params, rest_state
+from oga.model.tangent import run_tangent
 
 __all__ = ["ce_offsets", "axis_tangent", "gauss_newton"]
 
@@ -34,7 +34,7 @@ def ce_offsets(pd, tree, win_lo, win_hi, feed, pos, dq, tang):
     """Per sample ``k`` of ``feed``: ``dq[k]`` the offset of ``pos[k]`` from its nearest path
     point, ``tang[k]`` the unit tangent of that segment (zero where the path stands still
     over the window; both zero off ``feed``). Returns the sum of the squared contour errors
-    (m^2) of the feed samples, as :func:`oga.contour.contour_error_of` measures them."""
+    (m^2) of the feed samples, as :func:`oga.model.contour.contour_error_of` measures them."""
     n = pd.shape[0]
     j = -1
     total = 0.0
@@ -64,7 +64,7 @@ def axis_tangent(plant, axis: str, i: int, pd: np.ndarray, vd: np.ndarray, kp: n
     Returns
     -------
     p, u : ndarray, shape (N,)
-        Positions (m) and velocity commands (m/s), the bits of :func:`oga.simulate.simulate`.
+        Positions (m) and velocity commands (m/s), the bits of :func:`oga.model.simulate.simulate`.
     sp, su : ndarray, shape (N, nkp + nkf)
         Their derivatives per support value (Kp's first, per (m/min)/mm; then Kf's).
     """

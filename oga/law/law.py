@@ -40,7 +40,7 @@ import numpy as np
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.errors import OptionError
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 
 __all__ = ["AxisLaw", "Law", "law_gains", "interp", "basis", "support_points", "quantized",
            "check_kind"]

@@ -16,7 +16,7 @@ from feedplan.path import Path
 from feedplan.setpoints import Setpoints
 from oga import defaults
 from oga.errors import OptionError
-from oga.machine import Machine
+from oga.model.machine import Machine
 from oga.pipeline import plan_toolpath
 
 __all__ = ["override_path", "check_overrides", "plan_override"]

@@ -10,8 +10,8 @@ from oga.errors import OptionError
 from oga.law.law import check_kind
 from oga.law.override import check_overrides, plan_override
 from oga.law.search import LawResult, Program, search_law
-from oga.machine import Machine
-from oga.robust.plants import ScenarioSet
+from oga.model.machine import Machine
+from oga.search.robust.plants import ScenarioSet
 
 __all__ = ["law_optimize"]
 

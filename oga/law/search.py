@@ -19,7 +19,7 @@ most, so the search is a Gauss-Newton sequential QP over the whole programs:
    peaks per case, plant, axis and limit of ratio at least
    :data:`oga.defaults.LAW_ROW_SHARE`), solved exactly by the window search's dual
    active-set QP;
-3. the exact line search replays every case on every searched plant (:func:`oga.simulate.
+3. the exact line search replays every case on every searched plant (:func:`oga.model.simulate.
    simulate`, every sample) for the step scaled 1, 1/2, 1/4 and takes the first that lowers
    the cost and keeps eq. 2 and the following-error limit at every sample, each within
    ``max(reserve x limit, the baseline's own peak on that plant and case)`` (velocity at
@@ -55,21 +55,21 @@ import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
-from oga.contour import contour_error_of, path_index
+from oga.model.contour import contour_error_of, path_index
 from oga.errors import OptionError
 from oga.law.baseline import common_kp_range, program_baseline
 from oga.law.certificate import LawCertificate, certify_law
 from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
 from oga.law.law import AxisLaw, Law, basis, check_kind, law_gains, quantized, support_points
-from oga.machine import Machine
-from oga.metrics import track_max
-from oga.mpc import _qp_active_set
+from oga.model.machine import Machine
+from oga.model.metrics import track_max
+from oga.search.window import _qp_active_set
 from oga.parallel import resolve_threads
-from oga.robust.baseline import BaselineResult
-from oga.robust.certificate import plant_bounds
-from oga.robust.plants import ScenarioSet, perturbed_machine, scenario_set
-from oga.simulate import simulate
-from oga.verify import command_ratios, ferror_ratios, verify
+from oga.search.robust.baseline import BaselineResult
+from oga.verify.certificate import plant_bounds
+from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_set
+from oga.model.simulate import simulate
+from oga.verify.replay import command_ratios, ferror_ratios, verify
 
 __all__ = ["Program", "LawResult", "search_law"]
 
@@ -280,7 +280,7 @@ def search_law(
     points : int, optional
         Support points per input (default per kind, :data:`oga.defaults.LAW_POINTS`).
     scenarios : ScenarioSet, optional
-        Default :func:`oga.robust.plants.scenario_set` of ``machine``.
+        Default :func:`oga.search.robust.plants.scenario_set` of ``machine``.
     baselines : dict of str to BaselineResult, optional
         Each program's robust baseline when already found.
     threads : int, optional

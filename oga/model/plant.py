@@ -1,10 +1,10 @@
 """The plant: a machine compiled once into what every stage of the pipeline reads.
 
-A :class:`~oga.machine.Machine` is the description (pydantic, validated at the edge); a
+A :class:`~oga.model.machine.Machine` is the description (pydantic, validated at the edge); a
 :class:`Plant` is that description packed for the engine, once: the kernel parameters of
-every axis (:func:`oga.simulate.axis_params`: sub-step matrices, lifted map, friction), the
+every axis (:func:`oga.model.simulate.axis_params`: sub-step matrices, lifted map, friction), the
 kinematic limits, the dead time per axis, the period and the machine's digest; the stable Kp
-range per axis (:func:`oga.stability.stable_ends`) is read on first use. :func:`plant_of`
+range per axis (:func:`oga.model.stability.stable_ends`) is read on first use. :func:`plant_of`
 keeps one plant per machine digest, so every stage that is handed the same machine (or an
 equal one) shares the same arrays.
 
@@ -20,7 +20,7 @@ from functools import cached_property
 
 import numpy as np
 
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["Plant", "PlantBatch", "as_plant", "machine_of", "plant_of"]
 
@@ -48,10 +48,10 @@ class Plant:
     axes : tuple of str
         The machine's axes, in x, y, z order.
     params : ndarray, shape (3, P), read-only
-        Packed kernel parameters per axis x, y, z (lifted, :func:`oga.simulate.axis_params`);
+        Packed kernel parameters per axis x, y, z (lifted, :func:`oga.model.simulate.axis_params`);
         a zero row where the machine lacks the axis.
     state_size : int
-        Length of an axis state (:func:`oga.simulate.state_size`).
+        Length of an axis state (:func:`oga.model.simulate.state_size`).
     dead_samples : ndarray, shape (3,), read-only
         Dead time per axis, position-loop samples (0 where the machine lacks the axis).
     limits : ndarray, shape (3, 3), read-only
@@ -70,7 +70,7 @@ class Plant:
     @classmethod
     def from_machine(cls, machine: Machine) -> "Plant":
         """Pack ``machine`` (prefer :func:`plant_of`, which keeps one plant per digest)."""
-        from oga.simulate import _params_of, _sizes  # the packing lives with the kernels
+        from oga.model.simulate import _params_of, _sizes  # the packing lives with the kernels
 
         digest = machine.digest()
         n_params, n_state = _sizes(machine)
@@ -98,9 +98,9 @@ class Plant:
 
     @cached_property
     def stable_kp(self) -> dict[str, tuple[float, float]]:
-        """Stable Kp range ``(lo, hi)`` per axis, (m/min)/mm (:func:`oga.stability.stable_ends`;
+        """Stable Kp range ``(lo, hi)`` per axis, (m/min)/mm (:func:`oga.model.stability.stable_ends`;
         ``nan`` both where no grid value is stable)."""
-        from oga.stability import stable_ends
+        from oga.model.stability import stable_ends
 
         return {a: stable_ends(self.machine, a) for a in self.axes}
 

@@ -7,7 +7,7 @@ import numpy as np
 from feedplan.setpoints import AXES
 from oga.defaults import SETPOINTS_LIMIT_SLACK, TRACE_DT_REL_TOL
 from oga.identify.trace import TraceError
-from oga.machine import Machine
+from oga.model.machine import Machine
 
 __all__ = ["SetpointsError", "check_period", "check_limits"]
 

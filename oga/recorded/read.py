@@ -33,7 +33,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga.defaults import LINUXCNC, TRACE_MAX_BYTES
 from oga.files import read_limited
 from oga.identify.trace import TraceError, check_speed, read_table
-from oga.machine import Machine
+from oga.model.machine import Machine
 from oga.recorded.check import SetpointsError, check_limits, check_period
 from oga.recorded.lcnc import LinuxcncPeriods, parse_header, pid_law
 

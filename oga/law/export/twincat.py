@@ -17,7 +17,7 @@ from __future__ import annotations
 from feedplan.setpoints import AXES
 from oga.errors import OptionError
 from oga.law.law import Law
-from oga.machine import KP_SI_PER_M_MIN_PER_MM
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 
 __all__ = ["twincat_files"]
 
