@@ -9,7 +9,7 @@ taken as its tangent at rest) instead of the sub-steps. Per program (reference_x
 cncjs_toolpath) over the 96 plants of the machine's seeded set, each with the setting and
 without it (the exact kernel), three fixed gain pairs:
 
-- CPU per replay (:func:`oga.model.simulate.simulate`, all axes; the least of
+- CPU per replay (:func:`oga.model.response.simulate`, all axes; the least of
   ``bench_optimize.REPEATS`` sweeps over the plants, one thread, after a warm-up);
 - the largest ``|dp|`` (m) and ``|du|`` (m/s) between the two, and the largest relative
   change of MSE(CE), of the eq. 2 command ratios and of the largest following error;

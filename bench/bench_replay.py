@@ -5,7 +5,7 @@ Run:  python bench/bench_replay.py [--machine ucp710] [--only NAME,..]
 Per program (reference_xz and cncjs_toolpath, tests/data) and plant (the nominal machine
 and 4 plants of its seeded uncertainty set: two Monte Carlo draws and two corners, the
 friction low and high), the CPU time (one thread, after a warm-up; the least of
-``bench_optimize.REPEATS`` runs) per sample of :func:`oga.model.simulate.simulate` (all axes: ns
+``bench_optimize.REPEATS`` runs) per sample of :func:`oga.model.response.simulate` (all axes: ns
 per sample, and per moving axis and sample), :func:`oga.model.contour.contour_error_of`,
 :func:`oga.model.metrics.contour_metrics`, :func:`oga.verify.command_ratios` and a whole
 :func:`oga.verify.verify`, with fixed gains of 3 (m/min)/mm and Kf 0.8. The figures of the

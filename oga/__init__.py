@@ -25,7 +25,7 @@ _EXPORTS = {
     "OptimizeResult": "oga.search.result",
     "optimize": "oga.optimize",
     "run_job": "oga.pipeline",
-    "simulate": "oga.model.simulate",
+    "simulate": "oga.model.response",
     "stable_range": "oga.model.stability",
     "gain_ranges": "oga.search.ranges",
     "contour_error": "oga.model.contour",

@@ -1,7 +1,7 @@
 """afsmc: adaptive fuzzy sliding-mode control with velocity-scheduled dynamic compensation.
 
 The paper's claims, on ucp710 (circle R50 F3000, reference_xz), against references
-computed here: the uncoupled P + feed-forward of oga.model.simulate.simulate at the best
+computed here: the uncoupled P + feed-forward of oga.model.response.simulate at the best
 fixed gains, tracking and contour errors recomputed from the positions.
 """
 
@@ -22,7 +22,7 @@ from oga.errors import OptionError
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
 from oga.search.ranges import gain_ranges
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 DATA = Path(__file__).parent / "data"
 MACHINE = load_machine("ucp710")

@@ -1,6 +1,6 @@
 """Koren's cross-coupled control: the paper's claim on our plant, against independent references.
 
-References: the uncoupled P + FFW loops of :func:`oga.model.simulate.simulate` (same Kp, Kf),
+References: the uncoupled P + FFW loops of :func:`oga.model.response.simulate` (same Kp, Kf),
 exact circle/line geometry for the contour-error estimate, and python-control closed-loop
 poles for the stability of the coupled loop.
 """
@@ -23,7 +23,7 @@ from oga.model.linear import position_open_loop
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
 from oga.search.ranges import gain_ranges
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

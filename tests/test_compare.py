@@ -23,7 +23,7 @@ from oga.errors import OptionError
 from oga.model.machine import load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
 from oga.search.ranges import gain_ranges
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 DATA = Path(__file__).parent / "data"
 MACHINE = load_machine("ucp710")

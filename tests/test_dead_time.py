@@ -15,7 +15,8 @@ from oga.model.linear import dead_line, position_open_loop
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
 from oga.search.robust.plants import perturbed_machine, scenario_set
-from oga.model.simulate import axis_params, simulate, simulate_axis
+from oga.model.simulate import axis_params, simulate_axis
+from oga.model.response import simulate
 from oga.model.stability import margins, stable_range
 
 DATA = Path(__file__).parent / "data"

@@ -3,7 +3,7 @@
 A program with long rapids between two cuts (tests/data/rapids_xy.ngc): its rapids
 run the axes at their speed and acceleration, where the position loop's velocity
 command is hardest to keep within paper eq. 2. The references are independent of
-oga's checks: a fresh simulation of the exported gains (:func:`oga.model.simulate.simulate`,
+oga's checks: a fresh simulation of the exported gains (:func:`oga.model.response.simulate`,
 not :func:`oga.verify.verify`'s replay) and plain numpy differences of its velocity
 command over every sample, the axes at rest before the start.
 """
@@ -22,7 +22,7 @@ from oga.errors import MachineError
 from oga.model.machine import load_machine, machine_from_dict
 from oga.optimize import optimize
 from oga.search.ranges import best_fixed_gains
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"

@@ -11,7 +11,7 @@
   loops, against a fresh ``scipy.linalg.expm`` and the sequence composed here, on the same
   plants and the presets; the packed parameters whichever asks first;
 - the replay's checks: the percentiles of :func:`oga.model.metrics.contour_metrics` against
-  ``np.percentile``, the rest test of :func:`oga.model.simulate.simulate` against numpy's, the
+  ``np.percentile``, the rest test of :func:`oga.model.response.simulate` against numpy's, the
   machine's memoised digest and limits against fresh ones.
 """
 
@@ -34,6 +34,7 @@ from oga.model.metrics import _QUANTILES, _percentiles
 from oga.search.robust.plants import scenario_set
 
 sim = importlib.import_module("oga.model.simulate")  # the module, not oga's function
+response = importlib.import_module("oga.model.response")
 
 UCP = load_machine("ucp710")
 PLANTS = scenario_set(UCP).plants  # the default set: 64 Monte Carlo plants, 32 corners
@@ -211,7 +212,7 @@ def test_rest_test_is_numpys():
         pd = rng.choice([0.0, -0.0, 1.0, np.nan], n)
         vd = rng.choice([0.0, -0.0, 1e-300, np.nan], n)
         want = bool(np.all(pd == pd[0])) and not bool(np.any(vd))
-        assert sim._still(pd, vd) == want
+        assert response._still(pd, vd) == want
 
 
 def test_machine_memos_are_fresh_values_and_go_with_the_machine():

@@ -1,6 +1,6 @@
 """Fuzzy self-tuning PID: the paper's claim on our plant, against independent references.
 
-References: the P + FFW loops of :func:`oga.model.simulate.simulate`, and the discrete PID
+References: the P + FFW loops of :func:`oga.model.response.simulate`, and the discrete PID
 closed loop of python-control on :func:`oga.model.linear.position_open_loop`.
 """
 
@@ -23,7 +23,7 @@ from oga.model.linear import position_open_loop
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.pipeline import plan_toolpath
 from oga.search.ranges import gain_ranges
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

@@ -31,7 +31,7 @@ from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from
 from oga.errors import OptionError
 from oga.search.robust.baseline import robust_baseline
 from oga.search.robust.plants import scenario_set
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"

@@ -26,7 +26,7 @@ from oga.law.export.linuxcnc import LAW_HAL, law_hal
 from oga.law.law import AxisLaw, Law, law_gains
 from oga.law.override import plan_override
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from test_linuxcnc import _LOCK, _halrun_env, _isolated
 
 DATA = Path(__file__).parent / "data"

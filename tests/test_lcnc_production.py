@@ -50,7 +50,7 @@ from oga.export.linuxcnc import run_session
 from oga.export.linuxcnc.session import LinuxcncError
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.recorded import read_setpoints
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from tests.lcnc_sim import write_config
 from tests.test_linuxcnc import _LOCK
 

@@ -22,7 +22,7 @@ from oga.export.table import table_csv
 from oga.model.machine import machine_from_dict
 from oga.optimize import optimize
 from oga.options import options_from_dict
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from oga.verify.replay import command_ratios, verify
 from pinned_setpoints import pinned_setpoints
 

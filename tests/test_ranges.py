@@ -15,7 +15,7 @@ from oga.errors import InputError, OptionError
 from oga.model.machine import load_machine, machine_from_dict
 from oga.search.ranges import best_fixed_gains, gain_ranges, kinematic_range
 from oga.model.stability import decimal_grid, stable_range
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 UCP = load_machine("ucp710")
 

@@ -27,7 +27,8 @@ from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from
 from oga.model.metrics import contour_metrics
 from oga.pipeline import plan_toolpath
 from oga.search.robust.plants import scenario_set
-from oga.model.simulate import axis_params, rest_state, run, simulate
+from oga.model.simulate import axis_params, rest_state, run
+from oga.model.response import simulate
 import references
 
 DATA = Path(__file__).parent / "data"

@@ -22,7 +22,7 @@ from oga.optimize import optimize
 from oga.pipeline import plan_toolpath
 from oga.verify.certificate import certify, certify_result
 from oga.search.robust.plants import scenario_set
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from oga.model.stability import stable_range
 
 DATA = Path(__file__).parent / "data"

@@ -6,7 +6,7 @@
   :func:`oga.model.stability.stable_range` (solve path, fresh memo), over the plants of ucp710's
   default uncertainty set; the loop's shared frequency grid and compiled phase unwrap
   against numpy's, bit for bit;
-- :func:`oga.model.simulate.simulate` skipping an axis whose setpoint never moves, against the
+- :func:`oga.model.response.simulate` skipping an axis whose setpoint never moves, against the
   kernel's own replay of that axis, bit for bit;
 - the largest following error per axis in one compiled pass (:func:`oga.model.metrics.track_max`)
   against numpy's.
@@ -24,7 +24,8 @@ from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from
 from oga.model.metrics import track_max
 from oga.pipeline import plan_toolpath
 from oga.search.robust.plants import scenario_set
-from oga.model.simulate import axis_params, simulate, simulate_axis
+from oga.model.simulate import axis_params, simulate_axis
+from oga.model.response import simulate
 
 DATA = Path(__file__).parent / "data"
 ROBUST = load_machine("ucp710")

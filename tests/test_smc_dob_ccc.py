@@ -2,7 +2,7 @@
 
 References: the continuous velocity loop of python-control (for the identified lag),
 exact circle geometry (for the contour-error estimate), and the uncoupled P + FFW loops
-of :func:`oga.model.simulate.simulate` under the same load.
+of :func:`oga.model.response.simulate` under the same load.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from oga.errors import OptionError, TuneError
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
 from oga.search.ranges import gain_ranges
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from oga.verify.replay import command_ratios
 
 DATA = Path(__file__).parent / "data"

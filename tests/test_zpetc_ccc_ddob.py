@@ -2,7 +2,7 @@
 
 References: the paper's printed low-pass coefficients, python-control frequency
 responses of the closed position loop, the uncoupled P + FFW of
-:func:`oga.model.simulate.simulate`, and the same law without the observer under a load step.
+:func:`oga.model.response.simulate`, and the same law without the observer under a load step.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from oga.model.linear import position_open_loop
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.pipeline import plan_toolpath
 from oga.search.ranges import gain_ranges
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 DATA = Path(__file__).parent / "data"
 UCP = load_machine("ucp710")

@@ -53,7 +53,8 @@ from oga.controllers.base import (
 )
 from oga.errors import OptionError, TuneError
 from oga.model.machine import Machine
-from oga.model.simulate import axis_arrays, drive
+from oga.model.simulate import drive
+from oga.model.response import axis_arrays
 
 __all__ = ["NAME", "NEEDS_FIRMWARE", "PARAMETERS", "RULES", "AfsmcTrace", "simulate_afsmc", "run"]
 
@@ -135,7 +136,7 @@ KF, KP_C, INV_ES, INV_RS, GAMMA, DEAD_ZONE, INV_VPROG, TE = range(8)
 def _loop(params, states, inputs, law, theta, out_p, out_u, out_comp, out_adapt):
     """The per-sample loop over all axes (see the module docstring for the law).
 
-    ``params, states`` from :func:`oga.model.simulate.axis_arrays` (advanced in place);
+    ``params, states`` from :func:`oga.model.response.axis_arrays` (advanced in place);
     ``inputs`` an :data:`Inputs`; ``law`` the constants at :data:`KF` ... :data:`TE`;
     ``theta`` (3, 7, 7) rule singletons (m/s), adapted in place; ``out_p, out_u`` (N, 3)
     (m, m/s), ``out_comp, out_adapt`` (N,) bool.

@@ -18,7 +18,7 @@ the contour plane ``(e1, e2)`` of the setpoints:
 
 Axes outside the plane and rapid samples: P + feed-forward only (the integral restarts
 after a rapid). With ``Kc = Ki = 0`` the run is the uncoupled P + FFW of
-:func:`oga.model.simulate.simulate`.
+:func:`oga.model.response.simulate`.
 
 The shared pieces of the cross-coupled laws (:func:`baseline_gains`,
 :func:`cc_correction`, :func:`prepare`) are used by :mod:`oga.controllers.zpetc_ccc_ddob`.
@@ -45,7 +45,8 @@ from oga.controllers.base import (
 )
 from oga.errors import OptionError
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
-from oga.model.simulate import axis_arrays, drive
+from oga.model.simulate import drive
+from oga.model.response import axis_arrays
 
 __all__ = [
     "NAME",
@@ -107,7 +108,7 @@ class Prepared:
     Attributes
     ----------
     params, states : ndarray, shape (3, P), (3, S)
-        :func:`oga.model.simulate.axis_arrays` of the machine, states at the first setpoint.
+        :func:`oga.model.response.axis_arrays` of the machine, states at the first setpoint.
     present : ndarray of bool, shape (3,)
     pd, vd : ndarray, shape (N, 3)
         Setpoint positions (m) and velocities (m/s).

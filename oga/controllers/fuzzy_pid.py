@@ -36,7 +36,8 @@ from oga.controllers.base import ControllerRun, baseline_si, check_parameters, g
 from oga.controllers.fuzzy import RULES, UNIVERSE, mamdani
 from oga.errors import OptionError
 from oga.model.machine import Machine
-from oga.model.simulate import axis_arrays, drive
+from oga.model.simulate import drive
+from oga.model.response import axis_arrays
 
 __all__ = ["NAME", "NEEDS_FIRMWARE", "PARAMETERS", "run", "law_inputs"]
 

@@ -4,7 +4,7 @@ Both are the machine's own P + feed-forward position loop with a table of gains
 (no firmware access): ``fixed`` the best equal fixed gains of the toolpath
 (:func:`oga.search.ranges.gain_ranges`), ``oga`` the schedule exported by
 :func:`oga.optimize.optimize` (the baseline's fixed gains when the search did not
-beat them), both as replayed by :func:`oga.verify.verify` / :func:`oga.model.simulate.simulate`.
+beat them), both as replayed by :func:`oga.verify.verify` / :func:`oga.model.response.simulate`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ OGA_PARAMETERS = tuple(f for f in OptimizeOptions.model_fields
 def _no_load(name: str, load_n) -> None:
     if load_n is not None:
         raise OptionError(f"{name}: load_n is not supported (a gain table is replayed by "
-                          "oga.model.simulate.simulate, which has no load input)")
+                          "oga.model.response.simulate, which has no load input)")
 
 
 def run_fixed(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool = True,
@@ -43,7 +43,7 @@ def run_fixed(setpoints: Setpoints, machine: Machine, *, load_n=None, tune: bool
     OptionError
         Unknown parameter, a load given, or no fixed gains meet the limits.
     """
-    from oga.model.simulate import simulate
+    from oga.model.response import simulate
 
     check_parameters("fixed", parameters, FIXED_PARAMETERS)
     _no_load("fixed", load_n)

@@ -63,7 +63,8 @@ from oga.controllers.fuzzy_pid import PAPER_RATIOS, law_inputs
 from oga.errors import MachineError, OptionError, TuneError
 from oga.model.linear import lifted_axis
 from oga.model.machine import Machine
-from oga.model.simulate import axis_arrays, drive
+from oga.model.simulate import drive
+from oga.model.response import axis_arrays
 
 __all__ = [
     "NAME", "NEEDS_FIRMWARE", "PARAMETERS", "run", "velocity_lag_s", "contour_error_estimate",

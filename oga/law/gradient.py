@@ -5,7 +5,7 @@ A law's gain at sample ``k`` is a fixed convex combination of its support values
 the derivative of every replayed position and velocity command with respect to one
 support value is the forward-mode tangent of the simulation along that weight sequence
 (:func:`oga.model.tangent.run_tangent`, the window search's sensitivities, here over the whole
-program in one pass: the same positions and commands as :func:`oga.model.simulate.simulate`,
+program in one pass: the same positions and commands as :func:`oga.model.response.simulate`,
 to the bit).
 
 The contour error is linearised as the window search does (:mod:`oga.search.window`): at each feed
@@ -64,7 +64,7 @@ def axis_tangent(plant, axis: str, i: int, pd: np.ndarray, vd: np.ndarray, kp: n
     Returns
     -------
     p, u : ndarray, shape (N,)
-        Positions (m) and velocity commands (m/s), the bits of :func:`oga.model.simulate.simulate`.
+        Positions (m) and velocity commands (m/s), the bits of :func:`oga.model.response.simulate`.
     sp, su : ndarray, shape (N, nkp + nkf)
         Their derivatives per support value (Kp's first, per (m/min)/mm; then Kf's).
     """

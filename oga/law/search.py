@@ -68,7 +68,7 @@ from oga.parallel import resolve_threads
 from oga.search.robust.baseline import BaselineResult
 from oga.verify.certificate import plant_bounds
 from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_set
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 from oga.verify.replay import command_ratios, ferror_ratios, verify
 
 __all__ = ["Program", "LawResult", "search_law"]

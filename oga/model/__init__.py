@@ -4,6 +4,8 @@
 - :mod:`oga.model.linear`, :mod:`oga.model.stability`: the linear loop, its stable gain range;
 - :mod:`oga.model.simulate`, :mod:`oga.model.tangent`: compiled simulation of the loops
   (and its tangent for the gradient search);
+- :mod:`oga.model.plant`: a machine packed once for the kernels (and a batch of them);
+  :mod:`oga.model.response`: every axis of a plant simulated on setpoints;
 - :mod:`oga.model.kinematics`, :mod:`oga.model.contour`, :mod:`oga.model.metrics`: command
   derivatives and their limits, the contour error, its figures.
 
@@ -21,9 +23,11 @@ _EXPORTS = {
     "stable_range": "oga.model.stability",
     "contour_error": "oga.model.contour",
     "contour_metrics": "oga.model.metrics",
+    "Plant": "oga.model.plant",
+    "plant_of": "oga.model.plant",
 }
-_SUBMODULES = ("machine", "linear", "stability", "simulate", "tangent", "kinematics",
-               "contour", "metrics")
+_SUBMODULES = ("machine", "plant", "linear", "stability", "simulate", "response", "tangent",
+               "kinematics", "contour", "metrics")
 
 __all__ = sorted(_EXPORTS)
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from oga.model.machine import Machine
 
-__all__ = ["Plant", "PlantBatch", "as_plant", "machine_of", "plant_of"]
+__all__ = ["Plant", "PlantBatch", "machine_of", "plant_of"]
 
 #: The axes' order of every per-axis array (that of :data:`feedplan.setpoints.AXES`).
 AXES = ("x", "y", "z")
@@ -122,9 +122,6 @@ def machine_of(machine: Machine | Plant) -> Machine:
     """The machine of a plant, or the machine itself (no packing)."""
     return machine.machine if isinstance(machine, Plant) else machine
 
-
-#: Alias read at the public edges: a Machine or a Plant in, a Plant out.
-as_plant = plant_of
 
 #: One plant per machine digest (:func:`plant_of`).
 _PLANTS: dict[str, Plant] = {}

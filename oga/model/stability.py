@@ -35,6 +35,7 @@ import functools
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit, types
@@ -45,7 +46,9 @@ from scipy.optimize import brentq
 from oga.errors import OptionError
 from oga.model.linear import dead_line, position_open_loop
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, GainSettings, Machine, json_digest
-from oga.model.plant import Plant, machine_of
+
+if TYPE_CHECKING:  # a Plant is taken for its machine only: the plant imports this module
+    from oga.model.plant import Plant
 
 ensure_lapack()  # scipy's LAPACK for :data:`_DGEEV`
 
@@ -444,7 +447,7 @@ def margins(machine: Machine | Plant, axis: str, kp_m_min_per_mm: float) -> Marg
     OptionError
         ``kp_m_min_per_mm`` not a positive finite number.
     """
-    machine = machine_of(machine)
+    machine = getattr(machine, "machine", machine)  # a Plant: its machine
     try:
         kp = float(kp_m_min_per_mm)
     except (TypeError, ValueError):
@@ -491,7 +494,7 @@ def stable_range(machine: Machine | Plant, axis: str) -> StabilityRange:
     -------
     StabilityRange
     """
-    machine = machine_of(machine)
+    machine = getattr(machine, "machine", machine)  # a Plant: its machine
     g = machine.gains
     loop_key = _loop_key(machine, axis)
     kp, pm, gm, stable = _memo(
@@ -515,7 +518,7 @@ def stable_ends(machine: Machine | Plant, axis: str) -> tuple[float, float]:
     :func:`stable_range` already holds is used as is; the ends are memoised by what they
     depend on (the loop and the gain settings).
     """
-    machine = machine_of(machine)
+    machine = getattr(machine, "machine", machine)  # a Plant: its machine
     g = machine.gains
     loop_key = _loop_key(machine, axis)
     return _memo(_ENDS, (loop_key, g.model_dump_json()), _ENDS_KEPT,

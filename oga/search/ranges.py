@@ -48,7 +48,8 @@ from oga.errors import InputError, OptionError
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.model.metrics import ContourMetrics, contour_metrics
 from oga.model.plant import Plant, plant_of
-from oga.model.simulate import rest_state, run, run_axes, simulate, simulate_axis
+from oga.model.simulate import rest_state, run, run_axes, simulate_axis
+from oga.model.response import simulate
 from oga.model.kinematics import command_peaks
 from oga.model.stability import decimal_grid
 

@@ -27,7 +27,7 @@ from oga.model.machine import Machine
 from oga.model.plant import Plant, plant_of
 from oga.model.metrics import ContourMetrics, nan_max, contour_metrics
 from oga.model.kinematics import command_peaks
-from oga.model.simulate import simulate
+from oga.model.response import simulate
 
 __all__ = ["Verification", "command_ratios", "ferror_ratios", "verify"]
 
