@@ -19,6 +19,9 @@ from pathlib import Path
 import pytest
 
 import references
+from feedplan.read import load_toolpath
+from oga.model.machine import load_machine
+from oga.pipeline import plan_toolpath
 from oga.search.robust.search import robust_optimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
@@ -29,27 +32,23 @@ BAND = 0.15
 
 
 NAME = "reference_xz.ngc"
+DATA = Path(__file__).parent / "data"
 
 
 @pytest.fixture(scope="module")
-def unperturbed():
-    return references.robust_case(NAME)
-
-
-@pytest.fixture(scope="module")
-def reference(unperturbed):
-    from oga.model.machine import load_machine
-    from pinned_setpoints import pinned_setpoints
-
-    return load_machine("ucp710"), pinned_setpoints(NAME), figures(unperturbed)
+def reference():
+    m = load_machine("ucp710")
+    sp = plan_toolpath(load_toolpath(DATA / NAME), m, feed_m_s=None, tol_m=2e-5)
+    return m, sp, figures(robust_optimize(sp, m, threads=2))
 
 
 @pytest.mark.portable
-def test_the_robust_table_and_certificate_are_the_stored_ones(unperturbed):
+def test_the_robust_table_and_certificate_are_the_stored_ones():
     """The exported table, the baseline, the rounds and the certificate's ratio on every plant
-    equal ``tests/data/reference/robust.npz`` within :data:`references.TOL` (what a refactor
-    must keep: issue 31)."""
-    got = references.robust_arrays(unperturbed)
+    of reference_xz (the pinned setpoints of :mod:`pinned_setpoints`) equal
+    ``tests/data/reference/robust.npz`` within :data:`references.TOL` (what a refactor must
+    keep: issue 31)."""
+    got = references.robust_arrays(references.robust_case(NAME))
     assert references.compare("robust", NAME, got) == []
 
 
