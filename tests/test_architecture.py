@@ -243,3 +243,15 @@ def test_functions_are_short():
            for m, f in _functions(PACKAGES) if f.end_lineno - f.lineno + 1 > MAX_FUNCTION_LINES]
     assert not bad, (f"{len(bad)} function(s) over {MAX_FUNCTION_LINES} lines (split them):\n"
                      + "\n".join(bad))
+
+
+def test_the_layout_pictures_name_every_package():
+    """The README's layout and the architecture page show the tree as it is: every package
+    of ``oga`` (a folder with an ``__init__.py``) is named in both pictures."""
+    packages = sorted(p.parent.relative_to(ROOT).as_posix() + "/"
+                      for p in (ROOT / "oga").glob("*/__init__.py"))
+    readme = (ROOT / "README.md").read_text().split("## Layout", 1)[1].split("```", 2)[1]
+    page = (ROOT / "docs" / "explanation" / "architecture.md").read_text()
+    for name, text in (("README.md", readme), ("architecture.md", page)):
+        short = [p for p in packages if p not in text and p.split("/", 1)[1] not in text]
+        assert not short, f"{name}'s layout picture does not name {short}"
