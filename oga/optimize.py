@@ -229,6 +229,7 @@ def _search(setpoints, plant, options, box, moving, report):
     baseline gains, ``report = (progress, share done before)``; returns the searched
     ``(kp, kf)`` (N, 3), read-only, and ``(fallbacks, windows)``."""
     from oga.model.simulate import rest_state
+    from oga.search.paper import Gains
 
     n = len(setpoints)
     machine = plant.machine
@@ -241,8 +242,10 @@ def _search(setpoints, plant, options, box, moving, report):
     lim = machine.axis_limits()  # the same arrays (read-only) the compiled searches take
     limits = (lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3)
     is_moving = np.array([a in moving for a in AXES])
+    kp_base, kf_base, gain_bounds = box
+    gains = Gains(*gain_bounds, kp_base, kf_base)
     make = _paper_search if options.mode == "paper" else _window_search
-    advance, chunk, run, stat_keys = make(setpoints, (params, states), options, box,
+    advance, chunk, run, stat_keys = make(setpoints, (params, states), options, gains,
                                           (limits, is_moving, machine.ferror_limits()))
     for k0 in range(0, n, chunk):
         advance(k0, min(k0 + chunk, n))
@@ -253,23 +256,21 @@ def _search(setpoints, plant, options, box, moving, report):
     return run.kp_out, run.kf_out, (run.stats[stat_keys[0]], run.stats[stat_keys[1]])
 
 
-def _paper_search(setpoints, plant, options, box, checks):
+def _paper_search(setpoints, plant, options, gains, checks):
     """``(advance(k0, k1), chunk, state, (STAT_FALLBACK, STAT_WINDOWS))`` of the paper mode
     (:func:`oga.search.paper.paper_search`) on ``plant``: ``(params, states)`` (3, P),
     (3, Z)."""
-    from oga.search.paper import (STAT_FALLBACK, STAT_WINDOWS, Axes, Gains, paper_search,
+    from oga.search.paper import (STAT_FALLBACK, STAT_WINDOWS, Axes, paper_search,
                                   paper_settings_of, state_of)
 
     params, states = plant
     pd = np.ascontiguousarray(setpoints.pos)
     pdT = np.ascontiguousarray(setpoints.pos.T)
     vdT = np.ascontiguousarray(setpoints.vel.T)
-    kp_base, kf_base, gain_bounds = box
     (vmax, amax, jmax), is_moving, ferror_max = checks
     axes = Axes(params, vmax, amax, jmax, ferror_max)
-    gains = Gains(*gain_bounds, kp_base, kf_base)
     cfg = paper_settings_of(options, setpoints.dt)
-    st = state_of(states, kp_base, kf_base, len(setpoints))
+    st = state_of(states, gains.kp_base, gains.kf_base, len(setpoints))
 
     def advance(k0, k1):
         paper_search(k0, k1, pd, pdT, vdT, is_moving, axes, gains, cfg, st)
@@ -277,22 +278,19 @@ def _paper_search(setpoints, plant, options, box, checks):
     return advance, _CHUNK, st, (STAT_FALLBACK, STAT_WINDOWS)
 
 
-def _window_search(setpoints, plant, options, box, checks):
+def _window_search(setpoints, plant, options, gains, checks):
     """``(advance(k0, k1), chunk, carry, (STAT_FALLBACK, STAT_WINDOWS))`` of the full mode's
     windowed search (:func:`oga.search.window.window_search`) on ``plant``: ``(params,
     states)`` (3, P), (3, Z)."""
-    from oga.search.paper import Gains
     from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, carry_of, chunk_of, one_plant,
                                    program_of, settings_of, window_search)
 
     params, states = plant
-    kp_base, kf_base, gain_bounds = box
     limits, is_moving, ferror_max = checks
     cfg = settings_of(options, setpoints.dt)
     prog = program_of(setpoints, is_moving, cfg)
     plants = one_plant(params, *limits, ferror_max)
-    gains = Gains(*gain_bounds, kp_base, kf_base)
-    carry = carry_of(states[None], kp_base, kf_base, cfg, len(setpoints))
+    carry = carry_of(states[None], gains.kp_base, gains.kf_base, cfg, len(setpoints))
 
     def advance(k0, k1):
         window_search(k0, k1, prog, plants, gains, cfg, carry)
