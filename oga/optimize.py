@@ -229,6 +229,7 @@ def _search(setpoints, plant, options, box, moving, report):
     baseline gains, ``report = (progress, share done before)``; returns the searched
     ``(kp, kf)`` (N, 3), read-only, and ``(fallbacks, windows)``."""
     from oga.model.simulate import rest_state
+    from oga.search.paper import Gains
 
     n = len(setpoints)
     machine = plant.machine
@@ -237,91 +238,65 @@ def _search(setpoints, plant, options, box, moving, report):
     params = np.stack([plant.params[i if a in machine.axes else present[0]]
                        for i, a in enumerate(AXES)])
     states = np.stack([rest_state(params[i], pd[0, i]) for i in range(3)])
-    kp_base, kf_base, _bounds = box
     progress, share = report
     lim = machine.axis_limits()  # the same arrays (read-only) the compiled searches take
     limits = (lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3)
     is_moving = np.array([a in moving for a in AXES])
-    make = _paper_advance if options.mode == "paper" else _window_advance
-    advance, chunk, stat_keys = make(setpoints, params, options, box,
-                                     (limits, is_moving, machine.ferror_limits()))
-    # the search state: axis states, gains, command history, outputs, counters
-    run = (states.copy(), kp_base.copy(), kf_base.copy(), np.zeros((3, 2)),
-           np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
+    kp_base, kf_base, gain_bounds = box
+    gains = Gains(*gain_bounds, kp_base, kf_base)
+    make = _paper_search if options.mode == "paper" else _window_search
+    advance, chunk, run, stat_keys = make(setpoints, (params, states), options, gains,
+                                          (limits, is_moving, machine.ferror_limits()))
     for k0 in range(0, n, chunk):
-        advance(k0, min(k0 + chunk, n), run)
+        advance(k0, min(k0 + chunk, n))
         if progress is not None:
             progress(share + (1.0 - share) * min(k0 + chunk, n) / n)
-    kp_out, kf_out, stats = run[4], run[5], run[7]
-    for arr in (kp_out, kf_out):
+    for arr in (run.kp_out, run.kf_out):
         arr.flags.writeable = False
-    return kp_out, kf_out, (stats[stat_keys[0]], stats[stat_keys[1]])
+    return run.kp_out, run.kf_out, (run.stats[stat_keys[0]], run.stats[stat_keys[1]])
 
 
-def _paper_advance(setpoints, params, options, box, checks):
-    """``(advance(k0, k1, run), chunk, (STAT_FALLBACK, STAT_WINDOWS))`` of the paper mode
-    (:func:`oga.search.paper.search_chunk`)."""
-    from oga.search.paper import STAT_FALLBACK, STAT_WINDOWS, search_chunk
+def _paper_search(setpoints, plant, options, gains, checks):
+    """``(advance(k0, k1), chunk, state, (STAT_FALLBACK, STAT_WINDOWS))`` of the paper mode
+    (:func:`oga.search.paper.paper_search`) on ``plant``: ``(params, states)`` (3, P),
+    (3, Z)."""
+    from oga.search.paper import (STAT_FALLBACK, STAT_WINDOWS, Axes, paper_search,
+                                  paper_settings_of, state_of)
 
+    params, states = plant
     pd = np.ascontiguousarray(setpoints.pos)
     pdT = np.ascontiguousarray(setpoints.pos.T)
     vdT = np.ascontiguousarray(setpoints.vel.T)
-    kp_base, kf_base, gain_bounds = box
     (vmax, amax, jmax), is_moving, ferror_max = checks
-    te = setpoints.dt
+    axes = Axes(params, vmax, amax, jmax, ferror_max)
+    cfg = paper_settings_of(options, setpoints.dt)
+    st = state_of(states, gains.kp_base, gains.kf_base, len(setpoints))
 
-    def advance(k0, k1, run):
-        search_chunk(k0, k1, pd, pdT, vdT, params, *run[:3], *gain_bounds, vmax, amax, jmax, te,
-                     run[3], options.np_value, options.lam_value, options.anchor_value, kp_base,
-                     kf_base, defaults.A1, defaults.A2, defaults.CE_WINDOW_SAMPLES,
-                     is_moving, *run[4:], ferror_max)
+    def advance(k0, k1):
+        paper_search(k0, k1, pd, pdT, vdT, is_moving, axes, gains, cfg, st)
 
-    return advance, _CHUNK, (STAT_FALLBACK, STAT_WINDOWS)
+    return advance, _CHUNK, st, (STAT_FALLBACK, STAT_WINDOWS)
 
 
-def _window_advance(setpoints, params, options, box, checks):
-    """``(advance(k0, k1, run), chunk, (STAT_FALLBACK, STAT_WINDOWS))`` of the full mode's
-    windowed search (:func:`oga.search.window.mpc_chunk`)."""
-    from oga.model.contour import path_index
-    from oga.search.window import STAT_FALLBACK, STAT_WINDOWS, mpc_chunk
+def _window_search(setpoints, plant, options, gains, checks):
+    """``(advance(k0, k1), chunk, carry, (STAT_FALLBACK, STAT_WINDOWS))`` of the full mode's
+    windowed search (:func:`oga.search.window.window_search`) on ``plant``: ``(params,
+    states)`` (3, P), (3, Z)."""
+    from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, carry_of, chunk_of, one_plant,
+                                   program_of, settings_of, window_search)
 
-    n = len(setpoints)
-    pd = np.ascontiguousarray(setpoints.pos)
-    pdT = np.ascontiguousarray(setpoints.pos.T)
-    vdT = np.ascontiguousarray(setpoints.vel.T)
-    kp_base, kf_base, gain_bounds = box
-    (vmax, amax, jmax), is_moving, ferror_max = checks
-    te = setpoints.dt
-    wlen = options.np_value
-    kspace = options.knot_value
-    # whole spline intervals, so that the shifted plan is the same gain trajectory
-    commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
-    # every call ends after a whole number of commits: the plan carried to the next
-    # call is shifted by whole spline intervals only
-    chunk = max(_CHUNK // commit, 1) * commit
-    pad = wlen + defaults.MPC_SETTLE_TAIL + 1
-    pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
-    vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-    feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
-    # eq. 2 and the following-error limit: every sample of the program, not the padding
-    live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
-    # the contour error's index and windows, as the replay measures it
-    tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
-    # the plan's spline control points per axis and gain, carried across chunks (as many
-    # as leave the plan at rest over the window's last interval, checked against eq. 2)
-    points = np.repeat(np.stack([kp_base, kf_base], axis=1)[:, :, None], wlen // kspace,
-                       axis=2)
+    params, states = plant
+    limits, is_moving, ferror_max = checks
+    cfg = settings_of(options, setpoints.dt)
+    prog = program_of(setpoints, is_moving, cfg)
+    plants = one_plant(params, *limits, ferror_max)
+    carry = carry_of(states[None], gains.kp_base, gains.kf_base, cfg, len(setpoints))
 
-    def advance(k0, k1, run):
-        mpc_chunk(k0, k1, pd, pdT_pad, vdT_pad, params, *run[:3], *gain_bounds, kp_base,
-                  kf_base, vmax, amax, jmax, te, run[3], wlen, kspace, commit,
-                  defaults.MPC_ITERATIONS, *defaults.MPC_TRUST, options.lam_value,
-                  options.anchor_value, tree, win_lo, win_hi, is_moving,
-                  feed_pad, live_pad, points, *run[4:], defaults.MPC_STOP,
-                  defaults.MPC_SETTLED_M, ferror_max, defaults.MPC_RESTORE,
-                  defaults.MPC_SETTLE_TAIL)
+    def advance(k0, k1):
+        window_search(k0, k1, prog, plants, gains, cfg, carry)
 
-    return advance, chunk, (STAT_FALLBACK, STAT_WINDOWS)
+    # every call ends after a whole number of commits
+    return advance, chunk_of(cfg, _CHUNK), carry, (STAT_FALLBACK, STAT_WINDOWS)
 
 
 def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:

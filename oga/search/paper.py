@@ -55,12 +55,14 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from oga import defaults
 from oga.model.contour import nearest_segment
 from oga.model.kinematics import eq2_excess
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.model.simulate import step, window
 
-__all__ = ["apply_gains", "search_chunk", "paper_search", "Gains", "Axes", "PaperSettings", "State",
+__all__ = ["apply_gains", "paper_search", "paper_settings_of", "state_of", "Gains", "Axes",
+           "PaperSettings", "State",
            "MAX_CANDIDATES", "STAT_FALLBACK", "STAT_WINDOWS"]
 
 #: Largest number of candidates per axis and sample (5 Kp x 5 Kf).
@@ -257,7 +259,7 @@ class Axes(NamedTuple):
 
 
 class PaperSettings(NamedTuple):
-    """Paper mode's scalars (see :func:`search_chunk`)."""
+    """Paper mode's scalars (see :func:`paper_search`, built by :func:`paper_settings_of`)."""
 
     te: float
     n_pred: int
@@ -302,67 +304,55 @@ class _Work(NamedTuple):
     allowed: np.ndarray  # (3, MAX_CANDIDATES)
 
 
-def search_chunk(
-    k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-    vmax, amax, jmax, te, u_hist, n_pred, lam, mu, kp_base, kf_base, a1, a2, ce_window, moving,
-    kp_out, kf_out, u_out, stats, ferror_max,
-):
+def paper_settings_of(options, te) -> PaperSettings:
+    """Paper mode's scalars from its ``options`` (horizon, lam, anchor) and the period
+    ``te`` (s), the candidate fractions and contour-error window from :mod:`oga.defaults`."""
+    return PaperSettings(float(te), int(options.np_value), float(options.lam_value),
+                         float(options.anchor_value), float(defaults.A1), float(defaults.A2),
+                         int(defaults.CE_WINDOW_SAMPLES))
+
+
+def state_of(states, kp, kf, n) -> State:
+    """The search's :class:`State` at the program's start: the axes' ``states`` (3, Z)
+    (changed in place), copies of the gains ``kp``, ``kf`` (3,), no command history,
+    outputs for ``n`` samples, zero counters."""
+    return State(states, kp.copy(), kf.copy(), np.zeros((3, 2)), np.empty((n, 3)),
+                 np.empty((n, 3)), np.empty((n, 3)), np.zeros(4, dtype=np.int64))
+
+
+@njit(cache=True)
+def paper_search(k0, k1, pd, pdT, vdT, moving, axes, gains, cfg, st):
     """Run the receding-horizon search over samples ``k0 .. k1 - 1`` in place.
 
     Parameters
     ----------
     k0, k1 : int
-        Sample range of this chunk (the caller loops over chunks for progress).
+        Sample range of this call (the caller loops over chunks for progress).
     pd : ndarray, shape (N, 3)
         Desired positions (the path), metres, C-contiguous.
     pdT, vdT : ndarray, shape (3, N)
         Desired positions (m) and velocities (m/s) per axis, contiguous rows.
-    params : ndarray, shape (3, P)
-        Packed axis parameters (:func:`oga.model.simulate.axis_params`).
-    states : ndarray, shape (3, S)
-        True axis states at sample k0 (advanced in place).
-    kp, kf : ndarray, shape (3,)
-        Current gains, Kp in (m/min)/mm (updated in place).
-    adj_kp, adj_kf : ndarray of bool, shape (3,)
-        Which gains of which axis the search may change.
-    kp_lo, kp_hi, kf_lo, kf_hi : ndarray, shape (3,)
-        Gain bounds, Kp in (m/min)/mm.
-    vmax, amax, jmax : ndarray, shape (3,)
-        Axis limits (m/s, m/s^2, m/s^3) applied to the velocity command (eq. 2).
-    te : float
-        Sample period, s.
-    u_hist : ndarray, shape (3, 2)
-        Previous velocity commands ``[u_{k-1}, u_{k-2}]`` per axis (updated in place).
-    n_pred : int
-        Prediction horizon Np, samples.
-    lam : float
-        Increment weight (mm^2 per unit^2 of increment; the anchor ``mu`` likewise).
-    a1, a2 : float
-        Candidate fractions.
-    ce_window : int
-        Half-width of the index window searched for the nearest path point.
     moving : ndarray of bool, shape (3,)
         Axes that take part in the contour error.
-    kp_out, kf_out, u_out : ndarray, shape (N, 3)
-        Schedule and velocity commands, written for samples k0 .. k1 - 1.
-    stats : ndarray of int64, shape (2,)
-        Counters, see ``STAT_*``.
-    ferror_max : ndarray, shape (3,)
-        Following-error limit per axis, m (``inf``: none); a candidate's predicted
-        excess over it counts as an eq. 2 excess does (at every sample, as in
+    axes : Axes
+        The plant's packed parameters (3, P) (:func:`oga.model.simulate.axis_params`) and
+        its limits (3,): ``vmax``, ``amax``, ``jmax`` (m/s, m/s^2, m/s^3) on the velocity
+        command (eq. 2), ``ferror_max`` (m, ``inf``: none; a candidate's predicted excess
+        over it counts as an eq. 2 excess does, at every sample, as in
         :mod:`oga.verify.replay`).
+    gains : Gains
+        Which gains of which axis the search may change, their bounds ((m/min)/mm, 1) and
+        the baseline the anchor pulls to.
+    cfg : PaperSettings
+        ``te`` the period (s), ``n_pred`` the horizon Np (samples), ``lam`` the increment
+        weight (mm^2 per unit^2 of increment; the anchor ``mu`` likewise), ``a1``, ``a2``
+        the candidate fractions, ``ce_window`` the half-width of the index window searched
+        for the nearest path point (:func:`paper_settings_of`).
+    st : State
+        Changed in place (:func:`state_of`): the true axis states at sample ``k0``, the
+        current gains, the command history ``[u_{k-1}, u_{k-2}]`` per axis, the schedule
+        and commands written for samples ``k0 .. k1 - 1``, the counters (``STAT_*``).
     """
-    paper_search(k0, k1, pd, pdT, vdT, moving, Axes(params, vmax, amax, jmax, ferror_max),
-                 Gains(adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi, kp_base, kf_base),
-                 PaperSettings(float(te), int(n_pred), float(lam), float(mu), float(a1),
-                               float(a2), int(ce_window)),
-                 State(states, kp, kf, u_hist, kp_out, kf_out, u_out, stats))
-
-
-@njit(cache=True)
-def paper_search(k0, k1, pd, pdT, vdT, moving, axes, gains, cfg, st):
-    """:func:`search_chunk` with its arguments packed (:class:`Axes`, :class:`Gains`,
-    :class:`PaperSettings`, :class:`State`)."""
     n_pred = cfg.n_pred
     work = _Work(np.ones(3, dtype=np.int64), np.zeros((3, MAX_CANDIDATES)),
                  np.zeros((3, MAX_CANDIDATES)), np.empty((3, MAX_CANDIDATES, n_pred)),

@@ -70,11 +70,11 @@ simulations per sample where re-planning every sample cost about fifty, and the
 iterations converge the plan where a single linearised step per sample could not.
 Every figure a user sees still comes from the replay in :mod:`oga.verify.replay`.
 
-Several plants at once (:func:`mpc_multi_chunk`, the robust search's kernel,
+Several plants at once (:func:`window_search` on a batch of :class:`Plants`, the robust search,
 :mod:`oga.search.robust.multi`): every plant's true state is carried along the one plan; steps 1-2
 are made on every plant (the weighted Hessians and gradients summed), step 3 has every
 plant's limit rows, step 4 the weighted exact cost and the largest excess over the plants.
-:func:`mpc_chunk` is its one-plant case, with the arithmetic of the one-plant search.
+One plant (:func:`one_plant`) is its case S = 1, with the arithmetic of the one-plant search.
 """
 
 from __future__ import annotations
@@ -84,15 +84,17 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from oga.model.contour import ce2_at, contour_offset
+from oga import defaults
+from oga.model.contour import ce2_at, contour_offset, path_index
 from oga.model.kinematics import eq2_excess
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.search.paper import Gains, apply_gains
 from oga.model.simulate import run
 from oga.model.tangent import run_tangent
 
-__all__ = ["mpc_chunk", "mpc_multi_chunk", "window_search", "Program", "Plants", "Gains",
-           "Settings", "Carry", "STAT_FALLBACK", "STAT_WINDOWS", "STAT_SCALED", "STAT_QP_SHORT"]
+__all__ = ["window_search", "program_of", "settings_of", "chunk_of", "one_plant", "carry_of",
+           "Program", "Plants", "Gains", "Settings", "Carry", "STAT_FALLBACK", "STAT_WINDOWS",
+           "STAT_SCALED", "STAT_QP_SHORT"]
 
 STAT_FALLBACK = 0  # iterations where no step kept eq. 2 on the samples to be committed
 STAT_WINDOWS = 1  # window simulations
@@ -456,7 +458,7 @@ class Plants(NamedTuple):
 
 
 class Settings(NamedTuple):
-    """The search's scalars (see :func:`mpc_multi_chunk`)."""
+    """The search's scalars (see :func:`window_search`, built by :func:`settings_of`)."""
 
     te: float
     w: int
@@ -1097,12 +1099,48 @@ def _commit(k, k1, wk, prog, plants, cfg, work, carry):
 
 @njit(cache=True, nogil=True)
 def window_search(k0, k1, prog, plants, gains, cfg, carry):
-    """Run the windowed full-mode search over samples k0 .. k1-1 in place, on S plants at
-    once: :func:`mpc_multi_chunk` with its arguments packed (:class:`Program`,
-    :class:`Plants`, :class:`oga.search.paper.Gains`, :class:`Settings`, :class:`Carry`)."""
+    """Run the windowed full-mode search over samples k0 .. k1-1 in place, on S plants at once.
+
+    One gain plan is searched for the S scenario plants of ``plants`` (the schedule is
+    open-loop: every plant runs the same table; one plant: S = 1, weight 1). The window's
+    cost is the weighted sum of the plants' squared contour errors (linearised on each plant
+    around its own prediction, the Hessian and gradient summed), the smoothness and anchor
+    terms once; eq. 2 and the following-error limit are constraint rows per plant and, in
+    the line search, the largest excess over the plants, with each plant's own limits; an
+    axis is idle when it is on every plant. The gain bounds (``gains``) are the caller's
+    (the range stable on every plant).
+
+    Parameters
+    ----------
+    k0, k1 : int
+        Sample range of this call; ``k1 - k0`` must be a multiple of ``cfg.commit`` unless
+        ``k1`` is the program's end (ValueError otherwise): the plan carried to the next
+        call is shifted by whole commits only.
+    prog : Program
+        The program (:func:`program_of`).
+    plants : Plants
+        The plants and their limits (:func:`one_plant` for one).
+    gains : oga.search.paper.Gains
+        The gains searched, their bounds and the baseline the anchor pulls to.
+    cfg : Settings
+        The scalars (:func:`settings_of`): ``w`` the window, ``kspace`` the samples between
+        control points, ``commit`` the samples applied per window (a multiple of
+        ``kspace``), ``iters`` the iterations per window at most, ``trust_kp``,
+        ``trust_kf`` the trust region of one iteration's control-point change
+        ((m/min)/mm, 1), ``stop``, ``settled``, ``restore``, ``tail`` (the samples a
+        window whose adjusted axis comes to rest inside it looks further) as
+        :data:`oga.defaults.MPC_STOP` etc.; ``hold_in_rapids``: a window of rapid samples
+        only commits the plan as it is, no step searched (the robust search).
+    carry : Carry
+        Changed in place (:func:`carry_of`); ``points`` carries the plan between calls:
+        the control points ``c_{-1}, c_0, ...`` of :func:`_plan_at` (the first two fixed:
+        with them the applied gains and their slope, the rest free), shifted by ``commit``
+        samples after each window.
+    """
     if (k1 - k0) % cfg.commit != 0 and k1 < prog.pd.shape[0]:
         # a call ending inside a commit would carry the plan shifted by part of an interval
-        raise ValueError("mpc_chunk: k1 - k0 must be a multiple of commit, except at the end")
+        raise ValueError("window_search: k1 - k0 must be a multiple of commit, except at the "
+                         "end")
     work = _workspace(prog, plants, gains, cfg, carry)
     k = k0
     while k < k1:
@@ -1112,87 +1150,61 @@ def window_search(k0, k1, prog, plants, gains, cfg, carry):
         k += _commit(k, k1, wk, prog, plants, cfg, work, carry)
 
 
+def settings_of(options, te, hold_in_rapids=False) -> Settings:
+    """The search's scalars from the full-mode ``options`` (window, knot spacing, lam,
+    anchor) and the period ``te`` (s), the rest :mod:`oga.defaults`; ``commit`` whole
+    spline intervals (so that the shifted plan is the same gain trajectory)."""
+    w, kspace = int(options.np_value), int(options.knot_value)
+    commit = max(min(defaults.MPC_COMMIT_INTERVALS, w // kspace // 2), 1) * kspace
+    trust_kp, trust_kf = defaults.MPC_TRUST
+    # the scalars typed once: the kernel is compiled once whatever number types are given
+    return Settings(float(te), w, kspace, int(commit), int(defaults.MPC_ITERATIONS),
+                    float(trust_kp), float(trust_kf), float(options.lam_value),
+                    float(options.anchor_value), float(defaults.MPC_STOP),
+                    float(defaults.MPC_SETTLED_M), int(defaults.MPC_RESTORE),
+                    int(defaults.MPC_SETTLE_TAIL), bool(hold_in_rapids))
 
-def mpc_chunk(
-    k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-    kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
-    lam, anchor, tree, win_lo, win_hi, moving, feed, live, points, kp_out, kf_out, u_out, stats,
-    stop, settled, ferror_max, restore, tail,
-):
-    """Run the windowed full-mode search over samples k0 .. k1-1 in place, on one plant.
 
-    :func:`mpc_multi_chunk` with that plant alone (weight 1; the same arithmetic, so the
-    same schedule bit for bit as before the scenario dimension existed); the arguments as
-    there, ``params`` (3, P), ``states`` (3, Z), ``u_hist`` (3, 2) and ``u_out`` (N, 3)
-    without the plant axis (C-contiguous: they are viewed, not copied), the limits
-    ``vmax``, ``amax``, ``jmax``, ``ferror_max`` (3,).
-    """
-    lims = np.empty((4, 1, 3))  # the limits as the one plant's
+def chunk_of(cfg: Settings, samples: int) -> int:
+    """The samples per call: about ``samples``, a whole number of commits (the plan carried
+    to the next call is shifted by whole spline intervals only)."""
+    return max(samples // cfg.commit, 1) * cfg.commit
+
+
+def program_of(setpoints, moving, cfg: Settings) -> Program:
+    """The :class:`Program` of ``setpoints`` (N samples) padded by ``w + tail + 1`` samples
+    at rest; ``moving`` (3,) bool the axes that move. Eq. 2 and the following-error limit
+    apply on every sample of the program (not the padding), the contour error on its feed
+    samples, measured as the replay does."""
+    n = len(setpoints)
+    pad = cfg.w + cfg.tail + 1
+    pd = np.ascontiguousarray(setpoints.pos)
+    pdT = np.ascontiguousarray(setpoints.pos.T)
+    vdT = np.ascontiguousarray(setpoints.vel.T)
+    pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
+    vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
+    feed = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+    live = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
+    tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
+    return Program(pd, pdT_pad, vdT_pad, tree, win_lo, win_hi, np.asarray(moving, dtype=bool),
+                   feed, live)
+
+
+def one_plant(params, vmax, amax, jmax, ferror_max) -> Plants:
+    """:class:`Plants` of one plant: ``params`` (3, P) and its limits (3,) given the plant
+    axis (copies), weight 1: the same arithmetic as the one-plant search."""
+    lims = np.empty((4, 1, 3))
     lims[0, 0], lims[1, 0], lims[2, 0], lims[3, 0] = vmax, amax, jmax, ferror_max
-    mpc_multi_chunk(
-        k0, k1, pd, pdT, vdT, params.reshape((1,) + params.shape),
-        states.reshape((1,) + states.shape), kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-        kp_base, kf_base, lims[0], lims[1], lims[2], te, u_hist.reshape((1,) + u_hist.shape), w,
-        kspace, commit, iters, trust_kp, trust_kf, lam, anchor, tree, win_lo, win_hi, moving,
-        feed, live, points, kp_out, kf_out, u_out.reshape((1,) + u_out.shape), stats, stop,
-        settled, lims[3], restore, tail, np.ones(1), False,
-    )
+    return Plants(params.reshape((1,) + params.shape), lims[0], lims[1], lims[2], lims[3],
+                  np.ones(1))
 
 
-def mpc_multi_chunk(
-    k0, k1, pd, pdT, vdT, params, states, kp, kf, adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi,
-    kp_base, kf_base, vmax, amax, jmax, te, u_hist, w, kspace, commit, iters, trust_kp, trust_kf,
-    lam, anchor, tree, win_lo, win_hi, moving, feed, live, points, kp_out, kf_out, u_out, stats,
-    stop, settled, ferror_max, restore, tail, weights, hold_in_rapids,
-):
-    """Run the windowed full-mode search over samples k0 .. k1-1 in place, on S plants at once.
-
-    One gain plan is searched for S scenario plants of the same axes (the schedule is
-    open-loop: every plant runs the same table). ``params`` (S, 3, P), ``states`` (S, 3, Z),
-    ``u_hist`` (S, 3, 2) and ``u_out`` (S, N, 3) hold each plant's packed parameters, true
-    states, command history and commands; ``kp_out``, ``kf_out`` (N, 3) the one schedule.
-    The window's cost is the ``weights`` (S,) weighted sum of the plants' squared contour
-    errors (linearised on each plant around its own prediction, the Hessian and gradient
-    summed), the smoothness and anchor terms once; eq. 2 and the following-error limit are
-    constraint rows per plant and, in the line search, the largest excess over the plants,
-    with each plant's own limits: ``vmax``, ``amax``, ``jmax``, ``ferror_max`` (S, 3);
-    an axis is idle when it is on every plant. The gain bounds are the caller's (the range
-    stable on every plant).
-
-    ``k1 - k0`` must be a multiple of ``commit`` unless ``k1`` is the program's end
-    (ValueError otherwise): the plan carried to the next call is shifted by whole
-    commits only.
-
-    The arguments shared with :func:`oga.search.paper.search_chunk` mean the same there
-    (``pdT``/``vdT`` padded by ``w + tail + 1`` samples past the end); ``kp_base``,
-    ``kf_base`` (3,) are the baseline gains the anchor pulls to; ``w`` the window,
-    ``kspace`` the samples between points, ``commit`` the samples applied per window
-    (a multiple of ``kspace``), ``iters`` the iterations per window at most,
-    ``trust_kp``/``trust_kf`` the trust region of one iteration's control-point change
-    ((m/min)/mm, 1), ``tree, win_lo, win_hi`` the path's index and every sample's
-    contour-error window (:func:`oga.model.contour.path_index`).
-    ``points`` (3, 2, w // kspace) carries the plan between calls: the control points
-    ``c_{-1}, c_0, ...`` of :func:`_plan_at` (the first two fixed: with them the
-    applied gains and their slope, the rest free); it is shifted by ``commit``
-    samples after each window. ``feed`` (bool, padded like ``pdT``) marks the samples where
-    the contour error counts (feed moves; not rapids, not the padding), ``live`` (likewise)
-    those where eq. 2 and the following-error limit apply: every sample of the program,
-    rapids included, as in :mod:`oga.verify.replay` (not the padding); ``stop`` is
-    :data:`oga.defaults.MPC_STOP`,
-    ``settled`` :data:`oga.defaults.MPC_SETTLED_M`; ``ferror_max`` (S, 3) each plant's
-    following-error limit per axis (m, ``inf``: none), kept at the window's live samples
-    like eq. 2 (linearised rows, then the exact check of the line search); ``restore``
-    is :data:`oga.defaults.MPC_RESTORE`; ``tail`` the samples a window whose adjusted
-    axis comes to rest inside it looks further (:data:`oga.defaults.MPC_SETTLE_TAIL`,
-    0: none); ``hold_in_rapids``: a window of rapid samples only commits the plan as it
-    is, no step searched (the robust search, :mod:`oga.search.robust.multi`).
-    """
-    prog = Program(pd, pdT, vdT, tree, win_lo, win_hi, moving, feed, live)
-    plants = Plants(params, vmax, amax, jmax, ferror_max, weights)
-    gains = Gains(adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi, kp_base, kf_base)
-    # the scalars typed once: the kernel is compiled once whatever number types are passed
-    cfg = Settings(float(te), int(w), int(kspace), int(commit), int(iters), float(trust_kp),
-                   float(trust_kf), float(lam), float(anchor), float(stop), float(settled),
-                   int(restore), int(tail), bool(hold_in_rapids))
-    carry = Carry(states, kp, kf, u_hist, points, kp_out, kf_out, u_out, stats)
-    window_search(k0, k1, prog, plants, gains, cfg, carry)
+def carry_of(states, kp, kf, cfg: Settings, n) -> Carry:
+    """The search's :class:`Carry` at the program's start: the plants' ``states`` (S, 3, Z)
+    (changed in place), copies of the gains ``kp``, ``kf`` (3,), no command history, the
+    plan at those gains over the window, outputs for ``n`` samples, zero counters."""
+    n_s = states.shape[0]
+    points = np.repeat(np.stack([kp, kf], axis=1)[:, :, None], cfg.w // cfg.kspace, axis=2)
+    return Carry(states, kp.copy(), kf.copy(), np.zeros((n_s, 3, 2)), points,
+                 np.empty((n, 3)), np.empty((n, 3)), np.empty((n_s, n, 3)),
+                 np.zeros(4, dtype=np.int64))

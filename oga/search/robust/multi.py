@@ -1,6 +1,6 @@
 """The multi-scenario window search: one gain plan searched on several plants at once.
 
-:func:`multi_search` runs the full-mode window search (:func:`oga.search.window.mpc_multi_chunk`) on
+:func:`multi_search` runs the full-mode window search (:func:`oga.search.window.window_search`) on
 S plants at once, the nominal one first: every plant's true state is carried along the
 committed gains (the table is open-loop: every plant runs the same gains), each window's
 plan is linearised on every plant around its own prediction, and
@@ -19,7 +19,7 @@ plan is linearised on every plant around its own prediction, and
   following-error limits times a ``reserve`` (<= 1) that covers the plants outside the
   set; the Kp bounds are the range stable on every plant of the whole scenario set.
 - a window whose samples are all a rapid's commits the plan as it is, no step searched
-  (``hold_in_rapids`` of :func:`oga.search.window.mpc_multi_chunk`): no contour error counts there,
+  (``hold_in_rapids`` of :func:`oga.search.window.window_search`): no contour error counts there,
   and in a long rapid at a low Kf the following error is 15-25 mm, so a gain change at
   speed moves the command by dKp times that; where the windows searched there, on
   LinuxCNC's plasmatest (baseline Kp 1.6, Kf 0) the second round raised Kp 1.07 -> 1.62
@@ -66,11 +66,12 @@ import numpy as np
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
-from oga.model.contour import path_index
 from oga.model.machine import Machine
-from oga.search.window import STAT_FALLBACK, STAT_WINDOWS, mpc_multi_chunk
-from oga.options import OptimizeOptions
 from oga.model.simulate import axis_params, rest_state
+from oga.options import OptimizeOptions
+from oga.search.paper import Gains
+from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, Plants, carry_of, chunk_of,
+                               program_of, settings_of, window_search)
 from oga.verify.replay import Verification
 
 __all__ = ["MultiSearch", "multi_search"]
@@ -142,44 +143,37 @@ def multi_search(
     MultiSearch
     """
     t0 = time.perf_counter()
-    n, n_s = len(setpoints), len(plants)
-    te = setpoints.dt
     moving_names = tuple(AXES[i] for i in setpoints.moving_axes)
-    adjusted = moving_names if options.adjust is None else tuple(options.adjust)
-    nominal = plants[0]
-    pd = np.ascontiguousarray(setpoints.pos)
-    params, states = _packed_plants(plants, pd[0])
-    u_hist = np.zeros((n_s, 3, 2))
-    kp0, kf0 = np.full(3, float(base_kp)), np.full(3, float(base_kf))
-    adj = np.array([a in adjusted for a in AXES])
-    adj_kp = adj & ("kp" in options.gains)
-    adj_kf = adj & ("kf" in options.gains)
     is_moving = np.array([a in moving_names for a in AXES])
+    cfg = settings_of(options, setpoints.dt, hold_in_rapids=True)
+    prog = program_of(setpoints, is_moving, cfg)
+    params, states = _packed_plants(plants, prog.pd[0])
+    packed = Plants(params, *_plant_limits(plants[0], baselines, reserve), _weights(baselines))
+    gains = _gains(options, plants[0], (moving_names, is_moving), (base_kp, base_kf), kp_bounds)
+    n = len(setpoints)
+    carry = carry_of(states, gains.kp_base, gains.kf_base, cfg, n)
+    chunk = chunk_of(cfg, _CHUNK)
+    for k0 in range(0, n, chunk):
+        window_search(k0, min(k0 + chunk, n), prog, packed, gains, cfg, carry)
+    return MultiSearch(kp=carry.kp_out, kf=carry.kf_out,
+                       fallbacks=int(carry.stats[STAT_FALLBACK]),
+                       windows=int(carry.stats[STAT_WINDOWS]),
+                       time_s=time.perf_counter() - t0)
+
+
+def _gains(options, nominal, moving, base, kp_bounds):
+    """The :class:`oga.search.paper.Gains` searched: the options' adjusted axes and gains
+    (``moving``: the moving axes' names and (3,) mask), Kp within ``kp_bounds`` on the moving
+    axes (held at the baseline elsewhere), Kf within the ``nominal`` machine's range, the
+    anchor at ``base`` (Kp, Kf)."""
+    moving_names, is_moving = moving
+    kp0, kf0 = np.full(3, float(base[0])), np.full(3, float(base[1]))
+    adjusted = moving_names if options.adjust is None else tuple(options.adjust)
+    adj = np.array([a in adjusted for a in AXES])
     kp_lo, kp_hi = (np.where(is_moving, v, kp0) for v in kp_bounds)
     kf_lo, kf_hi = (np.full(3, v) for v in nominal.gains.kf_range)
-    vmax, amax, jmax, ferror_max = _plant_limits(nominal, baselines, reserve)
-    wlen, kspace = options.np_value, options.knot_value
-    commit = max(min(defaults.MPC_COMMIT_INTERVALS, wlen // kspace // 2), 1) * kspace
-    pdT_pad, vdT_pad, feed_pad, live_pad = _padded(setpoints, wlen + defaults.MPC_SETTLE_TAIL + 1)
-    tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
-    points = np.repeat(np.stack([kp0, kf0], axis=1)[:, :, None], wlen // kspace, axis=2)
-    weights = _weights(baselines)
-    kp, kf = kp0.copy(), kf0.copy()
-    kp_out, kf_out = np.empty((n, 3)), np.empty((n, 3))
-    u_out = np.empty((n_s, n, 3))
-    stats = np.zeros(4, dtype=np.int64)
-    chunk = max(_CHUNK // commit, 1) * commit
-    for k0 in range(0, n, chunk):
-        mpc_multi_chunk(k0, min(k0 + chunk, n), pd, pdT_pad, vdT_pad, params, states, kp, kf,
-                        adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi, kp0, kf0, vmax, amax, jmax,
-                        te, u_hist, wlen, kspace, commit, defaults.MPC_ITERATIONS,
-                        *defaults.MPC_TRUST, options.lam_value, options.anchor_value, tree,
-                        win_lo, win_hi, is_moving, feed_pad, live_pad, points, kp_out, kf_out,
-                        u_out, stats, defaults.MPC_STOP, defaults.MPC_SETTLED_M, ferror_max,
-                        defaults.MPC_RESTORE, defaults.MPC_SETTLE_TAIL, weights, True)
-    return MultiSearch(kp=kp_out, kf=kf_out, fallbacks=int(stats[STAT_FALLBACK]),
-                       windows=int(stats[STAT_WINDOWS]),
-                       time_s=time.perf_counter() - t0)
+    return Gains(adj & ("kp" in options.gains), adj & ("kf" in options.gains), kp_lo, kp_hi,
+                 kf_lo, kf_hi, kp0, kf0)
 
 
 def _packed_plants(plants, p0):
@@ -211,19 +205,6 @@ def _plant_limits(nominal, baselines, reserve):
         limits * np.maximum(share, floor * np.vstack([b.command_ratio.T,
                                                       np.nan_to_num(b.ferror_ratio)]))
         for b in baselines], axis=1))
-
-
-def _padded(setpoints, pad):
-    """The setpoints by axis padded by ``pad`` samples at rest at the end (positions (3, N+pad),
-    velocities (3, N+pad)), and the feed and live masks (N+pad,)."""
-    n = len(setpoints)
-    pdT = np.ascontiguousarray(setpoints.pos.T)
-    vdT = np.ascontiguousarray(setpoints.vel.T)
-    pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
-    vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-    feed_pad = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
-    live_pad = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
-    return pdT_pad, vdT_pad, feed_pad, live_pad
 
 
 def _weights(baselines):
