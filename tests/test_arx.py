@@ -18,7 +18,6 @@ from oga.errors import MachineError
 from oga.model.linear import lifted_axis, position_open_loop
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
 from oga.model.simulate import (
-    axis_arrays,
     axis_params,
     drive,
     friction_command_m_s,
@@ -28,6 +27,7 @@ from oga.model.simulate import (
     state_size,
     step,
 )
+from oga.model.response import axis_arrays
 from oga.model.stability import margins, stable_range
 
 MCV = load_machine("mcv-op")

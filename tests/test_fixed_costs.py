@@ -234,10 +234,10 @@ def test_machine_memos_are_fresh_values_and_go_with_the_machine():
 
 
 def test_verify_limit_matrix_is_the_stacked_axis_limits():
-    from oga.verify.replay import _limits
+    from oga.model.plant import plant_of
 
     for machine in MACHINES[:: 5]:
         lim = machine.axis_limits()
         want = np.stack([lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3], axis=1)
-        got = _limits(machine)
+        got = plant_of(machine).limits
         assert _bits(got) == _bits(want) and not got.flags.writeable

@@ -31,11 +31,11 @@ from oga.model.simulate import (
     drive,
     rest_state,
     run,
-    simulate,
     simulate_axis,
     step,
     window,
 )
+from oga.model.response import simulate
 from oga.model.tangent import run_tangent
 from oga.verify.replay import command_ratios
 

@@ -16,12 +16,12 @@ from oga.model.simulate import (
     friction_nonlinear,
     rest_state,
     run,
-    simulate,
     simulate_axis,
     state_size,
     step,
     window,
 )
+from oga.model.response import simulate
 
 UCP = load_machine("ucp710")
 MCV = load_machine("mcv-op")  # ARX axes (tests/test_arx.py has their own references)
