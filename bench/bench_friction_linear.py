@@ -36,7 +36,7 @@ from oga.model.metrics import contour_metrics  # noqa: E402
 from oga.optimize import optimize  # noqa: E402
 from oga.verify.certificate import certify_result  # noqa: E402
 from oga.search.robust.plants import scenario_set  # noqa: E402
-from oga.model.simulate import simulate  # noqa: E402
+from oga.model.response import simulate  # noqa: E402
 from oga.verify.replay import command_ratios  # noqa: E402
 
 from bench_optimize import REPEATS  # noqa: E402

@@ -30,7 +30,7 @@ from oga.model.machine import load_machine  # noqa: E402
 from oga.model.metrics import contour_metrics  # noqa: E402
 from oga.pipeline import plan_toolpath  # noqa: E402
 from oga.search.robust.plants import scenario_set  # noqa: E402
-from oga.model.simulate import simulate  # noqa: E402
+from oga.model.response import simulate  # noqa: E402
 from oga.verify.replay import command_ratios, verify  # noqa: E402
 
 from bench_optimize import timed  # noqa: E402  (the least CPU time of a few runs)

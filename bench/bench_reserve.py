@@ -46,7 +46,7 @@ from feedplan.plan import plan  # noqa: E402
 from oga.model.kinematics import command_peaks  # noqa: E402
 from oga.search.ranges import best_fixed_gains  # noqa: E402
 from oga.search.robust.plants import scenario_set  # noqa: E402
-from oga.model.simulate import simulate  # noqa: E402
+from oga.model.response import simulate  # noqa: E402
 
 #: Program classes (bench_plan's names).
 CLASSES = {
