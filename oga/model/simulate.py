@@ -962,7 +962,7 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
             ud[q], fn[q] = udq, fnq
             sub[ns] = q
             ns += 1
-        for j in range(nsub if ns else 0):
+        for j in range(nsub if ns else 0):  # :func:`_substeps`, the axes side by side
             for r in range(ns):
                 q = sub[r]
                 prm = params[axes[q]]
