@@ -382,7 +382,7 @@ def test_hinted_search_is_the_plain_search(seed, n, window):
         i, _t, d2 = nearest_segment(pd, lo[k], hi[k], x, y, z)
         ref = ce_point(pd, lo[k], hi[k], x, y, z, e1, e2, signed)
         for hint in [-1, int(rng.integers(0, n)), n + 3, *range(seg - 10, seg + 11)]:
-            ce, j = ce_at(pd, tree, lo[k], hi[k], k, x, y, z, e1, e2, signed, hint)
+            ce, j = ce_at(pd, tree, lo[k], hi[k], k, x, y, z, (e1, e2, signed), hint)
             ce2, j2 = ce2_at(pd, tree, lo[k], hi[k], k, x, y, z, hint)
             assert j == j2 == i
             assert ce == ref
@@ -418,7 +418,7 @@ def test_hinted_search_where_a_loop_closes_on_the_path(sides):
                     i, _t, d2 = nearest_segment(pd, lo[seg], hi[seg], x, y, z)
                     ref = ce_point(pd, lo[seg], hi[seg], x, y, z, 0, 1, True)
                     for hint in range(seg - 10, seg + 11):
-                        ce, j = ce_at(pd, tree, lo[seg], hi[seg], seg, x, y, z, 0, 1, True,
+                        ce, j = ce_at(pd, tree, lo[seg], hi[seg], seg, x, y, z, (0, 1, True),
                                       hint)
                         assert (j, ce) == (i, ref)
                         assert ce2_at(pd, tree, lo[seg], hi[seg], seg, x, y, z, hint) == (d2, i)

@@ -10,6 +10,7 @@ from feedplan.setpoints import Setpoints
 from oga.errors import MachineError, OptionError
 from oga.model.linear import lifted_axis
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
+from oga.model.response import simulate
 from oga.model.simulate import (
     _lifted_guard,
     axis_params,

@@ -168,8 +168,7 @@ def ce_point(pd, lo, hi, x, y, z, e1, e2, signed):
         Contour error in metres. If every segment of the window has zero length
         (the path stands still), the distance to ``pd[lo]``, positive.
     """
-    bi, bt, best = nearest_segment(pd, lo, hi, x, y, z)
-    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best)
+    return _signed(pd, lo, hi, x, y, z, (e1, e2, signed), nearest_segment(pd, lo, hi, x, y, z))
 
 
 @njit(cache=True, inline="always")
@@ -182,8 +181,11 @@ def _point_d2(pd, i, x, y, z):
 
 
 @njit(cache=True, nogil=True)
-def _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best):
-    """:func:`ce_point` from the nearest segment ``(bi, bt, best)`` of the window ``lo..hi``."""
+def _signed(pd, lo, hi, x, y, z, axes, near):
+    """:func:`ce_point` from the nearest segment ``near = (i, t, d2)`` of the window ``lo..hi``
+    (:func:`nearest_segment`), ``axes = (e1, e2, signed)``."""
+    bi, bt, best = near
+    e1, e2, signed = axes
     if bi < 0:  # standing still over the whole window
         return np.sqrt(_point_d2(pd, lo, x, y, z))
     dist = np.sqrt(best)
@@ -315,9 +317,9 @@ def ce_indexed(pd, pa, tree, lo, hi, e1, e2, signed):
     n = pd.shape[0]
     out = np.empty(n)
     near = -1
+    axes = (e1, e2, signed)
     for k in range(n):
-        out[k], near = ce_at(pd, tree, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2], e1, e2,
-                             signed, near)
+        out[k], near = ce_at(pd, tree, lo[k], hi[k], k, pa[k, 0], pa[k, 1], pa[k, 2], axes, near)
     return out
 
 
@@ -359,7 +361,7 @@ def path_index(pd, window):
 
 
 @njit(cache=True, inline="always")
-def ce_at(pd, tree, lo, hi, k, x, y, z, e1, e2, signed, hint):
+def ce_at(pd, tree, lo, hi, k, x, y, z, axes, hint):
     """Contour error of the point ``(x, y, z)`` taken at sample ``k``, as :func:`ce_series`.
 
     The result does not depend on ``hint``, only the time it takes: pass the segment
@@ -377,8 +379,9 @@ def ce_at(pd, tree, lo, hi, k, x, y, z, e1, e2, signed, hint):
         Sample index.
     x, y, z : float
         The actual point, metres.
-    e1, e2, signed
-        Plane axes and signing (see :func:`ce_point`).
+    axes : (int, int, bool)
+        ``(e1, e2, signed)``: plane axes and signing (see :func:`ce_point`,
+        :func:`plane_axes`).
     hint : int
         A segment index likely to be the nearest (any value is safe), -1 for none.
 
@@ -390,8 +393,8 @@ def ce_at(pd, tree, lo, hi, k, x, y, z, e1, e2, signed, hint):
         The nearest segment (the first of least distance, as :func:`nearest_segment`),
         -1 if the window stands still: the hint for the next sample.
     """
-    bi, bt, best = nearest_at(pd, tree, lo, hi, k, x, y, z, hint)
-    return _signed(pd, lo, hi, x, y, z, e1, e2, signed, bi, bt, best), bi
+    near = nearest_at(pd, tree, lo, hi, k, x, y, z, hint)
+    return _signed(pd, lo, hi, x, y, z, axes, near), near[0]
 
 
 @njit(cache=True, inline="always")
@@ -497,14 +500,17 @@ def _clearance(nodes, parent, reach):
 
 
 @njit(cache=True, inline="always")
-def _scan_leaves(pd, segs, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best):
+def _scan_leaves(pd, segs, leaves, a0, a1, lo, hi, p, near):
     """Fold the segments of leaves ``a0 .. a1`` in the window ``lo..hi`` into the nearest so
-    far ``(bi, bt, best)``, in index order with :func:`nearest_segment`'s strict comparison.
+    far ``near = (bound, bi, bt, best)``, in index order with :func:`nearest_segment`'s strict
+    comparison; ``p = (x, y, z)`` the point, metres.
 
     A leaf, and inside a leaf a segment, whose sphere lies farther than ``sqrt(bound)`` (an
     upper bound of the least squared distance, lowered by every distance found) is skipped
     (no distance computed: it cannot be the nearest). Returns ``(bound, bi, bt, best)``.
     """
+    x, y, z = p
+    bound, bi, bt, best = near
     reach = np.sqrt(bound)
     for a in range(max(a0, lo // _LEAF), min(a1, (hi - 1) // _LEAF) + 1):
         far = leaves[a, 3] + reach
@@ -526,9 +532,10 @@ def _scan_leaves(pd, segs, leaves, a0, a1, lo, hi, x, y, z, bound, bi, bt, best)
 
 
 @njit(cache=True, nogil=True)
-def _scan_blocks(pd, segs, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
+def _scan_blocks(pd, segs, leaves, blocks, b0, b1, lo, hi, p, bound):
     """:func:`_scan_leaves` over the blocks ``b0 .. b1`` whose sphere lies within
     ``sqrt(bound)`` of the point; returns ``(bound, bi, bt, best)``."""
+    x, y, z = p
     bi = -1
     bt = 0.0
     best = np.inf
@@ -539,7 +546,7 @@ def _scan_blocks(pd, segs, leaves, blocks, b0, b1, lo, hi, x, y, z, bound):
             continue
         was = bound
         bound, bi, bt, best = _scan_leaves(pd, segs, leaves, b * _FAN, (b + 1) * _FAN - 1, lo,
-                                           hi, x, y, z, bound, bi, bt, best)
+                                           hi, p, (bound, bi, bt, best))
         if bound < was:
             reach = np.sqrt(bound)
     return bound, bi, bt, best
@@ -580,12 +587,12 @@ def nearest_at(pd, tree, lo, hi, k, x, y, z, hint):
                 return nearest_segment(pd, max(lo, hint - 1), min(hi, hint + 2), x, y, z)
             leaf = hint // _LEAF
             if leaves[leaf, 4] ** 2 > far2:
-                _b, bi, bt, best = _scan_leaves(pd, segs, leaves, leaf - 1, leaf + 1, lo, hi, x,
-                                                y, z, d2, -1, 0.0, np.inf)
+                _b, bi, bt, best = _scan_leaves(pd, segs, leaves, leaf - 1, leaf + 1, lo, hi,
+                                                (x, y, z), (d2, -1, 0.0, np.inf))
                 return bi, bt, best
             if blocks[blk, 4] ** 2 > far2:
                 _b, bi, bt, best = _scan_blocks(pd, segs, leaves, blocks, blk - 1, blk + 1, lo, hi,
-                                                x, y, z, d2)
+                                                (x, y, z), d2)
                 return bi, bt, best
     else:
         kb = min(kc, hi - 1) // _BLOCK
@@ -593,7 +600,7 @@ def nearest_at(pd, tree, lo, hi, k, x, y, z, hint):
                                      x, y, z)
     bound = min(_point_d2(pd, kc, x, y, z), d2)
     bound, bi, bt, best = _scan_blocks(pd, segs, leaves, blocks, 0, blocks.shape[0], lo, hi,
-                                       x, y, z, bound)
+                                       (x, y, z), bound)
     if best > bound:  # the bound was not a distance to the window's path: no pruning
         return nearest_segment(pd, lo, hi, x, y, z)
     return bi, bt, best

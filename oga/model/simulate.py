@@ -902,10 +902,9 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
     """:func:`run` of several cascade axes at once: per axis the same operations in the same
     order (the same bits), the axes' sub-steps interleaved.
 
-    An axis's sub-steps are one chain of dependent exponentials and divisions (each
-    sub-step's friction needs the velocity the last one left); advancing the axes' chains
-    side by side lets the processor overlap them, where one axis after the other waits on
-    each in turn.
+    An axis's sub-steps are one chain of dependent exponentials and divisions (each sub-step's
+    friction needs the velocity the last one left); advancing the axes' chains side by side
+    lets the processor overlap them, where one axis after the other waits on each in turn.
 
     Parameters
     ----------
@@ -926,72 +925,69 @@ def run_axes(states, params, axes, pd, vd, kp_si, kf, out_p, out_u):
     na = axes.shape[0]
     if na == 0:
         return
-    p_now, v_now, f_now, i_now = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    p_was, v_was, f_was, i_was = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    now, was = np.empty((4, 3)), np.empty((4, 3))  # rows p, v, F, I; column q: axis axes[q]
+    now[:, :na] = states[axes, _P:_I + 1].T
     ud, fn, ud_still = np.empty(3), np.empty(3), np.zeros(3)
     still = np.zeros(3, dtype=np.bool_)  # see :func:`_period`
     sub = np.empty(3, dtype=np.int64)  # the axes taking the sub-steps this period
-    for q in range(na):
-        a = axes[q]
-        p_now[q], v_now[q], f_now[q], i_now[q] = (states[a, _P], states[a, _V], states[a, _F],
-                                                  states[a, _I])
     nsub = int(params[axes[0], _NSUB])  # the machine's timing: every axis the same
     for k in range(n):
         ns = 0
         for q in range(na):  # :func:`run`'s sample k of axis a, up to :func:`_substeps`
             a = axes[q]
             prm = params[a]
-            p, v, f, i = p_now[q], v_now[q], f_now[q], i_now[q]
+            p, v, f, i = now[0, q], now[1, q], now[2, q], now[3, q]
             out_p[k, a] = p
-            u = kp_si[k, a] * (pd[k, a] - p) + kf[k, a] * vd[k, a]
-            out_u[k, a] = u
-            dead = int(prm[_DEAD])
-            m = k - dead
-            udq = out_u[m, a] if m >= 0 else states[a, _LINE + dead - 1 - k]
+            out_u[k, a] = kp_si[k, a] * (pd[k, a] - p) + kf[k, a] * vd[k, a]
+            m = k - int(prm[_DEAD])  # the command applied now is u_m
+            udq = out_u[m, a] if m >= 0 else states[a, _LINE - 1 - m]
             if prm[_FRAC] != 0.0:
                 udq = _delayed(prm, udq, out_u[m + 1, a] if m + 1 >= 0
-                               else states[a, _LINE + dead - 2 - k])
+                               else states[a, _LINE - 2 - m])
             if still[q] and _same(udq, ud_still[q]):
                 continue
             ud_still[q] = udq
             if v == 0.0 and f == 0.0 and i == 0.0 and udq == 0.0:  # at rest, not driven
                 still[q] = _same(p, p)
                 continue
-            if _linear_guard(prm, v, f, i, udq, 0.0):  # as :func:`_advance`, load 0
-                p1, v1, f1, i1 = _linear(prm, p, v, f, i, udq, 0.0)
+            linear = _linear_guard(prm, v, f, i, udq, 0.0)  # as :func:`_advance`, load 0
+            fnq = 0.0 if linear else friction_nonlinear(prm, v) + 0.0
+            if linear or (prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq)):
+                p1, v1, f1, i1 = (_linear(prm, p, v, f, i, udq, 0.0) if linear
+                                  else _lifted(prm, p, v, f, i, udq, fnq))
                 still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
-                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
+                now[0, q], now[1, q], now[2, q], now[3, q] = p1, v1, f1, i1
                 continue
-            fnq = friction_nonlinear(prm, v) + 0.0
-            if prm[_LIFTED] != 0.0 and _lifted_guard(prm, v, f, i, udq, fnq):
-                p1, v1, f1, i1 = _lifted(prm, p, v, f, i, udq, fnq)
-                still[q] = _same(p1, p) and _same(v1, v) and _same(f1, f) and _same(i1, i)
-                p_now[q], v_now[q], f_now[q], i_now[q] = p1, v1, f1, i1
-                continue
-            p_was[q], v_was[q], f_was[q], i_was[q] = p, v, f, i
-            ud[q] = udq
-            fn[q] = fnq
+            was[0, q], was[1, q], was[2, q], was[3, q] = p, v, f, i
+            ud[q], fn[q] = udq, fnq
             sub[ns] = q
             ns += 1
         for j in range(nsub if ns else 0):  # :func:`_substeps`, the axes side by side
             for r in range(ns):
                 q = sub[r]
                 prm = params[axes[q]]
-                v = v_now[q]
+                v = now[1, q]
                 if j > 0:
                     fn[q] = _friction_flat(prm, v) + 0.0
-                fc, i_now[q], _lin, _integrating = _pi_substep(ud[q], v, i_now[q],
-                                                               _pi_coefs(prm))
-                p_now[q], v_now[q], f_now[q] = _mechanics(_substep_coefs(prm), p_now[q], v,
-                                                          f_now[q], fc, fn[q])
+                fc, now[3, q], _lin, _integrating = _pi_substep(ud[q], v, now[3, q],
+                                                                _pi_coefs(prm))
+                now[0, q], now[1, q], now[2, q] = _mechanics(_substep_coefs(prm), now[0, q], v,
+                                                             now[2, q], fc, fn[q])
         for r in range(ns):
             q = sub[r]
-            still[q] = (_same(p_now[q], p_was[q]) and _same(v_now[q], v_was[q])
-                        and _same(f_now[q], f_was[q]) and _same(i_now[q], i_was[q]))
-    for q in range(na):
+            still[q] = (_same(now[0, q], was[0, q]) and _same(now[1, q], was[1, q])
+                        and _same(now[2, q], was[2, q]) and _same(now[3, q], was[3, q]))
+    _store_axes(states, params, axes, out_u, n, now)
+
+
+@njit(cache=True, inline="always")
+def _store_axes(states, params, axes, out_u, n, now):
+    """:func:`_store_cascade` of the axes ``axes[q]``, their state ``now[:, q]`` (rows p,
+    v, F, I), at the end of :func:`run_axes`."""
+    for q in range(axes.shape[0]):
         a = axes[q]
-        _store_cascade(states[a], int(params[a, _DEAD]), out_u[:, a], n, p_now[q], v_now[q],
-                       f_now[q], i_now[q])
+        _store_cascade(states[a], int(params[a, _DEAD]), out_u[:, a], n, now[0, q], now[1, q],
+                       now[2, q], now[3, q])
 
 
 @njit(cache=True, inline="always")
