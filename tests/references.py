@@ -175,12 +175,27 @@ def robust_arrays(rob) -> dict:
                                  m_b.mse_m2, m_b.rms_m, m_b.max_abs_m])}
 
 
-def robust_case(name: str):
-    """The robust search of program ``name`` (pinned setpoints), ucp710, default options."""
+def robust_setpoints(name: str):
+    """Program ``name`` of ``tests/data`` planned for ucp710 (tolerance 20 um): the robust
+    reference and the continuity sweep share this run (a planner change regenerates ``robust``;
+    the plan reference tells it apart)."""
+    from feedplan.read import load_toolpath
+    from oga.model.machine import load_machine
+    from oga.pipeline import plan_toolpath
+
+    m = load_machine("ucp710")
+    return plan_toolpath(load_toolpath(ROOT / "tests" / "data" / name), m, feed_m_s=None,
+                         tol_m=2e-5)
+
+
+def robust_case(name: str, setpoints=None):
+    """The robust search of program ``name`` (:func:`robust_setpoints`), ucp710, default
+    options, two threads (the same bits on any number)."""
     from oga.model.machine import load_machine
     from oga.search.robust.search import robust_optimize
 
-    return robust_optimize(pinned_setpoints(name), load_machine("ucp710"), threads=2)
+    sp = robust_setpoints(name) if setpoints is None else setpoints
+    return robust_optimize(sp, load_machine("ucp710"), threads=2)
 
 
 def cases(kind: str) -> dict:

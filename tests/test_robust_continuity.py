@@ -19,9 +19,7 @@ from pathlib import Path
 import pytest
 
 import references
-from feedplan.read import load_toolpath
 from oga.model.machine import load_machine
-from oga.pipeline import plan_toolpath
 from oga.search.robust.search import robust_optimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
@@ -32,23 +30,26 @@ BAND = 0.15
 
 
 NAME = "reference_xz.ngc"
-DATA = Path(__file__).parent / "data"
 
 
 @pytest.fixture(scope="module")
-def reference():
-    m = load_machine("ucp710")
-    sp = plan_toolpath(load_toolpath(DATA / NAME), m, feed_m_s=None, tol_m=2e-5)
-    return m, sp, figures(robust_optimize(sp, m, threads=2))
+def unperturbed():
+    sp = references.robust_setpoints(NAME)
+    return sp, references.robust_case(NAME, sp)
+
+
+@pytest.fixture(scope="module")
+def reference(unperturbed):
+    sp, rob = unperturbed
+    return load_machine("ucp710"), sp, figures(rob)
 
 
 @pytest.mark.portable
-def test_the_robust_table_and_certificate_are_the_stored_ones():
+def test_the_robust_table_and_certificate_are_the_stored_ones(unperturbed):
     """The exported table, the baseline, the rounds and the certificate's ratio on every plant
-    of reference_xz (the pinned setpoints of :mod:`pinned_setpoints`) equal
-    ``tests/data/reference/robust.npz`` within :data:`references.TOL` (what a refactor must
-    keep: issue 31)."""
-    got = references.robust_arrays(references.robust_case(NAME))
+    of reference_xz equal ``tests/data/reference/robust.npz`` within :data:`references.TOL`
+    (what a refactor must keep: issue 31)."""
+    got = references.robust_arrays(unperturbed[1])
     assert references.compare("robust", NAME, got) == []
 
 
