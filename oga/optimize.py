@@ -234,9 +234,7 @@ def _search(setpoints, plant, options, box, moving, report):
     n = len(setpoints)
     machine = plant.machine
     pd = np.ascontiguousarray(setpoints.pos)
-    present = [AXES.index(a) for a in AXES if a in machine.axes]
-    params = np.stack([plant.params[i if a in machine.axes else present[0]]
-                       for i, a in enumerate(AXES)])
+    params = plant.search_params()
     states = np.stack([rest_state(params[i], pd[0, i]) for i in range(3)])
     progress, share = report
     lim = machine.axis_limits()  # the same arrays (read-only) the compiled searches take

@@ -20,12 +20,10 @@ from functools import cached_property
 
 import numpy as np
 
+from feedplan.setpoints import AXES
 from oga.model.machine import Machine
 
 __all__ = ["Plant", "PlantBatch", "machine_of", "plant_of"]
-
-#: The axes' order of every per-axis array (that of :data:`feedplan.setpoints.AXES`).
-AXES = ("x", "y", "z")
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -95,6 +93,14 @@ class Plant:
         """Packed parameters of ``axis`` (read-only view; MachineError if absent)."""
         self.machine.axis(axis)
         return self.params[AXES.index(axis)]
+
+    def search_params(self) -> np.ndarray:
+        """``params`` (3, P), a new array, with an absent axis's row taken from the first
+        present axis: the compiled searches advance every row, and an axis the machine lacks
+        (its setpoint never moves) must still hold a valid model."""
+        first = AXES.index(self.axes[0])
+        return np.stack([self.params[c if a in self.axes else first]
+                         for c, a in enumerate(AXES)])
 
     @cached_property
     def stable_kp(self) -> dict[str, tuple[float, float]]:

@@ -67,7 +67,8 @@ import numpy as np
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.model.machine import Machine
-from oga.model.simulate import axis_params, rest_state
+from oga.model.plant import plant_of
+from oga.model.simulate import rest_state
 from oga.options import OptimizeOptions
 from oga.search.paper import Gains
 from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, Plants, carry_of, chunk_of,
@@ -180,9 +181,7 @@ def _packed_plants(plants, p0):
     """Every plant's packed parameters (S, 3, P) and rest state at ``p0`` (3,) (S, 3, L):
     plants of more dead time have longer states, every one padded to the longest (a shorter
     state leaves its tail zero, as the axes of one machine do)."""
-    present = [a for a in AXES if a in plants[0].axes]
-    params = np.stack([np.stack([axis_params(m, a if a in m.axes else present[0]) for a in AXES])
-                       for m in plants])
+    params = np.stack([plant_of(m).search_params() for m in plants])
     rest = [[rest_state(params[p, i], p0[i]) for i in range(3)] for p in range(len(plants))]
     states = np.zeros((len(plants), 3, max(r.size for rs in rest for r in rs)))
     for p, rs in enumerate(rest):
