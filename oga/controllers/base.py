@@ -34,6 +34,7 @@ __all__ = [
     "check_parameters",
     "best_fixed",
     "baseline_si",
+    "given_or_baseline_si",
     "load_array",
 ]
 
@@ -241,6 +242,15 @@ def baseline_si(setpoints: Setpoints, machine: Machine) -> tuple[np.ndarray, np.
     kp = np.array([best.kp.get(a, kp0) for a in AXES]) * KP_SI_PER_M_MIN_PER_MM
     kf = np.array([best.kf.get(a, kf0) for a in AXES])
     return kp, kf
+
+
+def given_or_baseline_si(setpoints: Setpoints, machine: Machine, parameters: dict,
+                         kp_name: str, kf_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The baseline gains ``(kp (3,) 1/s, kf (3,))``: those named ``kp_name``, ``kf_name`` in
+    ``parameters`` on every axis when both are given, else :func:`baseline_si`."""
+    if kp_name in parameters and kf_name in parameters:
+        return (np.full(3, float(parameters[kp_name])), np.full(3, float(parameters[kf_name])))
+    return baseline_si(setpoints, machine)
 
 
 def load_array(load_n, n: int) -> np.ndarray:

@@ -32,7 +32,8 @@ from numba import njit
 from feedplan.setpoints import Setpoints
 from oga import defaults
 from oga.model.contour import plane_axes
-from oga.controllers.base import ControllerRun, baseline_si, check_parameters, grid_tune, load_array
+from oga.controllers.base import (
+    ControllerRun, check_parameters, given_or_baseline_si, grid_tune, load_array)
 from oga.controllers.fuzzy import RULES, UNIVERSE, mamdani
 from oga.errors import OptionError
 from oga.model.machine import Machine
@@ -247,11 +248,7 @@ def run(
         Unknown parameter, bad value, or no tuned combination meets the limits.
     """
     check_parameters(NAME, parameters, PARAMETERS)
-    if "kp_1_s" in parameters and "kf" in parameters:
-        kp_b = np.full(3, float(parameters["kp_1_s"]))
-        kf_b = np.full(3, float(parameters["kf"]))
-    else:
-        kp_b, kf_b = baseline_si(setpoints, machine)
+    kp_b, kf_b = given_or_baseline_si(setpoints, machine, parameters, "kp_1_s", "kf")
     pd, vd, _, rapid, law, load = law_inputs(setpoints, load_n)
     params, states0, present = axis_arrays(machine, pd[0] if len(pd) else np.zeros(3))
     inputs = Inputs(present, law, pd, vd, rapid, load, kp_b, kf_b)

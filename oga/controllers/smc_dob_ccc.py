@@ -57,7 +57,8 @@ from numba import njit
 
 from feedplan.setpoints import Setpoints
 from oga import defaults
-from oga.controllers.base import ControllerRun, baseline_si, check_parameters, grid_tune, path_frame
+from oga.controllers.base import (
+    ControllerRun, check_parameters, given_or_baseline_si, grid_tune, path_frame)
 from oga.controllers.fuzzy import RULES, UNIVERSE, memberships
 from oga.controllers.fuzzy_pid import PAPER_RATIOS, law_inputs
 from oga.errors import MachineError, OptionError, TuneError
@@ -271,11 +272,7 @@ def _values(setpoints: Setpoints, machine: Machine, parameters: dict):
     """The run's parameter values (defaults, baseline gains, given) and the baseline gains
     per axis ``(values, kp_b, kf_b)``; refuses a non-positive scale."""
     check_parameters(NAME, parameters, PARAMETERS)
-    if "kp_base_1_s" in parameters and "kf_base" in parameters:
-        kp_b = np.full(3, float(parameters["kp_base_1_s"]))
-        kf_b = np.full(3, float(parameters["kf_base"]))
-    else:
-        kp_b, kf_b = baseline_si(setpoints, machine)
+    kp_b, kf_b = given_or_baseline_si(setpoints, machine, parameters, "kp_base_1_s", "kf_base")
     values = {**DEFAULTS, "kp_base_1_s": float(kp_b[0]), "kf_base": float(kf_b[0])}
     values.update(parameters)
     for name in ("phi_m_s", "eps_range_m", "eps_rate_range_m_s", "c_1_s"):
