@@ -25,7 +25,10 @@ emptied; numba's compiled kernels are warm). It prints:
   host, only as good as its load); ``same``: every thread count gave the first one's
   schedule and certificate, bit for bit;
 - the robust baseline (Kp, Kf), the rounds, the shrink's shares (1: none) and the plants
-  searched on besides the nominal one.
+  searched on besides the nominal one;
+- on the next line, the one-thread run's CPU time by phase: the set's stable ranges, the
+  robust baseline, the multi-plant window searches, the certificates (the shrink's
+  included) and the rest.
 
 ``--nominal`` adds the nominal table (the search on the nominal model only) and its
 certificate against the nominal best fixed gains on the same set. A benchmark prints
@@ -122,6 +125,34 @@ class _Timed:
         return timed
 
 
+class _Phases:
+    """The CPU time spent in each phase of :func:`robust_optimize` (its module's names of
+    them wrapped), seconds."""
+
+    names = {"plant_bounds": "ranges", "robust_baseline": "baseline", "multi_search": "window",
+             "certify": "certificates"}
+
+    def __init__(self):
+        self.cpu = dict.fromkeys(self.names.values(), 0.0)
+        module = importlib.import_module("oga.search.robust.search")
+        for name, phase in self.names.items():
+            setattr(module, name, self._wrap(getattr(module, name), phase))
+
+    def _wrap(self, f, phase):
+        def timed(*args, **kw):
+            c0 = time.process_time()
+            try:
+                return f(*args, **kw)
+            finally:
+                self.cpu[phase] += time.process_time() - c0
+        return timed
+
+    def line(self, total: float) -> str:
+        rest = total - sum(self.cpu.values())
+        return "  cpu by phase: " + ", ".join(
+            f"{k} {v:.2f} s" for k, v in (*self.cpu.items(), ("rest", rest)))
+
+
 def _same(a, b) -> bool:
     """The two robust results give the same schedule and certificate, bit for bit."""
     return (np.array_equal(a.schedule.kp_m_min_per_mm, b.schedule.kp_m_min_per_mm)
@@ -145,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     scen = scenario_set(machine, **({} if args.certify is None else {"n": args.certify}),
                         seed=args.seed)
     only = {s for s in args.only.split(",") if s}
-    timed = _Timed()
+    timed, phases = _Timed(), _Phases()
     warm = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), machine, feed_m_s=None, tol_m=2e-5)
     for t in threads:  # compile (or load) every kernel first
         robust_optimize(warm, machine, scenarios=scenario_set(machine, n=2), threads=t)
@@ -168,12 +199,14 @@ def main(argv: list[str] | None = None) -> int:
             for t in threads:
                 _cold()
                 timed.inside = 0.0
+                phases.cpu = dict.fromkeys(phases.cpu, 0.0)
                 w0, c0 = time.perf_counter(), time.process_time()
                 runs.append(robust_optimize(sp, machine, options, scenarios=scen, threads=t))
                 walls.append(time.perf_counter() - w0)
                 if t == 1:  # on one thread the time inside thread_map is its CPU time, roughly
                     cpu = time.process_time() - c0
                     par = min(timed.inside / walls[-1], 1.0)
+                    split = phases.line(cpu)
         except OgaError as err:
             print(f"{name:18s} {sp.duration:8.1f} failed: {err}", flush=True)
             continue
@@ -195,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
               f"Kp {rob.result.baseline_kp[a]:.4f} Kf {rob.result.baseline_kf[a]:.4f}, "
               f"{rob.rounds} rounds, {rob.alpha}, on "
               f"{', '.join(x.removeprefix('corner ') for x in rob.active) or '-'}", flush=True)
+        if cpu:
+            print(split, flush=True)
         if args.nominal:
             res = optimize(sp, machine, {"nominal": True})
             c = certify_result(res, scen, threads=max(threads))

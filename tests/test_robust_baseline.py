@@ -188,3 +188,24 @@ def test_the_refinement_qp_is_the_least_of_a_dense_grid():
         value = 2 * grid @ g + np.einsum("ij,jk,ik->i", grid, h, grid)
         assert np.all(np.abs(x) <= r * (1 + 1e-12)) and np.all(rows @ x <= rhs + 1e-9)
         assert 2 * x @ g + x @ h @ x <= value[inside].min() + 1e-12
+
+
+def test_memoised_tangent_replays_are_the_fresh_ones(ucp710):
+    """The baseline's memo of tangent replays (by plant, Kp, Kf) serves the figures a fresh
+    replay gives, a replay with the contour error's model serving one without (the same
+    peaks and slopes, bit for bit)."""
+    from oga.search.robust.baseline import _Packed
+
+    m, scen = ucp710
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    packed = _Packed(sp, tuple(scen.plants[:2]))
+    with_ce = packed.tangent(1, 1.7, 0.85, True)
+    without = packed.tangent(1, 1.7, 0.85, False)  # served by the memo
+    fresh = packed._tangent(1, 1.7, 0.85, False)
+    assert without[3] is None and fresh[3] is None and with_ce[3].shape == (6,)
+    for a, b, c in zip(with_ce[:3], without[:3], fresh[:3]):
+        assert np.array_equal(a, b) and np.array_equal(b, c)
+    assert packed.tangent(1, 1.7, 0.85, True) is with_ce  # asked again: not replayed
+    assert np.array_equal(packed._tangent(1, 1.7, 0.85, True)[3], with_ce[3])
+    other = packed.tangent(0, 1.7, 0.85, True)  # another plant: its own replay
+    assert not np.array_equal(other[1], with_ce[1])

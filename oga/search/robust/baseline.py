@@ -196,6 +196,7 @@ class _Packed:
                                plant.ferror_limits()])[cols]))
 
         self.plants = thread_map(pack, plants, threads)
+        self._tangents: dict[tuple[int, float, float], tuple] = {}
 
     def replay(self, q: int, kp: float, kf: float, bound: float, with_ce: bool):
         """:func:`_replay` of plant ``q``: ``(outcome, sum)``."""
@@ -205,7 +206,22 @@ class _Packed:
 
     def tangent(self, q: int, kp: float, kf: float, with_ce: bool):
         """:func:`_tangent_replay` of plant ``q``: ``(holds, ratios (A, 4), slopes (A, 4, 2),
-        model (6,))``, the ratios and slopes over the limits (0 where none is set)."""
+        model (6,) or None without ``with_ce``)``, the ratios and slopes over the limits (0
+        where none is set).
+
+        Memoised by ``(q, kp, kf)``: the search asks again for points it has replayed (the
+        refinement's last point on the objective plants, a point whose critical plants grew),
+        and a replay with ``with_ce`` serves one without (the same peaks and slopes; the
+        arrays returned are shared: read-only by convention)."""
+        key = (q, kp, kf)
+        known = self._tangents.get(key)
+        if known is not None and (known[3] is not None or not with_ce):
+            return known if with_ce or known[3] is None else (*known[:3], None)
+        out = self._tangent(q, kp, kf, with_ce)
+        self._tangents[key] = out
+        return out
+
+    def _tangent(self, q: int, kp: float, kf: float, with_ce: bool):
         peaks, slopes, model = np.zeros((self.cols.size, 4)), np.zeros((self.cols.size, 4, 2)), \
             np.zeros(6)
         _tangent_replay(self.plants[q].params, self.path, kp * KP_SI_PER_M_MIN_PER_MM, kf,
@@ -214,7 +230,7 @@ class _Packed:
         holds = all(_holds(*peaks[a], lim[a]) for a in range(self.cols.size))
         finite = np.isfinite(lim)
         scale = np.where(finite, 1.0 / np.where(finite, lim, 1.0), 0.0)
-        return holds, peaks * scale, slopes * scale[:, :, None], model
+        return holds, peaks * scale, slopes * scale[:, :, None], model if with_ce else None
 
 
 @njit(cache=True, nogil=True)
@@ -331,10 +347,11 @@ def _tangent_replay(params, path, kp_si, kf, with_ce, peaks, slopes, model):
         state = rest_state(params[c], pos_t[c, 0])
         run_tangent(state, params[c], (pos_t[c], vel_t[c], kp_k, kf_k, dkp, dkf), start,
                     (pa, ua, spa, sua))
-        for k in range(n):
-            p_act[k, c] = pa[k]
-            sp[k, c, 0] = spa[k, 0]
-            sp[k, c, 1] = spa[k, 1]
+        if with_ce:  # the contour error's model reads them
+            for k in range(n):
+                p_act[k, c] = pa[k]
+                sp[k, c, 0] = spa[k, 0]
+                sp[k, c, 1] = spa[k, 1]
         _peak_slopes(ua, sua, pa, spa, pos_t[c], path.te, peaks[a], slopes[a])
     model[:] = 0.0
     if with_ce:
@@ -351,6 +368,7 @@ def _ce_model(path, p_act, sp, model):
     along the path)."""
     pos, tree, lo, hi = path.pos, path.tree, path.lo, path.hi
     near = -1
+    j = np.empty((3, 2))  # the residual's derivative at one sample
     for k in range(pos.shape[0]):
         if not path.feed[k]:
             continue
@@ -371,7 +389,6 @@ def _ce_model(path, p_act, sp, model):
                 tx, ty, tz = sx / length, sy / length, sz / length
         rx, ry, rz = x - qx, y - qy, z - qz
         model[0] += d2
-        j = np.empty((3, 2))
         for d in range(2):
             along = tx * sp[k, 0, d] + ty * sp[k, 1, d] + tz * sp[k, 2, d]
             j[0, d] = sp[k, 0, d] - along * tx
@@ -560,6 +577,19 @@ class _Search:
                       np.concatenate([o[1].ravel() for o in out]),
                       np.concatenate([o[2].reshape(-1, 2) for o in out]))
 
+    def breaks(self, kp: float, kf: float, modelled: tuple[int, ...]) -> bool:
+        """Whether ``(kp, kf)`` breaks a limit on a plant :meth:`point` replays, found by
+        replaying the critical plants first (where earlier points broke one) ``threads`` at a
+        time and stopping at the first break (the replays are memoised: :meth:`point` there
+        reuses them)."""
+        plants = [q for q in self.critical if q not in modelled] + list(modelled)
+        for k in range(0, len(plants), self.threads):
+            out = thread_map(lambda q: self.packed.tangent(q, kp, kf, q in modelled),
+                             plants[k:k + self.threads], self.threads)
+            if not all(o[0] for o in out):
+                return True
+        return False
+
     def refine(self, x: _Point, steps: tuple[float, float], modelled: tuple[int, ...]) -> _Point:
         """Step 2: the trust-region refinement from ``x`` of the aggregate over the
         ``modelled`` plants (module doc); a start that breaks a limit on the plants modelled
@@ -588,6 +618,9 @@ class _Search:
                     x.holds and gain < defaults.ROBUST_BASELINE_GAIN * len(modelled)):
                 break
             kp, kf = (round(float(v), 6) for v in np.clip(centre + step * scale, lo, hi))
+            if x.holds and self.breaks(kp, kf, modelled):  # refused, whatever its total
+                radius = size / 4.0
+                continue
             y = self.point(kp, kf, modelled)
             if (y.total < x.total and y.holds) if x.holds else _excess_of(y) < _excess_of(x):
                 x = y
