@@ -136,7 +136,7 @@ def test_sigint_cancels_the_batch_tasks_on_the_cluster(cluster, tmp_path):
             assert time.monotonic() < t_end, "the batch never reached the cluster"
             time.sleep(0.05)
         proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=30)
+        stdout, stderr = proc.communicate(timeout=120)  # a hang guard (it took > 30 s under load 8)
         assert proc.returncode == 130, stdout + stderr
         assert "stopped by SIGINT: 0 of 4 program(s) finished" in stderr
         t_end = time.monotonic() + 10
