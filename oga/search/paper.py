@@ -361,12 +361,22 @@ def paper_search(k0, k1, pd, pdT, vdT, moving, axes, gains, cfg, st):
                  np.zeros((3, 3, MAX_CANDIDATES, MAX_CANDIDATES)), np.zeros(3, dtype=np.int64),
                  np.zeros((3, MAX_CANDIDATES)), np.empty(n_pred), np.ones(n_pred, dtype=np.bool_),
                  np.ones((3, MAX_CANDIDATES), dtype=np.bool_))
+    # each step is handed only the arrays it reads (every array passed costs a copy of its
+    # descriptor per call: the whole State and _Work were ~2 kB per step and sample)
+    now = (st.states, st.kp, st.kf, st.u_hist, st.stats)
+    cand = (work.ncand, work.dkp, work.dkf)
+    check = (work.pred, work.viol, work.allowed, work.u_scratch, work.every)
+    path = (work.ref, work.q, work.tang)
+    cost = (work.pred, work.allowed, work.d, work.diag, work.cross)
+    anchor = (st.kp, st.kf, gains.kp_base, gains.kf_base)
+    bounds = (gains.adj_kp, gains.adj_kf, gains.kp_lo, gains.kp_hi, gains.kf_lo, gains.kf_hi)
+    limits = (axes.vmax, axes.amax, axes.jmax)
     for k in range(k0, k1):
-        _axis_candidates(k, pdT, vdT, moving, axes, gains, cfg, st, work)  # 1-2
-        _predict_candidates(k, pdT, vdT, moving, axes, cfg, st, work)  # 3
-        _nearest_points(k, pd, moving, cfg, st, work)
-        _quadratic_terms(moving, gains, cfg, st, work)  # 4
-        _choose(moving, work)
+        _axis_candidates(k, pdT, vdT, moving, limits, bounds, cfg, now, cand)  # 1-2
+        _predict_candidates(k, pdT, vdT, moving, axes, cfg, now, cand, check)  # 3
+        _nearest_points(k, pd, moving, cfg, st.states, cand, work.pred, path)
+        _quadratic_terms(moving, anchor, cfg, cand, path, cost)  # 4
+        _choose(moving, work.ncand, work.diag, work.cross, work.choice)
         # apply, advance the true state, recede
         for a in range(3):
             st.kp[a] += work.dkp[a, work.choice[a]]
@@ -376,75 +386,83 @@ def paper_search(k0, k1, pd, pdT, vdT, moving, axes, gains, cfg, st):
 
 
 @njit(cache=True)
-def _axis_candidates(k, pdT, vdT, moving, axes, gains, cfg, st, work):
+def _axis_candidates(k, pdT, vdT, moving, limits, bounds, cfg, now, cand):
     """Steps 1-2: every axis's admissible increments at sample ``k`` (one, zero, where the
-    axis is not adjusted)."""
+    axis is not adjusted); ``limits`` ``(vmax, amax, jmax)`` (3,), ``bounds`` the first six
+    fields of :class:`Gains`, ``now`` ``(states, kp, kf, u_hist, stats)`` of :class:`State`,
+    ``cand`` ``(ncand, dkp, dkf)`` receives the candidates."""
+    vmax, amax, jmax = limits
+    adj_kp, adj_kf, kp_lo, kp_hi, kf_lo, kf_hi = bounds
+    states, kp, kf, u_hist, stats = now
+    ncand, dkp, dkf = cand
     te = cfg.te
     te2 = te * te
     for a in range(3):
-        u1 = st.u_hist[a, 0]
-        u2 = st.u_hist[a, 1]
-        ulo = max(-axes.vmax[a], u1 - axes.amax[a] * te, 2.0 * u1 - u2 - axes.jmax[a] * te2)
-        uhi = min(axes.vmax[a], u1 + axes.amax[a] * te, 2.0 * u1 - u2 + axes.jmax[a] * te2)
-        if moving[a] and (gains.adj_kp[a] or gains.adj_kf[a]):
-            e = pdT[a, k] - st.states[a, 0]
+        u1 = u_hist[a, 0]
+        u2 = u_hist[a, 1]
+        ulo = max(-vmax[a], u1 - amax[a] * te, 2.0 * u1 - u2 - jmax[a] * te2)
+        uhi = min(vmax[a], u1 + amax[a] * te, 2.0 * u1 - u2 + jmax[a] * te2)
+        if moving[a] and (adj_kp[a] or adj_kf[a]):
+            e = pdT[a, k] - states[a, 0]
             n, fb = _candidates(
-                e, vdT[a, k], st.kp[a], st.kf[a],
-                (gains.kp_lo[a], gains.kp_hi[a], gains.kf_lo[a], gains.kf_hi[a]),
-                (gains.adj_kp[a], gains.adj_kf[a]), (ulo, uhi), (cfg.a1, cfg.a2), work.dkp[a],
-                work.dkf[a],
+                e, vdT[a, k], kp[a], kf[a], (kp_lo[a], kp_hi[a], kf_lo[a], kf_hi[a]),
+                (adj_kp[a], adj_kf[a]), (ulo, uhi), (cfg.a1, cfg.a2), dkp[a], dkf[a],
             )
             if fb:
-                st.stats[STAT_FALLBACK] += 1
+                stats[STAT_FALLBACK] += 1
         else:
-            work.dkp[a, 0] = 0.0
-            work.dkf[a, 0] = 0.0
+            dkp[a, 0] = 0.0
+            dkf[a, 0] = 0.0
             n = 1
-        work.ncand[a] = n
+        ncand[a] = n
 
 
 @njit(cache=True)
-def _predict_candidates(k, pdT, vdT, moving, axes, cfg, st, work):
-    """Step 3: the predicted positions of every candidate's window (moving axes only) and
-    which candidates may be chosen: those that keep eq. 2 (or least violate it)."""
+def _predict_candidates(k, pdT, vdT, moving, axes, cfg, now, cand, check):
+    """Step 3: the predicted positions of every candidate's window (moving axes only) into
+    ``pred`` and which candidates may be chosen into ``allowed``: those that keep eq. 2 (or
+    least violate it); ``check`` ``(pred, viol, allowed, u_scratch, every)`` of ``_Work``."""
+    states, kp, kf, u_hist, stats = now
+    ncand, dkp, dkf = cand
+    pred, viol, allowed, u_scratch, every = check
     n_pred = cfg.n_pred
     for a in range(3):
         if not moving[a]:
             continue
         least = np.inf
         lims = (axes.vmax[a], axes.amax[a], axes.jmax[a], cfg.te, axes.ferror_max[a])
-        for c in range(work.ncand[a]):
-            kp_si = (st.kp[a] + work.dkp[a, c]) * _C
-            kf = st.kf[a] + work.dkf[a, c]
-            window(st.states[a], axes.params[a], pdT[a], vdT[a], k, n_pred, kp_si, kf,
-                   work.pred[a, c])
-            st.stats[STAT_WINDOWS] += 1
-            work.viol[a, c] = _window_violation(
-                st.states[a, 0], work.pred[a, c], pdT[a], vdT[a], k, (kp_si, kf),
-                (st.u_hist[a, 0], st.u_hist[a, 1]), lims, work.u_scratch, work.every,
+        for c in range(ncand[a]):
+            kp_si = (kp[a] + dkp[a, c]) * _C
+            kf_c = kf[a] + dkf[a, c]
+            window(states[a], axes.params[a], pdT[a], vdT[a], k, n_pred, kp_si, kf_c, pred[a, c])
+            stats[STAT_WINDOWS] += 1
+            viol[a, c] = _window_violation(
+                states[a, 0], pred[a, c], pdT[a], vdT[a], k, (kp_si, kf_c),
+                (u_hist[a, 0], u_hist[a, 1]), lims, u_scratch, every,
             )
-            least = min(least, max(work.viol[a, c], _SLACK))
-        for c in range(work.ncand[a]):
-            work.allowed[a, c] = work.viol[a, c] <= least
+            least = min(least, max(viol[a, c], _SLACK))
+        for c in range(ncand[a]):
+            allowed[a, c] = viol[a, c] <= least
 
 
 @njit(cache=True)
-def _nearest_points(k, pd, moving, cfg, st, work):
-    """The path's nearest points ``work.q`` and tangents ``work.tang`` to the prediction
-    nearest to "no change" (``work.ref``), walking along the window."""
+def _nearest_points(k, pd, moving, cfg, states, cand, pred, path):
+    """The path's nearest points ``q`` and tangents ``tang`` (``path`` ``(ref, q, tang)``)
+    to the prediction nearest to "no change" (``ref``), walking along the window."""
     n_pred, ce_window = cfg.n_pred, cfg.ce_window
-    ref, q, tang = work.ref, work.q, work.tang
+    ref, q, tang = path
+    ncand, dkp, dkf = cand
     n_total = pd.shape[0]
     for a in range(3):
         best_c = 0
         best_m = np.inf
-        for c in range(work.ncand[a]):
-            m = abs(work.dkp[a, c]) + abs(work.dkf[a, c])
+        for c in range(ncand[a]):
+            m = abs(dkp[a, c]) + abs(dkf[a, c])
             if m < best_m:
                 best_m = m
                 best_c = c
         for j in range(n_pred):
-            ref[j, a] = work.pred[a, best_c, j] if moving[a] else st.states[a, 0]
+            ref[j, a] = pred[a, best_c, j] if moving[a] else states[a, 0]
     idx = min(k + 1, n_total - 1)
     for j in range(n_pred):
         centre = min(k + 1 + j, n_total - 1)
@@ -473,45 +491,48 @@ def _nearest_points(k, pd, moving, cfg, st, work):
 
 
 @njit(cache=True)
-def _quadratic_terms(moving, gains, cfg, st, work):
-    """Step 4: the cost's terms with ``M = I - t t'``: per axis and candidate (``inf`` where
-    not allowed) and per pair of axes and candidates."""
+def _quadratic_terms(moving, anchor, cfg, cand, path, cost):
+    """Step 4: the cost's terms with ``M = I - t t'``: per axis and candidate into ``diag``
+    (``inf`` where not allowed) and per pair of axes and candidates into ``cross``;
+    ``anchor`` ``(kp, kf, kp_base, kf_base)``, ``cost`` ``(pred, allowed, d, diag, cross)``."""
     n_pred, lam, mu = cfg.n_pred, cfg.lam, cfg.mu
-    pred, q, tang, d, dkp, dkf = work.pred, work.q, work.tang, work.d, work.dkp, work.dkf
+    kp, kf, kp_base, kf_base = anchor
+    ncand, dkp, dkf = cand
+    _ref, q, tang = path
+    pred, allowed, d, diag, cross = cost
     for a in range(3):
         if not moving[a]:
             continue
-        for c in range(work.ncand[a]):
+        for c in range(ncand[a]):
             s = 0.0
             for j in range(n_pred):
                 dv = pred[a, c, j] - q[j, a]
                 d[a, c, j] = dv
                 s += (1.0 - tang[j, a] * tang[j, a]) * dv * dv
-            if not work.allowed[a, c]:
-                work.diag[a, c] = np.inf
+            if not allowed[a, c]:
+                diag[a, c] = np.inf
                 continue
-            work.diag[a, c] = (s * _M2_TO_MM2 + lam * (dkp[a, c] ** 2 + dkf[a, c] ** 2)
-                               + mu * ((st.kp[a] + dkp[a, c] - gains.kp_base[a]) ** 2
-                                       + (st.kf[a] + dkf[a, c] - gains.kf_base[a]) ** 2))
+            diag[a, c] = (s * _M2_TO_MM2 + lam * (dkp[a, c] ** 2 + dkf[a, c] ** 2)
+                          + mu * ((kp[a] + dkp[a, c] - kp_base[a]) ** 2
+                                  + (kf[a] + dkf[a, c] - kf_base[a]) ** 2))
     for a in range(3):
         for b in range(a + 1, 3):
             if not (moving[a] and moving[b]):
                 continue
-            for ca in range(work.ncand[a]):
-                for cb in range(work.ncand[b]):
+            for ca in range(ncand[a]):
+                for cb in range(ncand[b]):
                     s = 0.0
                     for j in range(n_pred):
                         s -= tang[j, a] * tang[j, b] * d[a, ca, j] * d[b, cb, j]
-                    work.cross[a, b, ca, cb] = 2.0 * s * _M2_TO_MM2
+                    cross[a, b, ca, cb] = 2.0 * s * _M2_TO_MM2
 
 
 @njit(cache=True)
-def _choose(moving, work):
-    """The least-cost combination of candidates into ``work.choice``: every one enumerated,
-    or coordinate descent from each axis's own best where they are too many."""
-    ncand, diag, cross, choice = work.ncand, work.diag, work.cross, work.choice
+def _choose(moving, ncand, diag, cross, choice):
+    """The least-cost combination of candidates into ``choice``: every one enumerated, or
+    coordinate descent from each axis's own best where they are too many."""
     if ncand[0] * ncand[1] * ncand[2] > _MAX_ENUM:
-        _descend(moving, work)
+        _descend(moving, ncand, diag, cross, choice)
         return
     best = np.inf
     for c0 in range(ncand[0]):
@@ -530,9 +551,8 @@ def _choose(moving, work):
 
 
 @njit(cache=True)
-def _descend(moving, work):
+def _descend(moving, ncand, diag, cross, choice):
     """Coordinate descent over the axes' candidates from each axis's own best."""
-    ncand, diag, cross, choice = work.ncand, work.diag, work.cross, work.choice
     for a in range(3):
         choice[a] = np.argmin(diag[a, : ncand[a]])
     for _sweep in range(4):
