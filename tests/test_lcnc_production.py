@@ -1,7 +1,9 @@
 """A table in production on LinuxCNC 2.9: its own motion controller runs the program.
 
-Per program (reference_xz, and a real CAM program with rapids: an excerpt of pcb2gcode's drill
-program, ``tests/data/pcb2gcode_drill_excerpt.ngc``, G81 over 8 holes): ``oga lcnc-record`` runs
+Per program (reference_xz, and a real CAM program with rapids and stops: an excerpt of
+pcb2gcode's drill program, ``tests/data/pcb2gcode_drill_parts.ngc``: a retract, a tool change
+with M5, G4, M6, M0, M3, a descent, a 1 s dwell, G81 over 8 holes: three parts between the
+stops LinuxCNC's task times, each compared at every sample): ``oga lcnc-record`` runs
 it headless in the servo simulation of ``tests/lcnc_sim.py`` (``linuxcnc`` with ``milltask``,
 ``motmod``, ``halui`` and oga's display; POSIX non-realtime) on the fixed gains, twice (the
 two runs must command the same motion), ``oga optimize --setpoints`` computes its table on

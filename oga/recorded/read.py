@@ -157,10 +157,8 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
             "samples": len(sp), "first_row": int(sample_rows[0])}
     if lcnc is not None:
         info["error_previous_target"] = lcnc.error_previous_target
-    if header is not None and "program-pauses" in header.meta:  # resumed M0/M1 (lcnc-record)
-        info["program_pauses"] = header.meta["program-pauses"]
-    if header is not None and "parts" in header.meta:  # stops timed by LinuxCNC's task
-        info["parts"] = header.meta["parts"]
+    meta = {} if header is None else header.meta  # lcnc-record: resumed M0/M1, the parts
+    info.update({k.replace("-", "_"): meta[k] for k in ("program-pauses", "parts") if k in meta})
     return RecordedSetpoints(setpoints=sp, source=info, linuxcnc=lcnc)
 
 

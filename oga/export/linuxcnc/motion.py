@@ -6,9 +6,11 @@ The table must have been computed on setpoints recorded from the same configurat
 the k-th servo period from the program's first motion, and the recording says what the motion
 controller commands in that period. The export writes three files:
 
-- ``oga_table.stream``: one row per servo period: per axis the recorded
+- ``oga_table.stream``: one row per servo period of the program's parts (``oga
+  lcnc-record``'s ``part`` column; the stops between them left out): per axis the recorded
   ``joint.N.motor-pos-cmd`` (machine units), ``Pgain`` (1/s) and ``FF1``, then the recorded
-  ``motion.current-vel`` (units/s) and ``motion.program-line``;
+  ``motion.current-vel`` (units/s), ``motion.program-line``, and ``end_of_part`` (1 on the
+  last row of a part a stop follows);
 - ``oga_table.tcl``: a ``[HAL] HALFILE`` (run by ``haltcl``), which finds with LinuxCNC's
   ``hal_procs_lib.tcl`` the ``pid`` loop each joint's ``motor-pos-cmd`` feeds and the
   signals of the pins it reads, checks the loop is the one the table assumes (servo period,
@@ -19,11 +21,19 @@ controller commands in that period. The export writes three files:
   docstring) that refills the ``streamer`` FIFO from the first row for every run.
 
 Per servo period, in LinuxCNC's own components (``ddt``, ``near``, ``logic``,
-``flipflop``, ``conv_s32_float``, ``streamer``, ``mux2``):
+``flipflop``, ``conv_s32_float``, ``streamer`` and its ``enable``, ``mux2``; no component of
+oga's in the realtime thread):
 
 - start: the table is ready, enabled (``oga-go.in-01``, TRUE by default), the motion is
   coordinated (auto or MDI) and a joint command moves in this period (its ``ddt`` leaves 0):
   this is row 0, and one row is read per period from then on;
+- a stop (a tool change, pause, spindle start or dwell between two motions, timed by
+  LinuxCNC's task, so never the same length twice): from the period after a row with
+  ``end_of_part`` (flipflop ``oga-held``) no row is read and the gains are the baseline (at
+  standstill they change nothing; the command is motion's, no jump) while the command stands
+  at the part's end, motion is enabled and coordinated and the program runs or is paused
+  (``halui``); in the period a joint command moves again the hold ends and that period reads
+  the next part's first row, exactly as recorded (its first moving period);
 - the row is valid while every joint's command is within ``pos_tol`` of the row's,
   ``motion.current-vel`` within ``vel_tol`` of the row's (a feed override, feed hold, pause
   or abort changes the trajectory's speed in the very period the motion controller applies
