@@ -422,7 +422,13 @@ def test_fallbacks_in_the_same_servo_period(prod):
         assert 0 < k < len(ins) - 100, (run, k)  # mid-program
         valid = _tail(rows, axes)[:, VALID]
         table_rows = r[ins[:k]]
-        assert valid[table_rows].all() and valid.sum() == k, run
+        first_off = int(table_rows[np.flatnonzero(valid[table_rows] == 0)[0]]) \
+            if not valid[table_rows].all() else None
+        assert valid[table_rows].all() and valid.sum() == k, (
+            run, k, first_off, None if first_off is None else (
+                _tail(rows, axes)[first_off - 2:first_off + 2].tolist(),
+                rows[first_off - 2:first_off + 2, [PER_AXIS * i + 3 for i in range(len(axes))]
+                     ].tolist(), np.flatnonzero(table_rows == first_off).tolist()))
         switch = int(r[ins[k]])  # the first period off the recording: baseline from it on
         assert switch > table_rows[-1]
         action = prod["session"].status["runs"][run]["actions"][0]["do"]
