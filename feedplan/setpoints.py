@@ -45,6 +45,10 @@ class Setpoints:
         Name of the program.
     warnings : tuple of str
         Non-fatal remarks of the planner (e.g. a feed above what the axes allow).
+    held : ndarray of bool, shape (N,), or None
+        True where the controller runs its fixed baseline gains whatever the table says: the
+        stops between the parts of a recorded program, which LinuxCNC's task times (a table
+        holds there). The searches give those samples the baseline's gains. None: nowhere.
     """
 
     dt: float
@@ -58,6 +62,7 @@ class Setpoints:
     plane: Plane | None = None
     source: str = ""
     warnings: tuple[str, ...] = ()
+    held: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("s", "pos", "vel", "acc", "jerk"):
@@ -69,8 +74,11 @@ class Setpoints:
         for name in ("pos", "vel", "acc", "jerk"):
             if getattr(self, name).shape != (n, 3):
                 raise ValueError(f"Setpoints.{name} must have shape ({n}, 3)")
-        if self.block.shape != (n,) or self.rapid.shape != (n,):
-            raise ValueError("Setpoints.block and .rapid must have one entry per sample")
+        if self.held is not None:
+            object.__setattr__(self, "held", _frozen(self.held, np.bool_))
+        if self.block.shape != (n,) or self.rapid.shape != (n,) or (
+                self.held is not None and self.held.shape != (n,)):
+            raise ValueError("Setpoints.block, .rapid and .held must have one entry per sample")
         if not self.dt > 0:
             raise ValueError("Setpoints.dt must be positive")
 

@@ -25,7 +25,7 @@ from oga.errors import MachineError, OptionError
 from oga.model.machine import Machine
 from oga.model.plant import plant_of
 from oga.options import OptimizeOptions, options_from_dict
-from oga.search.result import GainSchedule, OptimizeResult, setpoints_digest
+from oga.search.result import GainSchedule, OptimizeResult, hold_baseline, setpoints_digest
 from oga.verify.replay import verify
 
 __all__ = ["GainSchedule", "OptimizeResult", "optimize", "setpoints_digest"]
@@ -249,6 +249,7 @@ def _search(setpoints, plant, options, box, moving, report):
         advance(k0, min(k0 + chunk, n))
         if progress is not None:
             progress(share + (1.0 - share) * min(k0 + chunk, n) / n)
+    hold_baseline(setpoints, run.kp_out, run.kf_out, kp_base, kf_base)
     for arr in (run.kp_out, run.kf_out):
         arr.flags.writeable = False
     return run.kp_out, run.kf_out, (run.stats[stat_keys[0]], run.stats[stat_keys[1]])

@@ -354,3 +354,25 @@ def test_eq2_excess_matches_numpy():
         expected = max(0.0, (ratio[check] - 1.0).max(initial=0.0))
         assert eq2_excess(u, u1, u2, 0.5, 2.5, 10.0, te, len(u), check) == pytest.approx(
             expected, abs=1e-12)
+
+
+@pytest.mark.parametrize("nominal", [True, False])
+def test_held_samples_run_the_baseline_and_the_verification_replays_them(short, machine, nominal):
+    """Where the controller holds its fixed gains (``Setpoints.held``: LinuxCNC's stops between
+    a recorded program's parts) the schedule is the baseline's, in the nominal and the robust
+    search, and the summary's figures are a fresh replay of that schedule."""
+    import dataclasses
+
+    n = len(short)
+    held = np.zeros(n, dtype=bool)
+    held[n // 3:n // 2] = True
+    sp = dataclasses.replace(short, held=held)
+    r = optimize(sp, machine, {"nominal": nominal})
+    kp, kf = r.searched_schedule.kp_m_min_per_mm, r.searched_schedule.kf
+    assert np.all(kp[held] == [r.baseline_kp[a] for a in "xyz"])
+    assert np.all(kf[held] == [r.baseline_kf[a] for a in "xyz"])
+    if nominal:  # the hold did something (the robust search's free schedule: too slow here)
+        free = optimize(short, machine, {"nominal": True}).searched_schedule
+        assert not np.array_equal(free.kp_m_min_per_mm[held], kp[held])
+    fresh = verify(sp, machine, kp, kf, r.kp_bounds)
+    assert fresh.metrics.mse_m2 == r.searched.metrics.mse_m2

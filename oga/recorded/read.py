@@ -134,7 +134,8 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
               if "current_vel_m_s" in col else None)
         lcnc = LinuxcncPeriods(
             cmd_m=raw[periods], axes=axes, line=None if line is None else line[periods],
-            current_vel_m_s=cv, part=_parts(table, periods), error_previous_target={a: ept[a] for a in axes}, units=units,
+            current_vel_m_s=cv, part=_parts(table, periods),
+            error_previous_target={a: ept[a] for a in axes}, units=units,
             joints=None if header is None else header.joints, first_row=int(rows[periods[0]]))
         _, acc, jerk = derivatives(pos, te)
     else:
@@ -150,7 +151,8 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     sp = Setpoints(dt=te, s=s, pos=pos, vel=vel, acc=acc, jerk=jerk,
                    block=np.zeros(len(pos), dtype=np.int64) if line is None else line[periods],
-                   rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source)
+                   rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source,
+                   held=None if lcnc is None or lcnc.part is None else lcnc.part < 0)
     info = {"file": source, "format": fmt,
             "sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(),
             "law": "linuxcnc-pid" if fmt == "halsampler" else "given", "units": units,

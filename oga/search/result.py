@@ -21,7 +21,7 @@ from oga.verify.replay import Verification
 if TYPE_CHECKING:
     from oga.verify.certificate import Certificate
 
-__all__ = ["GainSchedule", "OptimizeResult", "setpoints_digest"]
+__all__ = ["GainSchedule", "OptimizeResult", "hold_baseline", "setpoints_digest"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,3 +211,20 @@ def setpoints_digest(sp: Setpoints) -> str:
     h.update(np.float64(sp.dt).tobytes())
     h.update(np.ascontiguousarray(sp.pos).tobytes())
     return h.hexdigest()
+
+
+def hold_baseline(setpoints: Setpoints, kp: np.ndarray, kf: np.ndarray, kp_base: np.ndarray,
+                  kf_base: np.ndarray) -> None:
+    """Give a searched schedule the baseline's gains where the controller holds them
+    (``setpoints.held``), in place, so that what is verified is what runs.
+
+    Parameters
+    ----------
+    kp, kf : ndarray, shape (N, 3)
+        The schedule, Kp in (m/min)/mm.
+    kp_base, kf_base : ndarray, shape (3,)
+        The baseline's gains per axis x, y, z.
+    """
+    if setpoints.held is not None:
+        kp[setpoints.held] = kp_base
+        kf[setpoints.held] = kf_base

@@ -71,6 +71,7 @@ from oga.model.plant import plant_of
 from oga.model.simulate import rest_state
 from oga.options import OptimizeOptions
 from oga.search.paper import Gains
+from oga.search.result import hold_baseline
 from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, Plants, carry_of, chunk_of,
                                program_of, settings_of, window_search)
 from oga.verify.replay import Verification
@@ -156,6 +157,7 @@ def multi_search(
     chunk = chunk_of(cfg, _CHUNK)
     for k0 in range(0, n, chunk):
         window_search(k0, min(k0 + chunk, n), prog, packed, gains, cfg, carry)
+    hold_baseline(setpoints, carry.kp_out, carry.kf_out, gains.kp_base, gains.kf_base)
     return MultiSearch(kp=carry.kp_out, kf=carry.kf_out,
                        fallbacks=int(carry.stats[STAT_FALLBACK]),
                        windows=int(carry.stats[STAT_WINDOWS]),
