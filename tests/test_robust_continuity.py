@@ -64,12 +64,13 @@ def test_a_small_change_of_kv_changes_the_robust_ratios_little(reference, factor
 
 
 FREEFORM = "freeform_xz.ngc"
-#: freeform_xz's bands (relative), per figure: the certificate's median, p90 and worst moved
-#: by at most 2.6 % over the perturbed machines measured (X's and Z's Kv, X's mass, 1e-4 and
-#: 1e-3: docs/explanation/certificate.md), the ratio on the machine itself (0.055, the least
-#: figure) by at most 17.5 %. Before the retry of a collapsed round the worst ratio moved by
-#: 16.7 % and the ratio on the machine by 138 %: these bands tell the two apart.
-FREEFORM_BAND = {"median": 0.06, "p90": 0.06, "worst": 0.06, "nominal": 0.3}
+#: freeform_xz's bands (relative), per figure. Over bench/bench_perturb.py's sweep (X's and Z's
+#: Kv and mass, x 1 -+ 1e-4 and 1 -+ 1e-3, 16 machines: docs/explanation/certificate.md) the
+#: certificate's median moved by at most 6.4 %, p90 2.6 %, worst 2.5 %; the ratio on the
+#: machine itself (0.055, the least figure) by 1.3 % and 8.3 % on the two machines here (58 %
+#: at most over the sweep, Z's mass x 1.001). Before the retry of a collapsed round the worst
+#: ratio moved by 16.7 % and the ratio on the machine by 138 % here: the bands tell them apart.
+FREEFORM_BAND = {"median": 0.1, "p90": 0.1, "worst": 0.1, "nominal": 0.3}
 
 
 @pytest.fixture(scope="module")
