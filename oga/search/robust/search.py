@@ -13,10 +13,12 @@
    (:func:`oga.search.robust.multi.multi_search`): the first on the nominal plant alone, each
    next one on the nominal plant and the plants of the set where the previous schedule
    did worst (the set refreshed round by round, :data:`oga.defaults.ROBUST_ACTIVE` plants
-   at most, the oldest leaving; a plant whose joining doubled the median ratio leaves for
-   good), the acceleration, jerk and following-error limits times a reserve (1 at first),
-   cut after a round whose schedule breaks a limit on a plant where the baseline keeps it
-   (by the largest such excess, and a margin doubling per cut; floored on each searched
+   at most, the oldest leaving; a round whose search collapsed after a plant joined, the
+   median ratio more than doubled, is searched again once at a reserve cut by the margin
+   (:func:`_retried`: the window search is bistable in the reserve), and where that
+   collapses too the plant leaves for good), the acceleration, jerk and following-error
+   limits times a reserve (1 at first), cut after a round whose schedule breaks a limit on
+   a plant where the baseline keeps it (by the largest such excess, and a margin doubling per cut; floored on each searched
    plant near the baseline's own peak there). Each schedule is certified on those plants
    (:func:`oga.verify.certificate.certify`), the first round's on a screen first (the
    corners and typical plants: where it fails there, as the nominal plant's schedule
@@ -261,6 +263,10 @@ def _rounds(ctx: _Context, report) -> tuple[_Round, int]:
         found = _search(ctx, active, reserve)
         report(lo + 0.5 * step)
         done = _judged(ctx, found, active, reserve, last, report, (lo, step))
+        if _collapsed(done, last):
+            tried.append(done)
+            done = _retried(ctx, done, last, rounds, report, (lo, step))
+            reserve = done.reserve
         tried.append(done)
         if done.key[:2] == (False, 0):
             break
@@ -269,6 +275,31 @@ def _rounds(ctx: _Context, report) -> tuple[_Round, int]:
         if (tuple(active), reserve) == (done.active, done.reserve):
             break  # the same plants and limits: the next round's search would repeat this one
     return _kept(ctx, tried), rounds
+
+
+def _collapsed(done, last) -> bool:
+    """The round's search collapsed: a plant joined and the median ratio more than doubled."""
+    return last is not None and bool(done.active) and _median_jump(done.ratio, last.ratio)
+
+
+def _retried(ctx: _Context, done, last, rounds, report, span) -> _Round:
+    """The round ``done`` whose search collapsed, searched again on the same plants at a
+    reserve cut by the margin (as :func:`_next` cuts it); the retry where it did not
+    collapse, else ``done``.
+
+    Why: the multi-plant window search is bistable. Where a window lowers Kf on a
+    stretch whose lag lies along the path (no contour error), raising it again at speed
+    needs jerk the reserve no longer leaves, and Kf stays low for the rest of the program
+    (measured on freeform_xz, round 3, nominal plant and two corners: from sample 1321 Kf
+    0.78 -> 0.1, median ratio 5.5; at reserve 0.780 and 0.826 Kf stays 0.51-1, median
+    0.196). Which reserves fall in that trap depends on the machine's fifth digit
+    (0.793-0.817 there); dropping the joined plant after a collapse made the table jump
+    (worst ratio 0.639 on ucp710, 0.742 on its Kv x 1.0001)."""
+    lo, step = span
+    reserve = done.reserve / (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
+    found = _search(ctx, list(done.active), reserve)
+    again = _judged(ctx, found, done.active, reserve, last, report, (lo + 0.5 * step, 0.5 * step))
+    return done if _collapsed(again, last) else again
 
 
 def _search(ctx: _Context, active, reserve):
@@ -303,10 +334,9 @@ def _next(done, last, active, rejected, reserve, rounds):
     ``rejected``; returns ``(active, reserve)``."""
     ratio = done.ratio
     active = list(active)
-    if last is not None and active and _median_jump(ratio, last.ratio):
-        # the plant that joined last made the typical plants much worse (the window
-        # search then pulls the gains far from the baseline and off both plants'
-        # optimum: measured on freeform_xz, module doc): it leaves for good
+    if _collapsed(done, last):
+        # the plant that joined last made the typical plants much worse, also at the
+        # retry's reserve (:func:`_retried`): it leaves for good
         rejected.add(active.pop())
     only = [p for p in done.cert.plants if p.schedule_only_break]
     if only:  # more limit reserve (the prototype's rule for the baseline)
