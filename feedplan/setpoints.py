@@ -48,7 +48,8 @@ class Setpoints:
     held : ndarray of bool, shape (N,), or None
         True where the controller runs its fixed baseline gains whatever the table says: the
         stops between the parts of a recorded program, which LinuxCNC's task times (a table
-        holds there). The searches give those samples the baseline's gains. None: nowhere.
+        holds there). The searches give those samples the baseline's gains; the figures do
+        not count them (their length is the task's), the checks do. None: nowhere.
     """
 
     dt: float
@@ -89,6 +90,12 @@ class Setpoints:
     def t(self) -> np.ndarray:
         """Sample times in seconds, shape (N,)."""
         return np.arange(len(self)) * self.dt
+
+    @property
+    def counted(self) -> np.ndarray:
+        """The samples the contour-error figures count, shape (N,) bool: the feed samples
+        outside the held stops (rapids and stops are checked, not counted)."""
+        return ~self.rapid if self.held is None else ~self.rapid & ~self.held
 
     @property
     def duration(self) -> float:

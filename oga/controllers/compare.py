@@ -200,7 +200,7 @@ def _row(setpoints: Setpoints, machine: Machine, name: str, tune: bool,
                 + (f"; {message}" if message else "")
             )
         ce = contour_error_of(setpoints, run.pos)
-        m = contour_metrics(ce, setpoints.pos, run.pos, ~setpoints.rapid)
+        m = contour_metrics(ce, setpoints.pos, run.pos, setpoints.counted)
         ratios = command_ratios(run.u, setpoints, machine)
     except OgaError as err:
         return _failed(name, needs_firmware, str(err), time.perf_counter() - t0)

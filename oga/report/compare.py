@@ -51,7 +51,7 @@ def _value(row, attr):
 def _fig_ce(cmp: Comparison, max_points: int) -> str:
     sp = cmp.setpoints
     s = sp.s * _MM
-    feed = ~sp.rapid
+    feed = sp.counted
     drawn = [(r, _COLOURS[i % len(_COLOURS)]) for i, r in enumerate(cmp.rows) if r.status != "failed"]
     series = [np.where(feed, r.ce_m * _UM, np.nan) for r, _ in drawn]
     panel = _Panel(80, 40, 960, 300, (s[0], s[-1]), _limits(*series, include=[0.0]))

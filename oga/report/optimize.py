@@ -409,7 +409,7 @@ def _magnification(sp: Setpoints, ce_max_m: float, i: int, j: int) -> float:
 def _fig_path(d: ReportData, max_points: int) -> tuple[str, str]:
     sp = d.setpoints
     i, j = _plane_axes(sp)
-    feed = ~sp.rapid
+    feed = sp.counted
     ce_max = max(float(np.abs(v.ce[feed]).max(initial=0.0)) for v in (d.baseline, d.optimized))
     factor = _magnification(sp, ce_max, i, j)
     drawn = [_ce_drawn(sp, v, i, j, factor) for v in (d.baseline, d.optimized)]
@@ -486,7 +486,7 @@ def _ce_panel(sp: Setpoints, series, max_points: int) -> str:
     """The contour error of replays ``series`` ((ce_um, colour, label), ...) against path
     length, feed samples only."""
     s = sp.s * _MM
-    feed = ~sp.rapid
+    feed = sp.counted
     panel = _Panel(80, 28, 960, 200, (s[0], s[-1]),
                    _limits(*(np.where(feed, c, np.nan) for c, _, _ in series), include=[0.0]))
     for ce, colour, _ in series:
@@ -499,7 +499,7 @@ def _ce_panel(sp: Setpoints, series, max_points: int) -> str:
 
 def _fig_ce(d: ReportData, max_points: int) -> tuple[str, str]:
     sp = d.setpoints
-    feed = ~sp.rapid
+    feed = sp.counted
     series = [(v.ce * _UM, colour, name) for v, colour, name in
               ((d.baseline, _BASE, "baseline"), (d.optimized, _OPT, "optimised"))]
     body = [_ce_panel(sp, series, max_points)]

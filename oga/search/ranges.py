@@ -255,7 +255,7 @@ def _feed_mask(setpoints: Setpoints, machine: Machine) -> np.ndarray:
         raise OptionError(
             f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
         )
-    feed = ~setpoints.rapid
+    feed = setpoints.counted
     if not feed.any():
         raise InputError(f"{setpoints.source or 'toolpath'}: no feed move (only rapids)")
     return feed
@@ -397,7 +397,7 @@ def _best_fixed(setpoints, machine, axes, kp: float, kf: float, mse_ce_m2: float
     """The BestFixed of the equal gains ``(kp, kf)``, its contour-error figures simulated."""
     sim = simulate(setpoints, machine, kp, kf)
     metrics = contour_metrics(
-        contour_error_of(setpoints, sim.pos), setpoints.pos, sim.pos, ~setpoints.rapid
+        contour_error_of(setpoints, sim.pos), setpoints.pos, sim.pos, setpoints.counted
     )
     return BestFixed(
         kp={a: kp for a in axes}, kf={a: kf for a in axes}, mse_ce_m2=mse_ce_m2, metrics=metrics

@@ -1183,7 +1183,7 @@ def program_of(setpoints, moving, cfg: Settings) -> Program:
     vdT = np.ascontiguousarray(setpoints.vel.T)
     pdT_pad = np.ascontiguousarray(np.hstack([pdT, np.repeat(pdT[:, -1:], pad, axis=1)]))
     vdT_pad = np.ascontiguousarray(np.hstack([vdT, np.zeros((3, pad))]))
-    feed = np.concatenate([~setpoints.rapid, np.zeros(pad, dtype=bool)])
+    feed = np.concatenate([setpoints.counted, np.zeros(pad, dtype=bool)])
     live = np.concatenate([np.ones(n, dtype=bool), np.zeros(pad, dtype=bool)])
     tree, win_lo, win_hi = path_index(pd, defaults.CE_WINDOW_SAMPLES)
     return Program(pd, pdT_pad, vdT_pad, tree, win_lo, win_hi, np.asarray(moving, dtype=bool),

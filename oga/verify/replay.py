@@ -190,7 +190,7 @@ def verify(
     kf = np.asarray(kf, dtype=np.float64)
     sim = simulate(setpoints, plant, kp, kf)
     ce = contour_error_of(setpoints, sim.pos)
-    metrics = contour_metrics(ce, setpoints.pos, sim.pos, ~setpoints.rapid)
+    metrics = contour_metrics(ce, setpoints.pos, sim.pos, setpoints.counted)
     ratio = command_ratios(sim.u, setpoints, plant)
     limit_v = [
         f"axis {a}: velocity command {what} reaches {ratio[k, j]:.3f}x its limit "

@@ -180,7 +180,7 @@ class _Packed:
         pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
         vel = np.ascontiguousarray(setpoints.vel, dtype=np.float64)
         self.path = _Path(cols, pos, vel, np.ascontiguousarray(pos.T),
-                          np.ascontiguousarray(vel.T), np.ascontiguousarray(~setpoints.rapid),
+                          np.ascontiguousarray(vel.T), np.ascontiguousarray(setpoints.counted),
                           float(setpoints.dt), *path_index(pos, defaults.CE_WINDOW_SAMPLES))
         self.cols = cols
 
