@@ -16,8 +16,8 @@ At every sample ``k`` and for every axis ``a`` the search
    so each axis's windows are simulated once);
 4. scores every combination of the axes' candidates with
    ``J = E'E + lam dK'dK`` (contour error E in mm, a CNC's unit, as the paper's
-   tuning of lam implies, increments in (m/min)/mm and 1) and applies the least-cost one, advances the true state by one sample
-   and recedes.
+   tuning of lam implies, increments in (m/min)/mm and 1) and applies the least-cost one,
+   advances the true state by one sample and recedes.
 
 Reading of the candidate rule
 -----------------------------

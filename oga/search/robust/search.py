@@ -18,8 +18,8 @@
    (:func:`_retried`: the window search is bistable in the reserve), and where that
    collapses too the plant leaves for good), the acceleration, jerk and following-error
    limits times a reserve (1 at first), cut after a round whose schedule breaks a limit on
-   a plant where the baseline keeps it (by the largest such excess, and a margin doubling per cut; floored on each searched
-   plant near the baseline's own peak there). Each schedule is certified on those plants
+   a plant where the baseline keeps it (by the largest such excess, and a margin doubling
+   per cut; floored on each searched plant near the baseline's own peak there). Each schedule is certified on those plants
    (:func:`oga.verify.certificate.certify`), the first round's on a screen first (the
    corners and typical plants: where it fails there, as the nominal plant's schedule
    does, the whole set's certificate would fail too, :class:`_Round`; the exported
