@@ -147,12 +147,8 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
     sample_rows = rows[periods]
     if machine is not None:
         check_limits(pos, te, machine, {a: f"{a}_cmd_m" for a in AXES}, sample_rows)
-    rapid = rapid[periods]
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
-    sp = Setpoints(dt=te, s=s, pos=pos, vel=vel, acc=acc, jerk=jerk,
-                   block=np.zeros(len(pos), dtype=np.int64) if line is None else line[periods],
-                   rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source,
-                   held=None if lcnc is None or lcnc.part is None else lcnc.part < 0)
+    sp = _setpoints(te, (pos, vel, acc, jerk), None if line is None else line[periods],
+                    rapid[periods], source, None if lcnc is None else lcnc.part)
     info = {"file": source, "format": fmt,
             "sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(),
             "law": "linuxcnc-pid" if fmt == "halsampler" else "given", "units": units,
@@ -225,6 +221,18 @@ def _line_and_rapid(table) -> tuple[np.ndarray | None, np.ndarray]:
     else:
         rapid = np.zeros(len(data), dtype=bool)
     return line, rapid
+
+
+def _setpoints(te, kinematics, line, rapid, source, part) -> Setpoints:
+    """The :class:`Setpoints` of the samples: ``kinematics`` (pos, vel, acc, jerk) (N, 3) each,
+    ``line`` (N,) or None, ``rapid`` (N,), ``part`` (N,) or None (-1 in a stop: held)."""
+    pos = kinematics[0]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    return Setpoints(dt=te, s=s, pos=pos, vel=kinematics[1], acc=kinematics[2],
+                     jerk=kinematics[3],
+                     block=np.zeros(len(pos), dtype=np.int64) if line is None else line,
+                     rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source,
+                     held=None if part is None else part < 0)
 
 
 def _parts(table, periods: np.ndarray) -> np.ndarray | None:
