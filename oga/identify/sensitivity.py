@@ -42,6 +42,7 @@ from oga.model.simulate import (
     _mechanics,
     _pi_coefs,
     _pi_substep,
+    _same,
     _smooth_sign,
     _substep_coefs,
     friction_and_slope,
@@ -135,6 +136,25 @@ def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
     return p, v, f, i
 
 
+@njit(cache=True, inline="always")
+def _all_same(a, b) -> bool:
+    """Every entry of ``a`` the same float64 as ``b``'s (:func:`oga.model.simulate._same`)."""
+    for j in range(a.shape[0]):
+        if not _same(a[j], b[j]):
+            return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def _unchanged(before, state, tangents) -> bool:
+    """The period left the state ``(p, v, F, I)`` and the tangents (4, D) as ``before``
+    (the state, then the tangents row by row) held them, to the bit."""
+    for j in range(4):
+        if not _same(state[j], before[j]):
+            return False
+    return _all_same(tangents.ravel(), before[4:])
+
+
 @njit(cache=True)
 def _run_sens(params, dpar, p0, cmd, out):
     """Simulate one axis from rest at ``p0`` on the :data:`Command` ``cmd`` with the
@@ -156,6 +176,13 @@ def _run_sens(params, dpar, p0, cmd, out):
     dp, df = tangents[0], tangents[2]
     dud = np.zeros(nd)
     state = (p0, 0.0, 0.0, 0.0)
+    # as the simulator skips a period that provably changes nothing (its state a floating-point
+    # fixed point under the same command), so here, where the tangents and their command are
+    # fixed points too: the same inputs, the same period (the axis standing, stuck in its
+    # friction, while another axis moves)
+    still, ud_still = False, 0.0
+    dud_still = np.zeros(nd)
+    before = np.empty(4 + 4 * nd)
     for k in range(n):
         p, f = state[0], state[2]
         out_p[k] = p
@@ -175,7 +202,14 @@ def _run_sens(params, dpar, p0, cmd, out):
                 dnewer = du_hist[m + 1, d] if m + 1 >= 0 else 0.0
                 dud[d] = frac * dud[d] + (1.0 - frac) * dnewer + dpar[d, _FRAC] * (ud - newer)
             ud = _delayed(params, ud, newer)
+        if still and _same(ud, ud_still) and _all_same(dud, dud_still):
+            continue  # a fixed point under the same inputs: this period changes nothing
+        before[:4] = state
+        before[4:] = tangents.ravel()
         state = _advance_sens(params, dpar, dc, state, ud, tangents, dud)
+        still = _unchanged(before, state, tangents)
+        ud_still = ud
+        dud_still[:] = dud
 
 
 def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: float, pd, vd,
