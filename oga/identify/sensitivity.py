@@ -42,6 +42,7 @@ from oga.model.simulate import (
     _mechanics,
     _pi_coefs,
     _pi_substep,
+    _same,
     _smooth_sign,
     _substep_coefs,
     friction_and_slope,
@@ -72,14 +73,23 @@ Sensitivities = namedtuple("Sensitivities", ["p", "dp", "f", "df"])
 
 
 @njit(cache=True)
-def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
+def _advance_sens(params, dpar, dc, state, ud, tangents, dud, memo, replay):
     """:func:`oga.model.simulate._advance` (no load) of one Te from ``state`` ``(p, v, f, i)``;
     the tangents ``tangents`` (4, D) (rows p, v, f, i) advanced in place; ``dud`` (D,) the
     derivatives of the command ``ud``; ``dc`` (D, 10) the directions'
-    :func:`oga.model.simulate._substep_coefs`. Returns the next state."""
+    :func:`oga.model.simulate._substep_coefs`. Returns the next state. ``memo`` (NSUB + 1,
+    12): the nominal sub-steps' values the tangents use (:func:`_nominal_substeps`), its last
+    row's first entry 1 where they were taken; ``replay``: the last period had this state and
+    ``ud`` and left the state as it was (so takes the same path to the same values): its
+    sub-steps' values are read from ``memo`` instead of computed again."""
     p, v, f, i = state
     dp, dv, df, di = tangents[0], tangents[1], tangents[2], tangents[3]
     nd = dpar.shape[0]
+    nsub = int(params[_NSUB])
+    if replay and memo[nsub, 0] == 1.0:
+        _tangent_substeps(params, dpar, dc, tangents, dud, memo)
+        return p, v, f, i
+    memo[nsub, 0] = 0.0
     if v == 0.0 and f == 0.0 and i == 0.0 and ud == 0.0:
         return p, v, f, i  # at rest and not driven: nothing moves (as the simulator)
     if _linear_guard(params, v, f, i, ud, 0.0):  # linear friction map (a machine setting)
@@ -98,9 +108,23 @@ def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
             cp, cv, cf, ci = _lifted(q, 0.0, v, f, i, ud, fn)  # its coefficients moved
             dp[d], dv[d], df[d], di[d] = lp + cp, lv + cv, lf + cf, li + ci
         return _lifted(params, p, v, f, i, ud, fn)
+    out = _nominal_substeps(params, state, ud, fn, slope, (fs, fx, fv), memo)
+    memo[nsub, 0] = 1.0
+    _tangent_substeps(params, dpar, dc, tangents, dud, memo)
+    return out
+
+
+@njit(cache=True)
+def _nominal_substeps(params, state, ud, fn, slope, terms, memo):
+    """The sub-steps of one Te from ``state`` (``fn``, ``slope``, ``terms`` the friction's
+    at its velocity): returns the next state; row ``j`` of ``memo`` gets what the tangents
+    use of sub-step ``j``: ``(slope, fs, fx, fv, linear, integrating, I, e + I/Tn, v, F,
+    F_cmd, F_n)``."""
+    p, v, f, i = state
+    fs, fx, fv = terms
     c = _substep_coefs(params)
     pi = _pi_coefs(params)
-    kv, inv_tn, h, _flim = pi
+    inv_tn = pi[1]
     # the friction's slope is steep near v = 0 (Fc / smoothing velocity): held over a sub-step
     # it makes the nominal velocity chatter about 0 (bounded by the friction itself) and the
     # tangent grow without bound. Limited to the slope that stops the velocity's tangent in
@@ -110,18 +134,33 @@ def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
         if j > 0:
             fn, slope = friction_and_slope(params, v)
             fs, fx, fv = _friction_terms(params, v)
-        slope = min(slope, stick)
         fc, i_next, linear, integrating = _pi_substep(ud, v, i, pi)
-        e = ud - v
-        w = e + i * inv_tn
-        for d in range(nd):
+        row = memo[j]
+        row[0], row[1], row[2], row[3] = min(slope, stick), fs, fx, fv
+        row[4], row[5] = 1.0 if linear else 0.0, 1.0 if integrating else 0.0
+        row[6], row[7], row[8], row[9], row[10], row[11] = i, (ud - v) + i * inv_tn, v, f, fc, fn
+        i = i_next
+        p, v, f = _mechanics(c, p, v, f, fc, fn)
+    return p, v, f, i
+
+
+@njit(cache=True)
+def _tangent_substeps(params, dpar, dc, tangents, dud, memo):
+    """The tangents (4, D) through the sub-steps whose nominal values ``memo`` holds
+    (:func:`_nominal_substeps`), in place."""
+    dp, dv, df, di = tangents[0], tangents[1], tangents[2], tangents[3]
+    c = _substep_coefs(params)
+    kv, inv_tn, h, _flim = _pi_coefs(params)
+    for j in range(int(params[_NSUB])):
+        slope, fs, fx, fv, linear, integrating, i, w, v, f, fc, fn = memo[j]
+        for d in range(dpar.shape[0]):
             q = dpar[d]
             dfn = slope * dv[d] + fs * q[_FC] + fx * q[_DFS] + fv * q[_INV_VS]
             de = dud[d] - dv[d]
             dfc = 0.0  # a limited force command does not move
-            if linear:
+            if linear != 0.0:
                 dfc = kv * (de + di[d] * inv_tn + i * q[_INV_TN]) + q[_KV] * w
-            if integrating:  # a frozen integral does not move either
+            if integrating != 0.0:  # a frozen integral does not move either
                 di[d] += h * de
             k = dc[d]
             p0, v0, f0 = dp[d], dv[d], df[d]
@@ -130,9 +169,24 @@ def _advance_sens(params, dpar, dc, state, ud, tangents, dud):
             dv[d] = (c[2] * v0 + c[3] * f0 + c[7] * dfc + c[8] * dfn
                      + k[2] * v + k[3] * f + k[7] * fc + k[8] * fn)
             df[d] = c[4] * f0 + c[9] * dfc + k[4] * f + k[9] * fc
-        i = i_next
-        p, v, f = _mechanics(c, p, v, f, fc, fn)
-    return p, v, f, i
+
+
+@njit(cache=True, inline="always")
+def _all_same(a, b) -> bool:
+    """Every entry of ``a`` the same float64 as ``b``'s (:func:`oga.model.simulate._same`)."""
+    for j in range(a.shape[0]):
+        if not _same(a[j], b[j]):
+            return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def _state_same(before, state) -> bool:
+    """The period left the state ``(p, v, F, I)`` as ``before[:4]`` held it, to the bit."""
+    for j in range(4):
+        if not _same(state[j], before[j]):
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -156,6 +210,16 @@ def _run_sens(params, dpar, p0, cmd, out):
     dp, df = tangents[0], tangents[2]
     dud = np.zeros(nd)
     state = (p0, 0.0, 0.0, 0.0)
+    # as the simulator skips a period that provably changes nothing (its state a floating-point
+    # fixed point under the same command), so here, where the tangents and their command are
+    # fixed points too: the same inputs, the same period (the axis standing, stuck in its
+    # friction, while another axis moves)
+    # the nominal state alone a fixed point (``fixed``): the period's nominal sub-steps are
+    # the last one's, read back from ``memo`` (the tangents still move)
+    still, fixed, ud_still = False, False, 0.0
+    memo = np.zeros((int(params[_NSUB]) + 1, 12))
+    dud_still = np.zeros(nd)
+    before = np.empty(4 + 4 * nd)
     for k in range(n):
         p, f = state[0], state[2]
         out_p[k] = p
@@ -175,7 +239,16 @@ def _run_sens(params, dpar, p0, cmd, out):
                 dnewer = du_hist[m + 1, d] if m + 1 >= 0 else 0.0
                 dud[d] = frac * dud[d] + (1.0 - frac) * dnewer + dpar[d, _FRAC] * (ud - newer)
             ud = _delayed(params, ud, newer)
-        state = _advance_sens(params, dpar, dc, state, ud, tangents, dud)
+        if still and _same(ud, ud_still) and _all_same(dud, dud_still):
+            continue  # a fixed point under the same inputs: this period changes nothing
+        replay = fixed and _same(ud, ud_still)
+        before[:4] = state
+        before[4:] = tangents.ravel()
+        state = _advance_sens(params, dpar, dc, state, ud, tangents, dud, memo, replay)
+        fixed = _state_same(before, state)
+        still = fixed and _all_same(tangents.ravel(), before[4:])
+        ud_still = ud
+        dud_still[:] = dud
 
 
 def positions_and_sensitivities(params: np.ndarray, dparams: np.ndarray, p0: float, pd, vd,

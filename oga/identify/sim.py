@@ -13,7 +13,7 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
-from oga.model.simulate import axis_params, drive, rest_state
+from oga.model.simulate import _same, axis_params, drive, rest_state
 
 __all__ = ["simulate_forces", "ideal_loop_positions", "synthetic_trace", "random_cascade"]
 
@@ -22,10 +22,23 @@ _P, _F = 0, 2  # position and force in the cascade state (oga.model.simulate's l
 
 @njit(cache=True)
 def _run_forces(state, params, pd, vd, kp_si, kf, out_p, out_f):
+    # a period that left the whole state (its dead-time line too) as it was, to the bit, does
+    # so again under the same command: skipped (an axis stuck in its friction, standing)
+    before = np.empty_like(state)
+    still, u_still = False, 0.0
     for k in range(pd.shape[0]):
         out_p[k] = state[_P]
         out_f[k] = state[_F]
-        drive(state, params, kp_si[k] * (pd[k] - state[_P]) + kf[k] * vd[k], 0.0)
+        u = kp_si[k] * (pd[k] - state[_P]) + kf[k] * vd[k]
+        if still and _same(u, u_still):
+            continue
+        before[:] = state
+        drive(state, params, u, 0.0)
+        still, u_still = True, u
+        for j in range(state.shape[0]):
+            if not _same(state[j], before[j]):
+                still = False
+                break
 
 
 @njit(cache=True)
