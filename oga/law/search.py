@@ -413,7 +413,7 @@ def _cases(programs, overrides, law_axes, start_law: Law, baselines) -> list[_Ca
                         basis(ax, ax.kf.shape, sp.vel[:, i], sp.acc[:, i]))
             base = baselines[p.name]
             case = _Case(program=p.name, override=o, sp=sp, base=base,
-                         moving=tuple(sp.moving_axes), feed=~sp.rapid,
+                         moving=tuple(sp.moving_axes), feed=sp.counted,
                          index=path_index(np.ascontiguousarray(sp.pos), defaults.CE_WINDOW_SAMPLES),
                          weights=w)
             if o == 1.0:
