@@ -434,3 +434,40 @@ def test_jacobian_falls_back_to_differences_where_the_tangent_overflows(ucp, exc
     assert np.all(np.isfinite(fallback))
     for j in range(7):
         assert np.linalg.norm(fallback[:, j] - exact[:, j]) < 1e-2 * np.linalg.norm(exact[:, j])
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_jacobian_holds_where_the_axis_stands_while_another_moves(ucp, seed):
+    """Axis x on a two-axis program: it stands, stuck in its friction, while z moves, where the
+    kernels skip a period that leaves state and tangents as they were (and read a stuck
+    period's nominal sub-steps back). Positions and forces there are the simulator's to the
+    bit, and the Jacobian matches central differences of the residual (1e-5 measured; 1e-3
+    as for a moving axis)."""
+    from oga.identify.fit import _Model, _x0
+    from oga.identify.sensitivity import forces_and_sensitivities
+
+    text = excite_program(ucp, ["x", "z"], travel_mm=10.0, pass_s=0.5, sweep_hz=(4.0, 10.0))
+    sp = plan_toolpath(read_toolpath(text, "gcode"), ucp, feed_m_s=None, tol_m=2e-5)
+    true_machine, kp = random_cascade(ucp, "x", np.random.default_rng(seed))
+    ch = synthetic_trace(sp, true_machine, ["x"], kp, 0.8, noise_m=1e-7, quantum_m=1e-7,
+                         seed=seed)
+    n = len(sp)
+    assert np.mean(np.diff(ch["x_cmd_m"]) == 0.0) > 0.3  # x stands for a third of it
+    tr = AxisTrace(cmd_m=ch["x_cmd_m"], act_m=ch["x_act_m"], kp_m_min_per_mm=np.full(n, kp),
+                   kf=np.full(n, 0.8))
+    cas, dead = true_machine.axis("x").cascade, true_machine.timing.dead_time_samples
+    model = _Model(ucp, "x", tr, sp.dt, cas.mass_kg)
+    x = _x0(cas)
+    params = model.params(x, dead)
+    args = (model.p0, model.cmd, model.ff, model.kp, model.kf)
+    p, _, f, _ = forces_and_sensitivities(params, np.zeros((2, params.size)), *args)
+    np.testing.assert_array_equal(p, simulate_axis(params, *args)[0])
+    np.testing.assert_array_equal(f, simulate_forces(params, *args)[1])
+    jac = model.jacobian(x, dead, 0)
+    for j in range(x.size):
+        h = 1e-5 * max(1.0, abs(x[j]))
+        up, down = x.copy(), x.copy()
+        up[j] += h
+        down[j] -= h
+        fd = (model.residual(up, dead, 0) - model.residual(down, dead, 0)) / (2 * h)
+        assert np.linalg.norm(jac[:, j] - fd) / np.linalg.norm(fd) < 1e-3, j
