@@ -18,6 +18,7 @@ benchmark prints figures; it asserts nothing.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import time
@@ -58,6 +59,14 @@ def figures(rob) -> dict:
             "nominal": res.optimized.metrics.mse_m2 / res.baseline.metrics.mse_m2}
 
 
+def _rounds(rob) -> str:
+    """The rounds, the kept round's reserve and plants, and the searched table's certificate
+    (also where the baseline is exported)."""
+    c = rob.certificate
+    return (f"rounds {rob.rounds}, reserve {rob.reserve:.4f}, alpha {rob.alpha[0]:.3f}, "
+            f"searched {c.median:.4f}/{c.p90:.4f}/{c.worst:.4f}, active {list(rob.active)}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--machine", default="ucp710")
@@ -66,7 +75,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--axes", default="", help="default: the program's moving axes")
     ap.add_argument("--scales", default="0.999,0.9999,1.0001,1.001")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--log", action="store_true", help="log the rounds (debug level)")
     args = ap.parse_args(argv)
+    if args.log:
+        logging.basicConfig(format="    %(message)s")
+        logging.getLogger("oga.search.robust.search").setLevel(logging.DEBUG)
     machine = load_machine(args.machine)
     only = {s for s in args.only.split(",") if s}
     fields = [f for f in args.fields.split(",") if f]
@@ -83,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: unperturbed {ref.status}, baseline Kp {ref.result.baseline_kp[a0]:.4f} "
               f"Kf {ref.result.baseline_kf[a0]:.4f}, " + ", ".join(f"{k} {v:.4f}"
                                                                     for k, v in f0.items())
-              + f" ({time.perf_counter() - t0:.1f} s)", flush=True)
+              + f" ({time.perf_counter() - t0:.1f} s); {_rounds(ref)}", flush=True)
         worst = {k: 0.0 for k in f0}
         out = []
         for axis in axes:
@@ -105,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"  {axis}.{field} x {s}: {rob.status}, baseline Kp "
                           f"{rob.result.baseline_kp[a0]:.4f} Kf {rob.result.baseline_kf[a0]:.4f}, "
                           + ", ".join(f"{k} {v:.4f} ({dev[k] * 100:+.1f} %)"
-                                      for k, v in f.items()), flush=True)
+                                      for k, v in f.items()) + f"; {_rounds(rob)}", flush=True)
         print(f"{name}: largest relative departure " + ", ".join(
             f"{k} {v * 100:.1f} %" for k, v in worst.items())
               + f"; outside the band ({BAND}): {len(out)} {out}", flush=True)

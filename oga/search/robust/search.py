@@ -42,6 +42,7 @@ in :mod:`oga.search.robust.multi`'s doc.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -62,6 +63,8 @@ from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_se
 from oga.verify.replay import verify
 
 __all__ = ["RobustResult", "robust_optimize"]
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
@@ -263,6 +266,7 @@ def _rounds(ctx: _Context, report) -> tuple[_Round, int]:
         found = _search(ctx, active, reserve)
         report(lo + 0.5 * step)
         done = _judged(ctx, found, active, reserve, last, report, (lo, step))
+        _logged(rounds, done)
         if _collapsed(done, last):
             tried.append(done)
             done = _retried(ctx, done, last, rounds, report, (lo, step))
@@ -275,6 +279,16 @@ def _rounds(ctx: _Context, report) -> tuple[_Round, int]:
         if (tuple(active), reserve) == (done.active, done.reserve):
             break  # the same plants and limits: the next round's search would repeat this one
     return _kept(ctx, tried), rounds
+
+
+def _logged(rounds, done) -> None:
+    """Log a round's reserve, plants and certificate (debug level)."""
+    if _log.isEnabledFor(logging.DEBUG):
+        c = done.cert
+        _log.debug("round %d: reserve %.4f, active %s, %s, median %.4f p90 %.4f worst %.4f, "
+                   "failing %d, limit ratio %.4f", rounds, done.reserve, list(done.active),
+                   "full" if done.full else "screen", c.median, c.p90, c.worst,
+                   int(c.failures().sum()), _excess(p.schedule for p in c.plants))
 
 
 def _collapsed(done, last) -> bool:
@@ -299,6 +313,7 @@ def _retried(ctx: _Context, done, last, rounds, report, span) -> _Round:
     reserve = done.reserve / (1.0 + defaults.ROBUST_RESERVE_MARGIN * 2 ** (rounds - 1))
     found = _search(ctx, list(done.active), reserve)
     again = _judged(ctx, found, done.active, reserve, last, report, (lo + 0.5 * step, 0.5 * step))
+    _logged(rounds, again)
     return done if _collapsed(again, last) else again
 
 
