@@ -2,7 +2,7 @@
 +-1e-4 and +-1e-3.
 
 Run:  python bench/bench_perturb.py [--only NAME,..] [--fields kv_n_s_m,..] [--axes x,z]
-                                    [--scales 0.999,0.9999,1.0001,1.001] [--threads N]
+                                    [--scales 0.999,0.9999,1.0001,1.001] [--threads N] [--log]
 
 Per program of ``bench/bench_robust.py`` and per cascade value of a moving axis (every
 field of :data:`oga.model.machine.FACTOR_FIELDS`), the machine (default ``ucp710``) with that one
@@ -11,8 +11,11 @@ robust ``oga optimize`` (:func:`oga.search.robust.search.robust_optimize`). Per 
 the status, the exported table's certificate median / p90 / worst (1 where the baseline is
 kept), and its MSE(CE) ratio on the machine itself (its "predicted ratio"); per program, the largest departure of each figure from
 the unperturbed machine's, and the runs that left the band (``--band``: the ratios within
-``band`` of the unperturbed ones, relative; default 0.1 for 1e-4 and 0.2 for 1e-3). A
-benchmark prints figures; it asserts nothing.
+``band`` of the unperturbed ones, relative; default 0.1 for 1e-4 and 0.2 for 1e-3). Each
+run's line ends with its rounds, the kept round's reserve and plants, the shrink's share and
+the searched table's certificate (also where the baseline is exported); ``--log`` prints every
+round before it (reserve, plants, certificate, largest limit ratio). A benchmark prints
+figures; it asserts nothing.
 """
 
 from __future__ import annotations
