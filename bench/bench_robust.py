@@ -2,6 +2,7 @@
 threads.
 
 Run:  python bench/bench_robust.py [--only NAME,..] [--threads 1,2] [--certify N] [--nominal]
+                                   [--kernels]
 
 Per program, on the machine (default ``ucp710``, with its documented default uncertainty set),
 the robust ``oga optimize`` (:func:`oga.search.robust.search.robust_optimize`: the set's stable
@@ -28,7 +29,11 @@ emptied; numba's compiled kernels are warm). It prints:
   searched on besides the nominal one;
 - on the next line, the one-thread run's CPU time by phase: the set's stable ranges, the
   robust baseline, the multi-plant window searches, the certificates (the shrink's
-  included) and the rest.
+  included) and the rest;
+- with ``--kernels``, on one more line, the one-thread run's compiled calls: per kernel the
+  calls, their CPU time in all and per call (the tangent and limit replays of the baseline,
+  the simulations and contour errors of :func:`oga.verify.verify` (the confirmations and
+  certificates), the multi-plant window searches).
 
 ``--nominal`` adds the nominal table (the search on the nominal model only) and its
 certificate against the nominal best fixed gains on the same set. A benchmark prints
@@ -153,6 +158,42 @@ class _Phases:
             f"{k} {v:.2f} s" for k, v in (*self.cpu.items(), ("rest", rest)))
 
 
+class _Kernels:
+    """The calls of the compiled kernels called from Python in the robust search and their
+    CPU time (the module globals its callers look them up by, wrapped)."""
+
+    names = (("oga.search.robust.baseline", "_tangent_replay", "tangent"),
+             ("oga.search.robust.baseline", "_replay", "limits"),
+             ("oga.model.response", "run_axes", "simulate"),
+             ("oga.model.contour", "ce_indexed", "contour"),
+             ("oga.search.robust.multi", "window_search", "window"))
+
+    def __init__(self):
+        self.calls = {label: [0, 0.0] for _m, _n, label in self.names}
+        for module, name, label in self.names:
+            mod = importlib.import_module(module)
+            setattr(mod, name, self._wrap(getattr(mod, name), label))
+
+    def clear(self) -> None:
+        for v in self.calls.values():
+            v[:] = [0, 0.0]
+
+    def _wrap(self, f, label):
+        def timed(*args, **kw):
+            c0 = time.process_time()
+            try:
+                return f(*args, **kw)
+            finally:
+                self.calls[label][0] += 1
+                self.calls[label][1] += time.process_time() - c0
+        return timed
+
+    def line(self) -> str:
+        return "  kernels: " + ", ".join(
+            f"{k} {n} x {1e3 * t / max(n, 1):.1f} ms = {t:.2f} s"
+            for k, (n, t) in self.calls.items())
+
+
 def _same(a, b) -> bool:
     """The two robust results give the same schedule and certificate, bit for bit."""
     return (np.array_equal(a.schedule.kp_m_min_per_mm, b.schedule.kp_m_min_per_mm)
@@ -169,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", default="1,2", help="thread counts, comma-separated")
     ap.add_argument("--only", default="", help="comma-separated program names")
     ap.add_argument("--nominal", action="store_true", help="also the nominal table's certificate")
+    ap.add_argument("--kernels", action="store_true",
+                    help="also the compiled calls' counts and CPU time (one thread)")
     args = ap.parse_args(argv)
     machine = load_machine(args.machine)
     threads = [int(t) for t in args.threads.split(",")]
@@ -177,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.seed)
     only = {s for s in args.only.split(",") if s}
     timed, phases = _Timed(), _Phases()
+    kernels = _Kernels() if args.kernels else None
     warm = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), machine, feed_m_s=None, tol_m=2e-5)
     for t in threads:  # compile (or load) every kernel first
         robust_optimize(warm, machine, scenarios=scenario_set(machine, n=2), threads=t)
@@ -200,13 +244,15 @@ def main(argv: list[str] | None = None) -> int:
                 _cold()
                 timed.inside = 0.0
                 phases.cpu = dict.fromkeys(phases.cpu, 0.0)
+                if kernels is not None and t == 1:
+                    kernels.clear()
                 w0, c0 = time.perf_counter(), time.process_time()
                 runs.append(robust_optimize(sp, machine, options, scenarios=scen, threads=t))
                 walls.append(time.perf_counter() - w0)
                 if t == 1:  # on one thread the time inside thread_map is its CPU time, roughly
                     cpu = time.process_time() - c0
                     par = min(timed.inside / walls[-1], 1.0)
-                    split = phases.line(cpu)
+                    split = phases.line(cpu) + ("" if kernels is None else "\n" + kernels.line())
         except OgaError as err:
             print(f"{name:18s} {sp.duration:8.1f} failed: {err}", flush=True)
             continue
