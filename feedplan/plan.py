@@ -532,7 +532,7 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, m_u: int
     u_raw, ud = _sample(fb.nodes, v, ceil, acc_t, dt, fb.budget - m - m_u - 3)
     if u_raw.size == 0:
         raise _too_long(int(fb.seg_lines[0]), dt)
-    u, ud = u_raw, ud
+    u = u_raw
     if m_u > 1:
         both = _moving_average(np.stack((u_raw, ud), axis=1), m_u, 0)
         u, ud = np.minimum(both[:, 0], u_raw[-1]), both[:, 1]
