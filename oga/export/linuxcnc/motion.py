@@ -31,19 +31,38 @@ oga's in the realtime thread):
   LinuxCNC's task, so never the same length twice): from the period after a row with
   ``end_of_part`` (flipflop ``oga-held``) no row is read and the gains are the baseline (at
   standstill they change nothing; the command is motion's, no jump) while the command stands
-  at the part's end, motion is enabled and coordinated and the program runs or is paused
-  (``halui``); in the period a joint command moves again the hold ends and that period reads
-  the next part's first row, exactly as recorded (its first moving period);
+  at the part's end and motion is enabled and coordinated; in the period a joint command
+  moves again the hold ends and that period reads the next part's first row, exactly as
+  recorded (its first moving period), and checks it as below;
 - the row is valid while every joint's command is within ``pos_tol`` of the row's,
-  ``motion.current-vel`` within ``vel_tol`` of the row's (a feed override, feed hold, pause
-  or abort changes the trajectory's speed in the very period the motion controller applies
-  it), ``motion.program-line`` is the row's, the feed and rapid overrides are 1
-  (``halui``), the program is not paused, motion is enabled (E-stop, machine off) and
-  coordinated, and a row was read (end of table);
+  ``motion.current-vel`` within ``vel_tol`` of the row's, ``motion.program-line`` is the
+  row's, the feed and rapid overrides are 1 (``halui``), motion is enabled and coordinated,
+  and a row was read (``streamer.0.empty`` FALSE: end of table);
 - while valid, ``Pgain`` and ``FF1`` are the row's; in the first period that is not, and
   until the program has ended and the feeder has loaded the table again, they are the fixed
   baseline (the same period: the checks read this period's motion outputs before ``pid``
   runs). ``pid.N.command`` stays the motion controller's throughout: no jump in the command.
+
+Which pin decides each fallback, and why none races the motion: every pin but the two
+overrides is written by ``motion-controller`` (or ``streamer``) earlier in the same servo
+thread, so the checks see this period's motion. A feed override, feed hold (``motion.feed-hold``)
+or pause (task's, or M0) changes ``net_feed_scale`` and the trajectory planner's speed in the
+period motion applies it: ``motion.current-vel`` leaves the row's by about ``a T`` (far above
+``vel_tol``) in that very period. An abort stops the trajectory (speed, and then the line);
+E-stop or machine off drops ``motion.motion-enabled`` (and the command jumps to the feedback);
+a position off the row: ``motor-pos-cmd`` against the row; another line:
+``motion.program-line``; end of table: ``streamer.0.empty``. ``halui``'s pins are written by
+a userspace process that polls the task's status every 20 ms (``halui.cc``: ``esleep(0.02)``),
+late by that and by the host's load, so none of them may decide a period: ``is-paused``
+stayed TRUE for some periods after the display resumed a program's M0 on a loaded host and
+latched a fallback in the next part's first motion; ``is-running``/``is-paused`` are not used
+at all (a pause is seen in the speed; an abort in a stop leaves the gains on the baseline,
+where they are in a stop anyway, and the next motion is checked against the next part's first
+row in its own period). The overrides stay as ``halui.feed-override.value`` and
+``rapid-override.value`` (LinuxCNC 2.9's motion exports no pin of its feed scale): they can
+only be late, the speed check falling back first; a value other than 1 is one the operator
+set. The feeder's rearm reads ``halui.program.is-idle`` only once the fallback latched
+(``oga-feeder.done``) and after having seen the program run or idle for a second.
 """
 
 from __future__ import annotations
@@ -370,8 +389,8 @@ def _tcl_components(h: HalCommands, axes, depth: int, width: int) -> list[str]:
     h.loadrt("near", names=",".join(still + pos + ["oga-vel", "oga-line", "oga-fo", "oga-ro"]))
     h.loadrt("conv_s32_float", names="oga-line-f")
     gates = {"oga-still": 0x800 | len(axes), "oga-go": 0x100 | 4, "oga-run": 0x100 | 3,
-             "oga-step": 0x100 | 2, "oga-flowing": 0x1000 | 2, "oga-ok": 0x900 | n_ok,
-             "oga-busy": 0x200 | 2, "oga-hold-ok": 0x900 | (len(axes) + 3),
+             "oga-step": 0x100 | 2, "oga-flowing": 0x1000 | 1, "oga-ok": 0x900 | n_ok,
+             "oga-hold-ok": 0x900 | (len(axes) + 2),
              "oga-valid": 0x100 | 2, "oga-bad-step": 0x100 | 2, "oga-bad-hold": 0x100 | 3,
              "oga-bad": 0x200 | 2}
     h.loadrt("logic", names=",".join(gates),
@@ -383,7 +402,7 @@ def _tcl_components(h: HalCommands, axes, depth: int, width: int) -> list[str]:
     funcs = [f"oga-ddt-{a}" for a in axes] + still + [
         "oga-still", "oga-go", "oga-started", "oga-run", "oga-held", "oga-step", "streamer.0",
         *pos, "oga-vel", "oga-line-f", "oga-line", "oga-fo", "oga-ro", "oga-flowing", "oga-ok",
-        "oga-busy", "oga-hold-ok", "oga-valid", "oga-bad-step", "oga-bad-hold", "oga-bad",
+        "oga-hold-ok", "oga-valid", "oga-bad-step", "oga-bad-hold", "oga-bad",
         "oga-fallen", *muxes]
     h.raw("oga_addf $oga_thread {" + " ".join(funcs) + "} [list "
           + " ".join(f"$oga_pid({a})" for a in axes) + "]")
@@ -447,7 +466,6 @@ def _tcl_checks(h: HalCommands, axes, tols: dict, unit: float, muxes: list[str])
         h.setp(f"{name}.in2", 1.0)
         h.setp(f"{name}.difference", tols["override_tol"])
     h.net("oga-empty", "streamer.0.empty", "=>", "oga-flowing.in-00")
-    h.raw("hal net [oga_signal halui.program.is-paused] oga-flowing.in-01")
     k = len(axes)
     for name in ("oga-vel", "oga-line", "oga-fo", "oga-ro", "oga-flowing"):
         h.net(f"{name}-ok" if name != "oga-flowing" else "oga-flowing",
@@ -459,13 +477,10 @@ def _tcl_checks(h: HalCommands, axes, tols: dict, unit: float, muxes: list[str])
     h.net("oga-ok", "oga-ok.and", "=>", "oga-valid.in-01")
     h.net("oga-not-ok", "oga-ok.nand", "=>", "oga-bad-step.in-01")
     h.comment("in a stop: the command stands at the part's end, motion enabled and",
-              "coordinated, the program running or paused (an abort or E-stop there falls back)")
+              "coordinated (an E-stop or machine off there falls back)")
     for i, a in enumerate(axes):
         h.net(f"oga-pos-{a}", f"oga-hold-ok.in-{i:02d}")
     h.raw(f"hal net [oga_signal motion.coord-mode] oga-hold-ok.in-{len(axes) + 1:02d}")
-    h.raw("hal net [oga_signal halui.program.is-running] oga-busy.in-00")
-    h.raw("hal net [oga_signal halui.program.is-paused] oga-busy.in-01")
-    h.net("oga-busy", "oga-busy.or", "=>", f"oga-hold-ok.in-{len(axes) + 2:02d}")
     h.net("oga-hold-bad", "oga-hold-ok.nand", "=>", "oga-bad-hold.in-02")
     h.net("oga-bad-step", "oga-bad-step.and", "=>", "oga-bad.in-00")
     h.net("oga-bad-hold", "oga-bad-hold.and", "=>", "oga-bad.in-01")
