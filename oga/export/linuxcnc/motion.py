@@ -54,8 +54,8 @@ a position off the row: ``motor-pos-cmd`` against the row; another line:
 ``motion.program-line``; end of table: ``streamer.0.empty``. ``halui``'s pins are written by
 a userspace process that polls the task's status every 20 ms (``halui.cc``: ``esleep(0.02)``),
 late by that and by the host's load, so none of them may decide a period: ``is-paused``
-stayed TRUE for some periods after the display resumed a program's M0 on a loaded host and
-latched a fallback in the next part's first motion; ``is-running``/``is-paused`` are not used
+can still be TRUE when the task, a few ms after the display resumed a program's M0, starts
+the next part's first motion, and latch a fallback there; ``is-running``/``is-paused`` are not used
 at all (a pause is seen in the speed; an abort in a stop leaves the gains on the baseline,
 where they are in a stop anyway, and the next motion is checked against the next part's first
 row in its own period). The overrides stay as ``halui.feed-override.value`` and
