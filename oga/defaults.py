@@ -229,9 +229,13 @@ LINUXCNC_MOTION = {"pos_tol_m": 1e-6, "vel_tol_m_s": 1e-6, "override_tol": 1e-6,
 #: (the display reads it every few ms), and the runs of the program that must give the same
 #: commands (LinuxCNC's planner starts a program differently when its task queues the next
 #: moves late: measured on a loaded 2-core host, about one start in 15; a table follows one
-#: motion only).
+#: motion only); and the shortest standstill between two motions that splits the program
+#: into parts (servo periods): LinuxCNC's task times its non-motion commands between two
+#: motions (tool change M6, pause M0/M1, spindle M3-M5, dwell G4; each takes well over 20 ms),
+#: so no two runs repeat such a stop to the period; the planner's own standstills (exact-stop
+#: corners, a drill cycle's reversals) last a period or two and repeat exactly.
 LINUXCNC_RECORD = {"start_timeout_s": 60.0, "run_timeout_s": 3600.0, "fifo_rows": 1_000_000,
-                   "repeats": 2}
+                   "repeats": 2, "stop_min_periods": 20}
 __all__ += ["LINUXCNC_MOTION", "LINUXCNC_RECORD"]
 #: ``--setpoints``: relative slack on the axis limits a recorded setpoint's finite differences
 #: (velocity, acceleration, jerk) may reach before the file is refused (float64 rounding of

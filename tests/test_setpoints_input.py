@@ -59,9 +59,10 @@ def _csv(sp, *, ff_vel=True, line=True) -> str:
     return ",".join(cols) + "\n" + body + "\n"
 
 
-def _lcnc_recording(sp, *, rest=5, ept=1, drop=()) -> str:
+def _lcnc_recording(sp, *, rest=5, ept=1, drop=(), part=None) -> str:
     """oga's plan as an ``oga lcnc-record`` file: each plan position as the motor-pos-cmd of a
-    servo period (mm), ``rest`` periods at rest before and after, and the motion columns."""
+    servo period (mm), ``rest`` periods at rest before and after, and the motion columns
+    (``part``: a part column, one value per period)."""
     c = np.vstack([np.repeat(sp.pos[:1], rest, 0), sp.pos, np.repeat(sp.pos[-1:], rest, 0)])
     n = len(c)
     line = np.concatenate([np.zeros(rest), sp.block, np.full(rest, sp.block[-1])])
@@ -71,11 +72,13 @@ def _lcnc_recording(sp, *, rest=5, ept=1, drop=()) -> str:
         cols[f"{a}_cmd_m"] = c[:, k] * 1e3
         cols[f"{a}_act_m"] = c[:, k] * 1e3
     cols.update(line=line, motion_type=np.where(speed > 0, 2, 0), current_vel_m_s=speed * 1e3)
+    if part is not None:
+        cols["part"] = np.asarray(part)
     cols = {k: v for k, v in cols.items() if k not in drop}
     head = [HEADER[2:] + ": test", "servo-period-ns: 1000000", "units: mm",
             "joints: x=0 y=1 z=2", f"error-previous-target: x={ept} y={ept} z={ept}",
             "columns: " + " ".join(cols)]
-    ints = ("sample", "line", "motion_type")
+    ints = ("sample", "line", "motion_type", "part")
     rows = [" ".join(str(int(v[i])) if k in ints else repr(float(v[i])) for k, v in cols.items())
             for i in range(n)]
     return "\n".join([f"# {h}" for h in head] + rows) + "\n"
@@ -159,6 +162,57 @@ def test_lcnc_recording_reads_with_pids_law(planned, machine, ept):
     plain = read_setpoints(body, machine, "halsampler", columns=columns, units="mm",
                            error_previous_target=bool(ept))
     assert np.array_equal(plain.setpoints.pos, got.pos)
+
+
+def test_lcnc_recording_parts_ride_along_and_bad_ones_are_refused(planned, machine):
+    """The part column of oga lcnc-record (-1 in a stop, 0, 1, ... in order) rides along per
+    sample and its header line reaches the summary's source; a part number
+    without a stop before it is refused naming the column and the row."""
+    sp = planned.setpoints
+    n = len(sp) + 10
+    part = np.full(n, -1)
+    part[5:n - 4] = 0  # the first moving period .. the first period at rest
+    text = _lcnc_recording(sp, part=part).replace("# columns:", "# parts: 1 (test)\n# columns:")
+    rec = read_setpoints(text, machine, source="rec.txt")
+    assert np.array_equal(rec.linuxcnc.part, np.zeros(len(rec.setpoints), dtype=np.int64))
+    assert rec.source["parts"] == "1 (test)"
+    bad = part.copy()
+    bad[40:] = 1  # a second part with no stop before it
+    with pytest.raises(SetpointsError, match=r"column 'part', row 47: expected -1 .* got 1"):
+        read_setpoints(_lcnc_recording(sp, part=bad), machine)
+
+
+def test_motion_parts_split_at_long_standstills_and_runs_compare_per_part():
+    """lcnc-record's parts: a standstill of stop_min_periods or more between two motions
+    splits them, a shorter one does not; two runs whose stops last differently repeat the
+    motion when each part does, period for period, and not when one differs by 2 um."""
+    from oga.export.linuxcnc.record import _same_motion, motion_parts, part_column
+    from oga.export.linuxcnc.session import LinuxcncError
+
+    ramp = np.linspace(0.0, 1.0, 50)
+
+    def run(stop: int) -> np.ndarray:  # x moves, stands still 3 periods, moves, stops, moves
+        x = np.concatenate([[0.0] * 4, ramp, [1.0] * 3, 1 + ramp, [2.0] * stop, 2 + ramp,
+                            [3.0] * 5])
+        cols = np.zeros((len(x), 5))  # x cmd, x act, line, type, speed
+        cols[:, 0] = cols[:, 1] = x
+        cols[1:, 4] = np.abs(np.diff(x)) * 1e3
+        return cols
+
+    a, b = run(30), run(45)
+    parts = motion_parts(a[:, :1], 20)
+    assert parts.tolist() == [[5, 107], [138, 187]]
+    assert motion_parts(a[:, :1], 32).tolist() == [[5, 187]]  # 31 periods at rest
+    col = part_column(len(a), parts)
+    assert (col[5:108] == 0).all() and (col[108:138] == -1).all() and (col[138:188] == 1).all()
+    assert (col[:5] == -1).all() and (col[188:] == -1).all()
+    _same_motion("p", a, b, 1, 1e-3, 20)  # the stop lasts 15 periods longer: the same motion
+    c = b.copy()
+    c[160:170, 0] += 2e-3  # b's part 1 starts at 153
+    with pytest.raises(LinuxcncError, match="part 1 of 2 differs from servo period 7 "):
+        _same_motion("p", a, c, 1, 1e-3, 20)
+    with pytest.raises(LinuxcncError, match="made 1 parts"):
+        _same_motion("p", a, run(10), 1, 1e-3, 20)
 
 
 # --- bad input: refused naming the column and the row ------------------------------------
@@ -281,7 +335,8 @@ def test_export_recording_writes_the_motion_files(recorded_job, capsys):
     data = np.loadtxt(io.StringIO(files[STREAM]), comments="#", ndmin=2)
     res, lc = job.result, job.recorded.linuxcnc
     n = len(res.setpoints)
-    assert data.shape == (n, 3 * 2 + 2)  # x, z: cmd, kp, kf; speed, line
+    assert data.shape == (n, 3 * 2 + 3)  # x, z: cmd, kp, kf; speed, line, end of part
+    assert not data[:, 8].any()  # one part: no stop
     for i, a in enumerate(("x", "z")):
         k = AXES.index(a)
         assert np.array_equal(data[:, 3 * i], lc.cmd_m[:, k] / UNIT_M["mm"])
@@ -292,7 +347,7 @@ def test_export_recording_writes_the_motion_files(recorded_job, capsys):
     assert np.array_equal(data[:, 7], lc.line)
     tcl = files[MOTION_TCL]
     assert "set oga_thread [thread_info ::OGA]" in tcl and "oga_addf $oga_thread" in tcl
-    assert f"hal loadrt streamer depth={n + 1} cfg={'f' * 8}" in tcl
+    assert f"hal loadrt streamer depth={n + 1} cfg={'f' * 8}b" in tcl
     assert "hal net oga-kp-x oga-kp-x.out $oga_pid(x).Pgain" in tcl
     assert "hal net oga-kf-z oga-kf-z.out $oga_pid(z).FF1" in tcl
     assert ".command" not in "".join(ln for ln in tcl.splitlines() if ln.startswith("hal net"))

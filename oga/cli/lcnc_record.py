@@ -51,7 +51,9 @@ def run(args: argparse.Namespace) -> int:
     moving = rec.last_motion_row - rec.first_motion_row + 1
     print(f"recorded {FilePath(args.program).name} on {FilePath(args.ini).name}: {rec.rows} "
           f"servo periods of {rec.period_ns} ns, motion in rows {rec.first_motion_row}.."
-          f"{rec.last_motion_row} ({moving * rec.period_ns * 1e-9:.3f} s), units {rec.units}, "
+          f"{rec.last_motion_row} ({moving * rec.period_ns * 1e-9:.3f} s) in {len(rec.parts)} "
+          f"part{'s' if len(rec.parts) != 1 else ''} (rows "
+          + ", ".join(f"{a}-{b}" for a, b in rec.parts) + f"), units {rec.units}, "
           "joints "
           + ", ".join(f"{a}={j}" for a, j in rec.joints.items()) + ", error-previous-target "
           + ", ".join(f"{a}={'TRUE' if v else 'FALSE'}"

@@ -120,6 +120,9 @@ class LinuxcncPeriods:
         Joint per axis, where the file names them.
     first_row : int
         File line of sample 0's period.
+    part : ndarray of int, shape (N,), or None
+        Part of the program of each sample (``oga lcnc-record``'s ``part`` column: 0, 1, ...
+        between the stops LinuxCNC's task timed, -1 in a stop), where recorded.
     """
 
     cmd_m: np.ndarray
@@ -130,6 +133,7 @@ class LinuxcncPeriods:
     units: str
     joints: dict | None
     first_row: int
+    part: np.ndarray | None = None
 
 
 def pid_law(c_m: np.ndarray, dt_s: float, ept: dict[str, bool],

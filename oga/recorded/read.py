@@ -12,7 +12,8 @@ Formats (the readers of ``oga identify``, :mod:`oga.identify.trace`):
   columns, units and ``pid`` setting) or a plain ``halsampler`` file (``columns``, ``units``
   and ``error_previous_target`` given). Optional ``line`` (``motion.program-line``),
   ``motion_type`` (``motion.motion-type``, 1 in a rapid) and ``current_vel_m_s``
-  (``motion.current-vel``).
+  (``motion.current-vel``), ``part`` (``oga lcnc-record``: the part of the program between
+  two stops LinuxCNC's task timed, -1 in a stop).
 
 Refused, naming the column and the row: what the trace readers refuse (a cell that is not a
 finite number, non-uniform sampling, an absurd speed), a period other than the machine's Te,
@@ -45,7 +46,7 @@ SETPOINT_FORMATS = ("csv", "halsampler", "twincat")
 #: Length units of a file: metres per unit.
 UNITS = {"m": 1.0, "mm": 1e-3, "inch": 0.0254}
 #: Columns besides the trace channels.
-_EXTRA = ("line", "rapid", "motion_type", "current_vel_m_s")
+_EXTRA = ("line", "rapid", "motion_type", "current_vel_m_s", "part")
 #: ``motion.motion-type`` of a rapid (LinuxCNC's EMC_MOTION_TYPE_TRAVERSE).
 _TRAVERSE = 1
 
@@ -133,7 +134,8 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
               if "current_vel_m_s" in col else None)
         lcnc = LinuxcncPeriods(
             cmd_m=raw[periods], axes=axes, line=None if line is None else line[periods],
-            current_vel_m_s=cv, error_previous_target={a: ept[a] for a in axes}, units=units,
+            current_vel_m_s=cv, part=_parts(table, periods),
+            error_previous_target={a: ept[a] for a in axes}, units=units,
             joints=None if header is None else header.joints, first_row=int(rows[periods[0]]))
         _, acc, jerk = derivatives(pos, te)
     else:
@@ -145,19 +147,16 @@ def read_setpoints(text: str, machine: Machine | None, fmt: str | None = None, *
     sample_rows = rows[periods]
     if machine is not None:
         check_limits(pos, te, machine, {a: f"{a}_cmd_m" for a in AXES}, sample_rows)
-    rapid = rapid[periods]
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
-    sp = Setpoints(dt=te, s=s, pos=pos, vel=vel, acc=acc, jerk=jerk,
-                   block=np.zeros(len(pos), dtype=np.int64) if line is None else line[periods],
-                   rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source)
+    sp = _setpoints(te, (pos, vel, acc, jerk), None if line is None else line[periods],
+                    rapid[periods], source, None if lcnc is None else lcnc.part)
     info = {"file": source, "format": fmt,
             "sha256": hashlib.sha256(text.encode("utf-8")).hexdigest(),
             "law": "linuxcnc-pid" if fmt == "halsampler" else "given", "units": units,
             "samples": len(sp), "first_row": int(sample_rows[0])}
     if lcnc is not None:
         info["error_previous_target"] = lcnc.error_previous_target
-    if header is not None and "program-pauses" in header.meta:  # resumed M0/M1 (lcnc-record)
-        info["program_pauses"] = header.meta["program-pauses"]
+    meta = {} if header is None else header.meta  # lcnc-record: resumed M0/M1, the parts
+    info.update({k.replace("-", "_"): meta[k] for k in ("program-pauses", "parts") if k in meta})
     return RecordedSetpoints(setpoints=sp, source=info, linuxcnc=lcnc)
 
 
@@ -222,6 +221,38 @@ def _line_and_rapid(table) -> tuple[np.ndarray | None, np.ndarray]:
     else:
         rapid = np.zeros(len(data), dtype=bool)
     return line, rapid
+
+
+def _setpoints(te, kinematics, line, rapid, source, part) -> Setpoints:
+    """The :class:`Setpoints` of the samples: ``kinematics`` (pos, vel, acc, jerk) (N, 3) each,
+    ``line`` (N,) or None, ``rapid`` (N,), ``part`` (N,) or None (-1 in a stop: held)."""
+    pos = kinematics[0]
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    return Setpoints(dt=te, s=s, pos=pos, vel=kinematics[1], acc=kinematics[2],
+                     jerk=kinematics[3],
+                     block=np.zeros(len(pos), dtype=np.int64) if line is None else line,
+                     rapid=rapid, plane=plane_of(pos, rapid, "xy"), source=source,
+                     held=None if part is None else part < 0)
+
+
+def _parts(table, periods: np.ndarray) -> np.ndarray | None:
+    """The part of each sample (N,) from the ``part`` column (None without it): -1 in a stop,
+    else 0, 1, ... in order, each part's samples contiguous, the first and the last sample in
+    a part; SetpointsError naming the row otherwise."""
+    if "part" not in table.columns:
+        return None
+    rows = table.rows[periods]
+    part = _integers(table.data[periods, table.columns["part"]], "part", rows)
+    starts = np.r_[0, np.flatnonzero(np.diff(part)) + 1]  # runs of one value: 0, -1, 1, ...
+    want = np.full(len(starts) + (len(starts) + 1) % 2, -1)
+    want[::2] = np.arange((len(want) + 1) // 2)
+    bad = np.flatnonzero(part[starts] != want[:len(starts)])
+    if bad.size or len(starts) % 2 == 0:
+        k = int(starts[bad[0]]) if bad.size else int(starts[-1])
+        raise SetpointsError(f"column 'part', row {int(rows[k])}: expected -1 (a stop) or the "
+                             "part's number (0, 1, ... in order, the first and the last sample "
+                             f"in a part), got {int(part[k])}")
+    return part
 
 
 def _error_previous_target(header, axes, error_previous_target: bool | None) -> dict:

@@ -18,7 +18,8 @@ display: ``display.py -ini INIFILE``. The job is the JSON file named by ``[OGA] 
   the spindle at run j's start, set without a tool change: a program with ``M6`` then starts
   every run as run j did)), ``actions`` (``{"after_s": t, "do":
   "feed_override" | "rapid_override" | "pause" | "resume" | "abort" | "estop" | "setp",
-  "value": .., "name": ..}``, ``t`` seconds after the first motion), ``tail_s``,
+  "value": .., "name": .., "part": i}``, ``t`` seconds after the start of motion number
+  ``i``, 0 by default: the first; a motion starts a new one after STOP_S at rest), ``tail_s``,
   ``timeout_s``, ``retry`` (``{"column": k, "min_rows": m, "attempts": a}``: run again, up
   to ``a`` times in all, while fewer than ``m`` sampled rows have the bit column ``k``
   TRUE);
@@ -43,6 +44,10 @@ import traceback
 
 import hal
 import linuxcnc
+
+#: A motion that starts after this long at rest starts a new part of the program (an action's
+#: ``part``), s.
+STOP_S = 0.05
 
 
 def _ini_job():
@@ -186,8 +191,9 @@ class Display:
             hal.set_p(f"sampler.{sm['channel']}.enable", "1")
         t0 = time.monotonic()
         c.auto(linuxcnc.AUTO_RUN, 0)
-        actions = sorted(spec.get("actions", []), key=lambda a: a["after_s"])
+        actions = sorted(spec.get("actions", []), key=lambda a: (a.get("part", 0), a["after_s"]))
         done, t_motion, timeout = [], None, float(spec.get("timeout_s", 600))
+        starts, still_since = [], t0  # when each motion after a stop started
         pauses, pause = [], None  # the program's own M0/M1 pauses; the one under way
         self.held = False
         while True:
@@ -196,12 +202,18 @@ class Display:
             self.poll_errors()
             self.drain(rows)
             now = time.monotonic()
-            if t_motion is None and s.current_vel > 0:
-                t_motion = now
-            while t_motion is not None and actions and now - t_motion >= actions[0]["after_s"]:
+            if s.current_vel > 0:  # a motion starts after a stop (at least STOP_S at rest)
+                if still_since is not None and (not starts or now - still_since >= STOP_S):
+                    starts.append(now)
+                still_since = None
+            elif still_since is None:
+                still_since = now
+            t_motion = starts[0] if starts else None
+            while actions and len(starts) > actions[0].get("part", 0) \
+                    and now - starts[actions[0].get("part", 0)] >= actions[0]["after_s"]:
                 a = actions.pop(0)
                 self.act(a)
-                done.append({**a, "at_s": now - t_motion})
+                done.append({**a, "at_s": now - starts[a.get("part", 0)]})
             if pause is None and s.task_paused and not self.held:  # M0, or M1
                 # (LinuxCNC's status names no line for it: the interpreter has read on)
                 if not job.get("auto_resume", True):

@@ -39,7 +39,7 @@ def _rows(path, types):
             if line.startswith("#") or not line.strip():
                 continue
             cells = line.split()
-            rows.append(tuple(int(c) if t in "su" else float(c) for c, t in zip(cells, types)))
+            rows.append(tuple(int(float(c)) if t in "bsu" else float(c) for c, t in zip(cells, types)))
     return rows
 
 

@@ -6,9 +6,11 @@ The table must have been computed on setpoints recorded from the same configurat
 the k-th servo period from the program's first motion, and the recording says what the motion
 controller commands in that period. The export writes three files:
 
-- ``oga_table.stream``: one row per servo period: per axis the recorded
+- ``oga_table.stream``: one row per servo period of the program's parts (``oga
+  lcnc-record``'s ``part`` column; the stops between them left out): per axis the recorded
   ``joint.N.motor-pos-cmd`` (machine units), ``Pgain`` (1/s) and ``FF1``, then the recorded
-  ``motion.current-vel`` (units/s) and ``motion.program-line``;
+  ``motion.current-vel`` (units/s), ``motion.program-line``, and ``end_of_part`` (1 on the
+  last row of a part a stop follows);
 - ``oga_table.tcl``: a ``[HAL] HALFILE`` (run by ``haltcl``), which finds with LinuxCNC's
   ``hal_procs_lib.tcl`` the ``pid`` loop each joint's ``motor-pos-cmd`` feeds and the
   signals of the pins it reads, checks the loop is the one the table assumes (servo period,
@@ -19,21 +21,48 @@ controller commands in that period. The export writes three files:
   docstring) that refills the ``streamer`` FIFO from the first row for every run.
 
 Per servo period, in LinuxCNC's own components (``ddt``, ``near``, ``logic``,
-``flipflop``, ``conv_s32_float``, ``streamer``, ``mux2``):
+``flipflop``, ``conv_s32_float``, ``streamer`` and its ``enable``, ``mux2``; no component of
+oga's in the realtime thread):
 
 - start: the table is ready, enabled (``oga-go.in-01``, TRUE by default), the motion is
   coordinated (auto or MDI) and a joint command moves in this period (its ``ddt`` leaves 0):
   this is row 0, and one row is read per period from then on;
+- a stop (a tool change, pause, spindle start or dwell between two motions, timed by
+  LinuxCNC's task, so never the same length twice): from the period after a row with
+  ``end_of_part`` (flipflop ``oga-held``) no row is read and the gains are the baseline (at
+  standstill they change nothing; the command is motion's, no jump) while the command stands
+  at the part's end and motion is enabled and coordinated; in the period a joint command
+  moves again the hold ends and that period reads the next part's first row, exactly as
+  recorded (its first moving period), and checks it as below;
 - the row is valid while every joint's command is within ``pos_tol`` of the row's,
-  ``motion.current-vel`` within ``vel_tol`` of the row's (a feed override, feed hold, pause
-  or abort changes the trajectory's speed in the very period the motion controller applies
-  it), ``motion.program-line`` is the row's, the feed and rapid overrides are 1
-  (``halui``), the program is not paused, motion is enabled (E-stop, machine off) and
-  coordinated, and a row was read (end of table);
+  ``motion.current-vel`` within ``vel_tol`` of the row's, ``motion.program-line`` is the
+  row's, the feed and rapid overrides are 1 (``halui``), motion is enabled and coordinated,
+  and a row was read (``streamer.0.empty`` FALSE: end of table);
 - while valid, ``Pgain`` and ``FF1`` are the row's; in the first period that is not, and
   until the program has ended and the feeder has loaded the table again, they are the fixed
   baseline (the same period: the checks read this period's motion outputs before ``pid``
   runs). ``pid.N.command`` stays the motion controller's throughout: no jump in the command.
+
+Which pin decides each fallback, and why none races the motion: every pin but the two
+overrides is written by ``motion-controller`` (or ``streamer``) earlier in the same servo
+thread, so the checks see this period's motion. A feed override, feed hold (``motion.feed-hold``)
+or pause (task's, or M0) changes ``net_feed_scale`` and the trajectory planner's speed in the
+period motion applies it: ``motion.current-vel`` leaves the row's by about ``a T`` (far above
+``vel_tol``) in that very period. An abort stops the trajectory (speed, and then the line);
+E-stop or machine off drops ``motion.motion-enabled`` (and the command jumps to the feedback);
+a position off the row: ``motor-pos-cmd`` against the row; another line:
+``motion.program-line``; end of table: ``streamer.0.empty``. ``halui``'s pins are written by
+a userspace process that polls the task's status every 20 ms (``halui.cc``: ``esleep(0.02)``),
+late by that and by the host's load, so none of them may decide a period: ``is-paused``
+can still be TRUE when the task, a few ms after the display resumed a program's M0, starts
+the next part's first motion, and latch a fallback there; ``is-running``/``is-paused`` are not used
+at all (a pause is seen in the speed; an abort in a stop leaves the gains on the baseline,
+where they are in a stop anyway, and the next motion is checked against the next part's first
+row in its own period). The overrides stay as ``halui.feed-override.value`` and
+``rapid-override.value`` (LinuxCNC 2.9's motion exports no pin of its feed scale): they can
+only be late, the speed check falling back first; a value other than 1 is one the operator
+set. The feeder's rearm reads ``halui.program.is-idle`` only once the fallback latched
+(``oga-feeder.done``) and after having seen the program run or idle for a second.
 """
 
 from __future__ import annotations
@@ -214,14 +243,15 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
     n = table.data.shape[0]
     if not 1 <= n <= LINUXCNC["max_rows"]:
         raise InputError(f"table: {n} samples; LinuxCNC export takes 1..{LINUXCNC['max_rows']}")
-    depth = n + 1 if fifo_rows is None else int(fifo_rows)
-    if not 2 <= depth <= LINUXCNC["max_rows"] + 1:
-        raise OptionError(f"fifo_rows: 2..{LINUXCNC['max_rows'] + 1}, got {fifo_rows}")
     if lc.units not in UNIT_M:
         raise InputError(f"recording: units {lc.units!r}; LinuxCNC machines run in "
                          f"{' or '.join(UNIT_M)} (the recording's header names them)")
     units, unit = lc.units, UNIT_M[lc.units]
     data, names = _motion_columns(table, lc, axes, unit)
+    rows, parts = len(data), int(data[:, -1].sum()) + 1
+    depth = rows + 1 if fifo_rows is None else int(fifo_rows)
+    if not 2 <= depth <= LINUXCNC["max_rows"] + 1:
+        raise OptionError(f"fifo_rows: 2..{LINUXCNC['max_rows'] + 1}, got {fifo_rows}")
     m = {k: printable(v) for k, v in table.meta.items() if isinstance(v, str)}
     src = recorded.source
     about = [
@@ -230,11 +260,13 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
         f"recording {printable(src.get('file', ''))} SHA-256 {src.get('sha256', '')}",
         f"setpoints SHA-256 {m.get('setpoints_sha256', '')}",
         f"machine SHA-256 {m.get('machine_sha256', '')}",
-        f"{n} rows, one per servo period of {period_ns} ns from the program's first motion; "
-        f"machine units {units}",
+        f"{rows} rows, one per servo period of {period_ns} ns from the program's first motion, "
+        f"in {parts} part{'s' if parts > 1 else ''} (the stops between them, {n - rows} "
+        f"periods recorded, run on the baseline); machine units {units}",
     ]
     head = about + ["columns: " + " ".join(names) + f" (cmd [{units}] = joint.N.motor-pos-cmd, "
-                    f"kp [1/s] -> pid Pgain, kf -> pid FF1, current_vel [{units}/s], line)"]
+                    f"kp [1/s] -> pid Pgain, kf -> pid FF1, current_vel [{units}/s], line, "
+                    "end_of_part: 1 on a part's last row)"]
     stream = "".join(f"# {line}\n" for line in head)
     body = np.char.mod("%.17g", data)
     stream += "\n".join(" ".join(row) for row in body) + "\n"
@@ -242,7 +274,7 @@ def motion_export(table, baseline_kp: dict, baseline_kf: dict, recorded, *,
                       len(names), tols, unit)
     feeder = resources.files("oga.export.linuxcnc").joinpath("feeder.py").read_text()
     return LinuxcncExport(files={STREAM: stream, MOTION_TCL: tcl, FEEDER: feeder}, axes=axes,
-                          joints=joints, rows=n, units=units,
+                          joints=joints, rows=rows, units=units,
                           error_previous_target=all(lc.error_previous_target[a] for a in axes),
                           period_ns=period_ns, columns=tuple(names))
 
@@ -270,8 +302,11 @@ def _tolerances(pos_tol_m, vel_tol_m_s, override_tol) -> dict[str, float]:
 
 
 def _motion_columns(table, lc, axes, unit: float) -> tuple[np.ndarray, list[str]]:
-    """The stream's rows (N, 3 * axes + 2) in machine units: per axis the recorded command,
-    the table's Kp (1/s) and Kf; the recorded speed and line; and the columns' names."""
+    """The stream's rows (M, 3 * axes + 3) in machine units, the samples of the program's
+    parts in order (a recording without parts: one): per axis the recorded command, the
+    table's Kp (1/s) and Kf; the recorded speed and line; 1 on the last row of a part that a
+    stop follows, else 0; and the columns' names."""
+    part = np.zeros(len(lc.cmd_m), dtype=np.int64) if lc.part is None else lc.part
     cols, names = [], []
     for a in axes:
         k = AXES.index(a)
@@ -279,12 +314,18 @@ def _motion_columns(table, lc, axes, unit: float) -> tuple[np.ndarray, list[str]
                  _column(table, f"{a}_kp_m_min_per_mm") * KP_SI_PER_M_MIN_PER_MM,
                  _column(table, f"{a}_kf")]
         names += [f"{a}_cmd", f"{a}_kp", f"{a}_kf"]
-    cols += [lc.current_vel_m_s / unit, lc.line.astype(np.float64)]
-    names += ["current_vel", "line"]
+    moves = np.r_[False, np.any(np.diff(lc.cmd_m, axis=0) != 0, axis=1)]
+    if np.any(moves & (part < 0)):
+        k = int(np.flatnonzero(moves & (part < 0))[0])
+        raise InputError(f"recording: sample {k} (file row {lc.first_row + k}) is in a stop "
+                         "(part -1) but its command moves: not a recording of oga lcnc-record")
+    end = np.r_[(part[:-1] >= 0) & (part[1:] < 0), False]
+    cols += [lc.current_vel_m_s / unit, lc.line.astype(np.float64), end.astype(np.float64)]
+    names += ["current_vel", "line", "end_of_part"]
     data = np.column_stack(cols)
     if not np.isfinite(data).all():
         raise InputError("table: non-finite values; not exported")
-    return data, names
+    return data[part >= 0], names
 
 
 def _motion_tcl(about, axes, joints, base, ept, period_ns, depth, width, tols, unit) -> str:
@@ -343,23 +384,26 @@ def _tcl_components(h: HalCommands, axes, depth: int, width: int) -> list[str]:
     pos = [f"oga-pos-{a}" for a in axes]
     muxes = [f"oga-{g}-{a}" for a in axes for g in ("kp", "kf")]
     h.blank()
-    h.loadrt("streamer", depth=depth, cfg="f" * width)
+    h.loadrt("streamer", depth=depth, cfg="f" * (width - 1) + "b")
     h.loadrt("ddt", names=",".join(f"oga-ddt-{a}" for a in axes))
     h.loadrt("near", names=",".join(still + pos + ["oga-vel", "oga-line", "oga-fo", "oga-ro"]))
     h.loadrt("conv_s32_float", names="oga-line-f")
     gates = {"oga-still": 0x800 | len(axes), "oga-go": 0x100 | 4, "oga-run": 0x100 | 3,
-             "oga-flowing": 0x1000 | 2, "oga-ok": 0x900 | n_ok, "oga-valid": 0x100 | 2,
-             "oga-bad": 0x100 | 2}
+             "oga-step": 0x100 | 2, "oga-flowing": 0x1000 | 1, "oga-ok": 0x900 | n_ok,
+             "oga-hold-ok": 0x900 | (len(axes) + 2),
+             "oga-valid": 0x100 | 2, "oga-bad-step": 0x100 | 2, "oga-bad-hold": 0x100 | 3,
+             "oga-bad": 0x200 | 2}
     h.loadrt("logic", names=",".join(gates),
              personality=",".join(f"{v:#x}" for v in gates.values()))
-    h.loadrt("flipflop", names="oga-started,oga-fallen")
+    h.loadrt("flipflop", names="oga-started,oga-held,oga-fallen")
     h.loadrt("mux2", names=",".join(muxes))
     h.raw(f"hal loadusr -Wn oga-feeder python3 [file join $oga_dir {FEEDER}] "
           f"[file join $oga_dir {STREAM}] 0 {LINUXCNC_MOTION['feeder_poll_s']!r}")
     funcs = [f"oga-ddt-{a}" for a in axes] + still + [
-        "oga-still", "oga-go", "oga-started", "oga-run", "streamer.0", *pos, "oga-vel",
-        "oga-line-f", "oga-line", "oga-fo", "oga-ro", "oga-flowing", "oga-ok", "oga-valid",
-        "oga-bad", "oga-fallen", *muxes]
+        "oga-still", "oga-go", "oga-started", "oga-run", "oga-held", "oga-step", "streamer.0",
+        *pos, "oga-vel", "oga-line-f", "oga-line", "oga-fo", "oga-ro", "oga-flowing", "oga-ok",
+        "oga-hold-ok", "oga-valid", "oga-bad-step", "oga-bad-hold", "oga-bad",
+        "oga-fallen", *muxes]
     h.raw("oga_addf $oga_thread {" + " ".join(funcs) + "} [list "
           + " ".join(f"$oga_pid({a})" for a in axes) + "]")
     return muxes
@@ -385,9 +429,18 @@ def _tcl_start(h: HalCommands, axes, joints) -> None:
     h.net("oga-rearm", "oga-feeder.rearm", "=>", "oga-started.reset", "oga-fallen.reset")
     h.net("oga-started", "oga-started.out", "=>", "oga-run.in-01", "oga-feeder.used")
     h.net("oga-not-fallen", "oga-fallen.out-not", "=>", "oga-run.in-02")
-    h.net("oga-run", "oga-run.and", "=>", "streamer.0.enable", "oga-valid.in-00",
-          "oga-bad.in-00")
+    h.net("oga-run", "oga-run.and", "=>", "oga-step.in-00", "oga-bad-hold.in-00")
     h.raw("hal net [oga_signal halui.program.is-idle] oga-feeder.idle")
+    h.comment("a stop between two parts: held from the period after a part's last row (its",
+              "end_of_part) to the period a joint command moves again, which reads the next",
+              "part's first row")
+    h.net("oga-end-of-part", f"streamer.0.pin.{len(axes) * _PER_AXIS + 2}", "=>",
+          "oga-held.set")
+    h.net("oga-moving", "oga-held.reset")
+    h.net("oga-held", "oga-held.out", "=>", "oga-bad-hold.in-01")
+    h.net("oga-not-held", "oga-held.out-not", "=>", "oga-step.in-01")
+    h.net("oga-step", "oga-step.and", "=>", "streamer.0.enable", "oga-valid.in-00",
+          "oga-bad-step.in-00")
 
 
 def _tcl_checks(h: HalCommands, axes, tols: dict, unit: float, muxes: list[str]) -> None:
@@ -413,16 +466,24 @@ def _tcl_checks(h: HalCommands, axes, tols: dict, unit: float, muxes: list[str])
         h.setp(f"{name}.in2", 1.0)
         h.setp(f"{name}.difference", tols["override_tol"])
     h.net("oga-empty", "streamer.0.empty", "=>", "oga-flowing.in-00")
-    h.raw("hal net [oga_signal halui.program.is-paused] oga-flowing.in-01")
     k = len(axes)
     for name in ("oga-vel", "oga-line", "oga-fo", "oga-ro", "oga-flowing"):
         h.net(f"{name}-ok" if name != "oga-flowing" else "oga-flowing",
               f"{name}.out" if name != "oga-flowing" else "oga-flowing.nor", "=>",
               f"oga-ok.in-{k:02d}")
         k += 1
-    h.raw(f"hal net [oga_signal motion.motion-enabled] oga-ok.in-{k:02d}")
+    h.raw(f"hal net [oga_signal motion.motion-enabled] oga-ok.in-{k:02d} "
+          f"oga-hold-ok.in-{k - 5:02d}")
     h.net("oga-ok", "oga-ok.and", "=>", "oga-valid.in-01")
-    h.net("oga-not-ok", "oga-ok.nand", "=>", "oga-bad.in-01")
-    h.net("oga-bad", "oga-bad.and", "=>", "oga-fallen.set")
+    h.net("oga-not-ok", "oga-ok.nand", "=>", "oga-bad-step.in-01")
+    h.comment("in a stop: the command stands at the part's end, motion enabled and",
+              "coordinated (an E-stop or machine off there falls back)")
+    for i, a in enumerate(axes):
+        h.net(f"oga-pos-{a}", f"oga-hold-ok.in-{i:02d}")
+    h.raw(f"hal net [oga_signal motion.coord-mode] oga-hold-ok.in-{len(axes) + 1:02d}")
+    h.net("oga-hold-bad", "oga-hold-ok.nand", "=>", "oga-bad-hold.in-02")
+    h.net("oga-bad-step", "oga-bad-step.and", "=>", "oga-bad.in-00")
+    h.net("oga-bad-hold", "oga-bad-hold.and", "=>", "oga-bad.in-01")
+    h.net("oga-bad", "oga-bad.or", "=>", "oga-fallen.set")
     h.net("oga-fallen", "oga-fallen.out", "=>", "oga-feeder.done")
     h.net("oga-valid", "oga-valid.and", "=>", *(f"{m}.sel" for m in muxes))

@@ -5,9 +5,19 @@ LinuxCNC's trajectory planner (its blending, ``G64 P``, its 2.9 planner, the con
 limits) produces the commands; a ``sampler`` added right after ``motion-controller`` records,
 per servo period from just before the program starts to just after it ends, per axis
 ``joint.N.motor-pos-cmd`` and ``motor-pos-fb``, and ``motion.program-line``,
-``motion.motion-type`` and ``motion.current-vel``. The recording (:data:`HEADER` format,
+``motion.motion-type`` and ``motion.current-vel``, and the part of the program each period
+belongs to. The recording (:data:`HEADER` format,
 :mod:`oga.recorded.lcnc`) also names the units, the servo period, the joints and each
 loop's ``pid.N.error-previous-target``, so that ``oga optimize --setpoints`` reads it alone.
+
+Parts: LinuxCNC's task, not its planner, times what a program does between two motions (a
+tool change M6, a pause M0/M1, the spindle M3-M5, a dwell G4): the motion stops, the task
+runs the command and queues the next motion when it is done, so no two runs repeat such a
+stop to the servo period. A standstill of ``LINUXCNC_RECORD["stop_min_periods"]`` periods
+or more between two motions splits the program into parts (the planner's own standstills
+last a period or two); each part, from its first moving period to the first period at rest
+after its last move, is what the runs must repeat period for period (:func:`motion_parts`),
+and what a table steps through; the stops between them take as long as they take.
 
 Run it on a simulation of the machine (its configuration with the drives simulated: the
 planner does not depend on them), or on the machine itself as a dry run.
@@ -30,7 +40,8 @@ from oga.export.linuxcnc.halfile import HalCommands, printable
 from oga.export.linuxcnc.session import LinuxcncError, run_session
 from oga.recorded.lcnc import HEADER
 
-__all__ = ["Recording", "ini_value", "ini_axes", "record_program", "recorder_tcl"]
+__all__ = ["Recording", "ini_value", "ini_axes", "motion_parts", "part_column", "record_program",
+           "recorder_tcl"]
 
 #: ``motion.*`` pins recorded after the joints' (name in the file, pin, sampler type).
 _MOTION = (("line", "motion.program-line", "s"), ("motion_type", "motion.motion-type", "s"),
@@ -140,6 +151,8 @@ class Recording:
         Servo periods recorded.
     first_motion_row, last_motion_row : int
         Rows (0-based) of the first and the last period whose command moved.
+    parts : ndarray of int, shape (P, 2)
+        First and last row of each part (:func:`motion_parts`).
     units : str
         Machine units.
     period_ns : int
@@ -164,6 +177,7 @@ class Recording:
     error_previous_target: dict
     errors: list
     seconds: float
+    parts: np.ndarray
 
 
 def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
@@ -223,12 +237,12 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
     ept = _pids(res.status["files"][_PIDS], joints)
     rows = res.runs[0]
     n_axes = len(joints)
-    cmd = rows[:, 0:2 * n_axes:2]
-    moved = np.flatnonzero(np.any(np.diff(cmd, axis=0) != 0, axis=1))
-    if moved.size == 0:
+    min_stop = LINUXCNC_RECORD["stop_min_periods"]
+    parts = motion_parts(rows[:, 0:2 * n_axes:2], min_stop)
+    if len(parts) == 0:
         raise LinuxcncError(f"{program.name}: no joint moved while the program ran")
     for again in res.runs[1:]:
-        _same_motion(program.name, rows, again, n_axes, UNIT_M.get(units, 1.0))
+        _same_motion(program.name, rows, again, n_axes, UNIT_M.get(units, 1.0), min_stop)
     header = [
         f"program: {printable(program.name)} (SHA-256 "
         f"{hashlib.sha256(program.read_bytes()).hexdigest()})",
@@ -237,12 +251,13 @@ def record_program(program: str | os.PathLike, ini: str | os.PathLike, *,
         f"servo-period-ns: {period_ns}",
         f"units: {units}",
         "program-pauses: " + _pauses(res.status),
+        _parts_line(parts, min_stop),
     ]
-    return Recording(text=_recording_text(header, joints, ept, rows), rows=len(rows),
-                     first_motion_row=int(moved[0]) + 1,
-                     last_motion_row=int(moved[-1]) + 1, units=units,
-                     period_ns=period_ns, joints=joints, error_previous_target=ept,
-                     errors=errors, seconds=res.seconds)
+    return Recording(text=_recording_text(header, joints, ept, rows, parts), rows=len(rows),
+                     first_motion_row=int(parts[0, 0]), last_motion_row=int(parts[-1, 1]) - 1,
+                     units=units, period_ns=period_ns, joints=joints,
+                     error_previous_target=ept, errors=errors, seconds=res.seconds,
+                     parts=parts)
 
 
 def _record_job(program: Path, joints: dict[str, int], home: bool, run_timeout: float,
@@ -259,13 +274,20 @@ def _record_job(program: Path, joints: dict[str, int], home: bool, run_timeout: 
             "sampler": {"channel": 0, "types": types}, "read_files": [_PIDS], "runs": runs}
 
 
+def _parts_line(parts: np.ndarray, min_stop: int) -> str:
+    """The header's ``parts`` line: how many, and the rows of each."""
+    return (f"parts: {len(parts)} (split at standstills of {min_stop} servo periods or more "
+            "between two motions: LinuxCNC's task timed them; rows"
+            + ",".join(f" {a}-{b}" for a, b in parts) + ")")
+
+
 def _recording_text(about: list[str], joints: dict[str, int], ept: dict[str, bool],
-                    rows: np.ndarray) -> str:
+                    rows: np.ndarray, parts: np.ndarray) -> str:
     """The recording file: its header (``about`` lines, then joints, error-previous-target,
-    columns) and a row per servo period."""
+    columns) and a row per servo period, its part last (-1 outside every part)."""
     n_axes = len(joints)
     names = ["sample"] + [f"{a}_{c}_m" for a in joints for c in ("cmd", "act")] \
-        + [name for name, _, _ in _MOTION]
+        + [name for name, _, _ in _MOTION] + ["part"]
     header = [
         HEADER[2:] + ": LinuxCNC's setpoints, one row per servo period (oga optimize "
         "--setpoints)",
@@ -274,8 +296,8 @@ def _recording_text(about: list[str], joints: dict[str, int], ept: dict[str, boo
         "error-previous-target: " + " ".join(f"{a}={int(ept[a])}" for a in joints),
         "columns: " + " ".join(names),
     ]
-    body = np.column_stack([np.arange(len(rows)), rows])
-    fmt = ["%d"] + ["%.17g"] * (2 * n_axes) + ["%d", "%d", "%.17g"]
+    body = np.column_stack([np.arange(len(rows)), rows, part_column(len(rows), parts)])
+    fmt = ["%d"] + ["%.17g"] * (2 * n_axes) + ["%d", "%d", "%.17g", "%d"]
     lines = [" ".join(f % v for f, v in zip(fmt, row)) for row in body]
     return "\n".join([f"# {h}" for h in header] + lines) + "\n"
 
@@ -306,27 +328,64 @@ def _pids(text: str, joints: dict[str, int]) -> dict[str, bool]:
     return out
 
 
-def _motion_of(rows: np.ndarray, n_axes: int) -> np.ndarray:
-    """The rows of a run from its first motion to its last: commands, then the speed."""
-    cmd = rows[:, 0:2 * n_axes:2]
-    moved = np.flatnonzero(np.any(np.diff(cmd, axis=0) != 0, axis=1))
-    return rows[moved[0] + 1:moved[-1] + 2] if moved.size else rows[:0]
+def motion_parts(cmd: np.ndarray, min_stop: int) -> np.ndarray:
+    """The parts of a run: the motions between the standstills of at least ``min_stop``
+    periods (the stops LinuxCNC's task times: module docstring).
+
+    Parameters
+    ----------
+    cmd : ndarray, shape (R, J)
+        The joints' commands per servo period.
+    min_stop : int
+        Shortest standstill between two moving periods that splits them, periods (>= 2).
+
+    Returns
+    -------
+    ndarray of int, shape (P, 2)
+        Per part its first row (the first period whose command moved) and its last (the
+        first period at rest after its last move); none when the command never moves.
+    """
+    moved = np.flatnonzero(np.any(np.diff(cmd, axis=0) != 0, axis=1)) + 1
+    if moved.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    cut = np.flatnonzero(np.diff(moved) - 1 >= min_stop)
+    firsts = np.concatenate([moved[:1], moved[cut + 1]])
+    lasts = np.minimum(np.concatenate([moved[cut], moved[-1:]]) + 1, len(cmd) - 1)
+    return np.column_stack([firsts, lasts]).astype(np.int64)
+
+
+def part_column(rows: int, parts: np.ndarray) -> np.ndarray:
+    """Part of each row (R,): its index in ``parts``, -1 outside every part."""
+    out = np.full(rows, -1, dtype=np.int64)
+    for i, (a, b) in enumerate(parts):
+        out[a:b + 1] = i
+    return out
 
 
 def _same_motion(name: str, first: np.ndarray, again: np.ndarray, n_axes: int,
-                 unit: float) -> None:
-    """LinuxcncError unless a repeated run commanded what the first one did, period for
-    period, within the production tolerances (:data:`oga.defaults.LINUXCNC_MOTION`)."""
-    a, b = _motion_of(first, n_axes), _motion_of(again, n_axes)
-    m = min(len(a), len(b))
-    pos_tol, vel_tol = LINUXCNC_MOTION["pos_tol_m"] / unit, LINUXCNC_MOTION["vel_tol_m_s"] / unit
-    bad = np.any(np.abs(a[:m, 0:2 * n_axes:2] - b[:m, 0:2 * n_axes:2]) > pos_tol, axis=1)
-    bad |= np.abs(a[:m, -1] - b[:m, -1]) > vel_tol
-    if bad.any() or len(a) != len(b):
-        k = int(np.flatnonzero(bad)[0]) if bad.any() else m
-        line = int(a[min(k, len(a) - 1), 2 * n_axes])
+                 unit: float, min_stop: int) -> None:
+    """LinuxcncError unless a repeated run commanded what the first one did: the same parts,
+    each period for period from its first motion (the stops between them may last longer or
+    shorter), within the production tolerances (:data:`oga.defaults.LINUXCNC_MOTION`)."""
+    cols = list(range(0, 2 * n_axes, 2))
+    pa, pb = motion_parts(first[:, cols], min_stop), motion_parts(again[:, cols], min_stop)
+    if len(pa) != len(pb):
         raise LinuxcncError(
             f"{name}: LinuxCNC did not repeat the motion (run again from the same start, it "
-            f"differs from servo period {k} of the motion on, program line {line}); its planner "
-            "starts differently when its task queues the next moves late (a loaded PC): a "
-            "table follows one motion only. Record again, on a less loaded PC if it recurs")
+            f"made {len(pb)} parts between stops of {min_stop} servo periods or more, the first "
+            f"run {len(pa)}); record again")
+    pos_tol, vel_tol = LINUXCNC_MOTION["pos_tol_m"] / unit, LINUXCNC_MOTION["vel_tol_m_s"] / unit
+    for i, ((a0, a1), (b0, b1)) in enumerate(zip(pa, pb)):
+        a, b = first[a0:a1 + 1], again[b0:b1 + 1]
+        m = min(len(a), len(b))
+        bad = np.any(np.abs(a[:m, cols] - b[:m, cols]) > pos_tol, axis=1)
+        bad |= np.abs(a[:m, -1] - b[:m, -1]) > vel_tol
+        if bad.any() or len(a) != len(b):
+            k = int(np.flatnonzero(bad)[0]) if bad.any() else m
+            line = int(a[min(k, len(a) - 1), 2 * n_axes])
+            raise LinuxcncError(
+                f"{name}: LinuxCNC did not repeat the motion (run again from the same start, "
+                f"part {i} of {len(pa)} differs from servo period {k} of its motion on, program "
+                f"line {line}); its planner starts differently when its task queues the next "
+                "moves late (a loaded PC): a table follows one motion only. Record again, on a "
+                "less loaded PC if it recurs")
