@@ -297,8 +297,11 @@ def _stalls_best(done: _Round, tried) -> bool:
     (Z's Kv x 1.001: 1.3425 against 1.3060, reserve 0.7303 against 0.7507). Where the next
     round adds a plant, its reserve is not probed again (ucp710's round 2 is kept there);
     where the rounds stalled, the table stayed at the reserve of that one peak (worst ratio
-    0.917 against 0.717)."""
-    return done.reserve < 1.0 and min(tried, key=lambda r: r.key) is done
+    0.917 against 0.717). Only where the round's largest limit ratio leaves room for the
+    raise (at most ``1 / (1 + margin)``: cncjs 0.967): on helix_r20 (0.998) the raised round
+    broke a limit, was cut back to 0.707 and two rounds were spent for the same table."""
+    room = _excess(p.schedule for p in done.cert.plants) * (1.0 + defaults.ROBUST_RESERVE_MARGIN)
+    return done.reserve < 1.0 and room <= 1.0 and min(tried, key=lambda r: r.key) is done
 
 
 def _logged(rounds, done) -> None:
