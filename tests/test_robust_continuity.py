@@ -8,7 +8,8 @@ it). The certificate's median, p90 and worst ratio and the table's ratio on the 
 stay within :data:`BAND` (relative) of the unperturbed machine's. Measured over the bench's
 sweep (every cascade value of both axes, bench/bench_perturb.py): reference_xz within 9.1 %,
 helix_r20 within 1 % (docs/explanation/certificate.md); the band leaves room for the compiler
-and CPU (the rounds' discrete choices move the figures in steps of about 5 %).
+and CPU (the rounds' discrete choices move the figures in steps of about 5 %). freeform_xz and
+cncjs_toolpath: one or two machines each where a round's choice once made the figures jump.
 """
 
 from __future__ import annotations
