@@ -27,8 +27,8 @@
    no such limit and meets the goals (:data:`oga.defaults.ROBUST_MEDIAN_GOAL`,
    ``ROBUST_P90_GOAL``, ``ROBUST_WORST_GOAL``: the issue's 0.3, 0.5, 0.9), or where the next
    round would search the same plants with the same limits (it would repeat this one, bit
-   for bit: helix_r20 ran its third round three times; where that round is the best so far
-   and its limit ratio leaves room, it is first searched once more at its reserve raised by
+   for bit: helix_r20 ran its third round three times; where that round is the best so far,
+   fails on no plant and its limit ratio leaves room, it is first searched once more at its reserve raised by
    the margin, :func:`_stalls_best`); else the best round is kept
    (goals met first, then the fewest plants where it fails: worse than the baseline or
    breaking a check the baseline keeps, then the least worst ratio).
