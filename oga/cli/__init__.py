@@ -21,7 +21,7 @@ __all__ = ["main"]
 
 #: Sub-commands, each a module ``oga.cli.<name>``.
 COMMANDS: tuple[str, ...] = ("plan", "ranges", "optimize", "compare", "batch", "serve",
-                             "export", "excite", "identify", "lcnc_record", "law")
+                             "export", "excite", "identify", "lcnc_record", "law", "warmup")
 
 
 class _Parser(argparse.ArgumentParser):
