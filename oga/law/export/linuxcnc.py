@@ -12,6 +12,11 @@ as oga's model evaluates the law on the setpoint velocity ``vd_k`` of the period
 command ``u_k = Kp_k (pd_k - p_k) + Kf_k vd_k`` it forms: the file's functions must run after
 ``motion-controller`` and before ``pid.N.do-pid-calcs`` in the servo thread (source it
 between those ``addf`` lines). ``tests/test_law_linuxcnc.py`` runs it in ``halrun``.
+
+A ``lincurve-sa`` law's Kf ``lincurve`` reads the signed acceleration ``a sign(v)``: the
+commanded acceleration (default ``joint.N.joint-acc-cmd``, units/s^2), negated by a
+``scale`` of gain -1 and selected by a ``mux2`` on the ``abs`` component's ``is-negative``
+(of the velocity: ``sign(0) = +1`` as :func:`oga.law.law.signed_acc`).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ _UNIT_M = {"mm": 1e-3, "inch": 0.0254}
 
 def law_hal(law: Law, comment: list[str], *, units: str = "mm",
             joints: dict[str, int] | None = None, velocity_pins: dict[str, str] | None = None,
+            acceleration_pins: dict[str, str] | None = None,
             thread: str = "servo-thread") -> str:
     """The HAL file of ``law`` (module doc), opening with the ``comment`` lines.
 
@@ -41,6 +47,9 @@ def law_hal(law: Law, comment: list[str], *, units: str = "mm",
         pid loop per axis (default 0, 1, ... in x, y, z order of the law's axes).
     velocity_pins : dict of str to str, optional
         The commanded-velocity pin per axis (default ``joint.N.vel-cmd``).
+    acceleration_pins : dict of str to str, optional
+        The commanded-acceleration pin per axis of a ``lincurve-sa`` law (default
+        ``joint.N.joint-acc-cmd``).
     thread : str
 
     Raises
@@ -59,6 +68,9 @@ def law_hal(law: Law, comment: list[str], *, units: str = "mm",
     if missing:
         raise OptionError(f"--joints: no pid loop given for axis {', '.join(missing)}")
     pins = {a: (velocity_pins or {}).get(a, f"joint.{joints[a]}.vel-cmd") for a in axes}
+    signed = law.kind == "lincurve-sa"
+    acc_pins = {a: (acceleration_pins or {}).get(a, f"joint.{joints[a]}.joint-acc-cmd")
+                for a in axes}
     scale = 1.0 / _UNIT_M[units]
     lines = [f"# {x}" for x in comment]
     lines += [
@@ -77,28 +89,45 @@ def law_hal(law: Law, comment: list[str], *, units: str = "mm",
         personality.append(len(ax.v_m_s))
         if ax.kf.size > 1:
             curves.append(f"oga-law-{a}-kf")
-            personality.append(len(ax.v_m_s))
-    lines += [f"loadrt abs names={','.join(f'oga-law-{a}-speed' for a in axes)}",
-              f"loadrt lincurve names={','.join(curves)} "
+            personality.append(ax.kf.size)
+    lines += [f"loadrt abs names={','.join(f'oga-law-{a}-speed' for a in axes)}"]
+    if signed:
+        lines += [f"loadrt scale names={','.join(f'oga-law-{a}-negacc' for a in axes)}",
+                  f"loadrt mux2 names={','.join(f'oga-law-{a}-sacc' for a in axes)}"]
+    lines += [f"loadrt lincurve names={','.join(curves)} "
               f"personality={','.join(str(p) for p in personality)}"]
     for a in axes:
         lines.append(f"addf oga-law-{a}-speed {thread}")
+        if signed:
+            lines += [f"addf oga-law-{a}-negacc {thread}", f"addf oga-law-{a}-sacc {thread}"]
         lines += [f"addf {c} {thread}" for c in curves if c.startswith(f"oga-law-{a}-")]
     for a in axes:
         ax, j = law.axes[a], joints[a]
         lines += [f"net oga-law-{a}-vel {pins[a]} => oga-law-{a}-speed.in",
                   f"net oga-law-{a}-speed oga-law-{a}-speed.out => oga-law-{a}-kp.in"
-                  + (f" oga-law-{a}-kf.in" if ax.kf.size > 1 else "")]
+                  + (f" oga-law-{a}-kf.in" if ax.kf.size > 1 and not signed else "")]
+        if signed:
+            lines += _signed_acc_lines(a, acc_pins[a])
         for k, v in enumerate(ax.v_m_s):
             lines += [f"setp oga-law-{a}-kp.x-val-{k:02d} {float(v) * scale!r}",
                       f"setp oga-law-{a}-kp.y-val-{k:02d} "
                       f"{float(ax.kp_m_min_per_mm[0, k]) * KP_SI_PER_M_MIN_PER_MM!r}"]
         lines.append(f"net oga-law-{a}-pgain oga-law-{a}-kp.out => pid.{j}.Pgain")
         if ax.kf.size > 1:
-            for k, v in enumerate(ax.v_m_s):
+            xs = ax.a_m_s2 if signed else ax.v_m_s
+            for k, v in enumerate(xs):
                 lines += [f"setp oga-law-{a}-kf.x-val-{k:02d} {float(v) * scale!r}",
                           f"setp oga-law-{a}-kf.y-val-{k:02d} {float(ax.kf[0, k])!r}"]
             lines.append(f"net oga-law-{a}-ff1 oga-law-{a}-kf.out => pid.{j}.FF1")
         else:
             lines.append(f"setp pid.{j}.FF1 {float(ax.kf[0, 0])!r}")
     return "\n".join(lines) + "\n"
+
+
+def _signed_acc_lines(a: str, acc_pin: str) -> list[str]:
+    """HAL lines forming axis ``a``'s ``a sign(v)`` on ``oga-law-{a}-kf.in``."""
+    return [f"setp oga-law-{a}-negacc.gain -1.0",
+            f"net oga-law-{a}-acc {acc_pin} => oga-law-{a}-negacc.in oga-law-{a}-sacc.in0",
+            f"net oga-law-{a}-negacc oga-law-{a}-negacc.out => oga-law-{a}-sacc.in1",
+            f"net oga-law-{a}-braking oga-law-{a}-speed.is-negative => oga-law-{a}-sacc.sel",
+            f"net oga-law-{a}-sacc oga-law-{a}-sacc.out => oga-law-{a}-kf.in"]
