@@ -516,8 +516,9 @@ IDENT_FRACTION_MIN_GAIN = 0.02
 #: TwinCAT CNC dynamic Kv (Kp piecewise-linear in |v|, Kf constant), LinuxCNC lincurve (Kp and
 #: Kf piecewise-linear in |v|; lincurve-sa: Kf in the signed acceleration a sign(v)).
 LAW_KINDS = ("mac", "pl", "lincurve", "lincurve-sa")
-#: Support points per input of each kind when not given (mac: per axis of its grid).
-LAW_POINTS = {"mac": 3, "pl": 2, "lincurve": 4, "lincurve-sa": 4}
+#: Support points per input of each kind when not given (mac: per axis of its grid;
+#: lincurve-sa: 8 kept half of the robust table's reduction on freeform_xz at 100 %, 6 not).
+LAW_POINTS = {"mac": 3, "pl": 2, "lincurve": 4, "lincurve-sa": 8}
 #: Largest support points per input of each kind (lincurve: the component's 16; TwinCAT's
 #: dynamic Kv has exactly two; MAC's grid is kept small: its support points are typed in).
 LAW_POINTS_MAX = {"mac": 5, "pl": 2, "lincurve": 16, "lincurve-sa": 16}

@@ -93,7 +93,7 @@ class Law:
 
     Attributes
     ----------
-    kind : {"mac", "pl", "lincurve"}
+    kind : {"mac", "pl", "lincurve", "lincurve-sa"}
     axes : dict of str to AxisLaw
         The adapted axes.
     fixed_kp, fixed_kf : dict of str to float

@@ -279,7 +279,7 @@ def search_law(
         Each with its setpoints at every override (the same overrides for all).
     machine : Machine
         With an uncertainty set.
-    kind : {"mac", "pl", "lincurve"}
+    kind : {"mac", "pl", "lincurve", "lincurve-sa"}
     points : int, optional
         Support points per input (default per kind, :data:`oga.defaults.LAW_POINTS`).
     scenarios : ScenarioSet, optional
