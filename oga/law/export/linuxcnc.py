@@ -75,17 +75,7 @@ def law_hal(law: Law, comment: list[str], *, units: str = "mm",
     acc_pins = {a: (acceleration_pins or {}).get(a, f"joint.{joints[a]}.joint-acc-cmd")
                 for a in axes}
     scale = 1.0 / _UNIT_M[units]
-    lines = [f"# {x}" for x in comment]
-    lines += [
-        f"# Units: {units}; x-val in {units}/s of |commanded velocity|, Pgain y-val in 1/s, "
-        "FF1 y-val unitless" + (f"; FF1's x-val in {units}/s^2 of the commanded acceleration "
-                                "times the sign of the velocity." if signed else "."),
-        "# Source this file after 'addf motion-controller " + thread + "' and before the "
-        "pid functions are added:",
-        "# the law must see this period's commanded velocity, and pid must see this "
-        "period's gains.",
-        "# Remove your own settings of pid.N.Pgain and pid.N.FF1 (HAL connects a pin once).",
-    ]
+    lines = _header(comment, units, thread, signed)
     curves, personality = [], []
     for a in axes:
         ax = law.axes[a]
@@ -141,3 +131,17 @@ def _signed_kf_lines(a: str, j: int, acc_pin: str, xs, ys) -> list[str]:
                f"net oga-law-{a}-kfneg oga-law-{a}-kfneg.out => oga-law-{a}-ff.in1",
                f"net oga-law-{a}-braking oga-law-{a}-speed.is-negative => oga-law-{a}-ff.sel",
                f"net oga-law-{a}-ff1 oga-law-{a}-ff.out => pid.{j}.FF1"])
+
+
+def _header(comment: list[str], units: str, thread: str, signed: bool) -> list[str]:
+    """The file's comment block: ``comment``, then units and where to source it."""
+    return [f"# {x}" for x in comment] + [
+        f"# Units: {units}; x-val in {units}/s of |commanded velocity|, Pgain y-val in 1/s, "
+        "FF1 y-val unitless" + (f"; FF1's x-val in {units}/s^2 of the commanded acceleration "
+                                "times the sign of the velocity." if signed else "."),
+        "# Source this file after 'addf motion-controller " + thread + "' and before the "
+        "pid functions are added:",
+        "# the law must see this period's commanded velocity, and pid must see this "
+        "period's gains.",
+        "# Remove your own settings of pid.N.Pgain and pid.N.FF1 (HAL connects a pin once).",
+    ]
