@@ -3,7 +3,7 @@ measures, the axis's commanded velocity ``|v|`` and acceleration ``|a|``.
 
 A table (:mod:`oga.optimize`) gives a gain per servo period of one program; a controller
 with a native gain adaptation instead evaluates a function of its own commanded motion in
-every period. Three kinds, each what one controller evaluates:
+every period. Four kinds, each what one controller evaluates:
 
 - ``"lincurve"`` (LinuxCNC): Kp and Kf each a ``lincurve`` of ``|v|`` (N <= 16 support
   points; below the first point its value, above the last the last value, no
@@ -19,8 +19,9 @@ every period. Three kinds, each what one controller evaluates:
 - ``"lincurve-sa"`` (LinuxCNC): Kp a ``lincurve`` of ``|v|`` as ``"lincurve"``'s, Kf a
   ``lincurve`` of the signed acceleration ``s = a sign(v)`` (``sign(0) = +1``): ``s > 0``
   while the axis speeds up, ``s < 0`` while it brakes, so the feedforward can differ entering
-  and leaving a reversal, which a function of ``|v|`` cannot. HAL forms ``s`` from the
-  commanded acceleration with ``abs``'s ``is-negative``, ``neg`` and ``mux2``. Neither
+  and leaving a reversal, which a function of ``|v|`` cannot. HAL evaluates it as two
+  ``lincurve`` of the commanded acceleration (``Kf(a)`` and its mirror ``Kf(-a)``) and a
+  ``mux2`` on ``abs``'s ``is-negative`` of the velocity. Neither
   TwinCAT's dynamic Kv (Kp only) nor MAC (``|a|``) can express it.
 - ``"mac"`` (Heidenhain MAC, Motion Adaptive Control: controller parameters adapted to the
   axis's velocity and acceleration at support points, set up in TNCopt; iTNC 530 HSCI
