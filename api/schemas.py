@@ -253,11 +253,12 @@ class LawRequest(_Strict):
                                        description="the programs the machine runs")
     machine: str | dict[str, Any] = Field(
         "ucp710", description="a preset name or a machine object, with an uncertainty set")
-    kind: Literal["mac", "pl", "lincurve"] = Field(
+    kind: Literal["mac", "pl", "lincurve", "lincurve-sa"] = Field(
         "lincurve", description="mac: Heidenhain (Kp, Kf over |v| and |a|); pl: TwinCAT CNC "
-        "dynamic Kv (Kp over |v|, Kf constant); lincurve: LinuxCNC (Kp, Kf over |v|)")
+        "dynamic Kv (Kp over |v|, Kf constant); lincurve: LinuxCNC (Kp, Kf over |v|); "
+        "lincurve-sa: LinuxCNC (Kp over |v|, Kf over a sign(v))")
     points: int | None = Field(None, description="support points per input (default mac 3, "
-                               "pl 2, lincurve 4)")
+                               "pl 2, lincurve 4, lincurve-sa 8)")
     overrides: list[float] = Field([0.5, 0.8, 1.0, 1.2], min_length=1, max_length=8,
                                    description="feed overrides (shares), 1 among them")
     tolerance: float | None = Field(None, description="interpolation tolerance, mm")

@@ -9,8 +9,11 @@ It runs :mod:`bench_law` with :meth:`oga.law.search._Context.search` wrapped to 
 each round's search, the exact replays of its law on the round's plants (key -1 the nominal
 plant, else the set's index). A share near 1 is a limit the line search stopped on; "at hi"
 lists the parameters (per law axis its Kp support values, then its Kf ones) at the top of
-their range (Kp: the range stable on every plant). CPU times are process times; the wrap
-replays every case once more per round. A benchmark prints figures; it asserts nothing.
+their range (Kp: the range stable on every plant). After each certificate that fails, per
+case the plants where the law alone breaks a check, counted by what breaks (the replay's
+first violation: the limit, and whether in a rapid or a feed move) with the first few in
+full. CPU times are process times; the wrap replays every case once more per round. A
+benchmark prints figures; it asserts nothing.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from oga.law import search as law_search  # noqa: E402
 from oga.law.law import law_gains  # noqa: E402
 
 _SEARCH = law_search._Context.search
+_CERTIFY = law_search.certify_law
 
 
 def _binding(ctx, theta, keys, reserve, its) -> None:
@@ -47,6 +51,24 @@ def _binding(ctx, theta, keys, reserve, its) -> None:
                   f"{np.round(fr / afr, 3).tolist()}", flush=True)
 
 
+def _certify(law, cases, machine, scenarios, screen=True):
+    cert = _CERTIFY(law, cases, machine, scenarios, screen)
+    print(f"  [certificate] {cert.status} on {len(cert.plants)} plants", flush=True)
+    for (prog, o), c in cert.cases.items():
+        only = [p for p in c.plants if p.schedule_only_break]
+        if not only:
+            continue
+        kinds: dict[str, int] = {}
+        for p in only:
+            v = p.schedule.violations[0] if p.schedule.violations else "stability"
+            key = " ".join(v.split()[:4]) + (" (rapid)" if "rapid" in v else " (feed)")
+            kinds[key] = kinds.get(key, 0) + 1
+        print(f"    {prog} {o * 100:4.0f} %: {len(only)} law-only breaks: {kinds}", flush=True)
+        for p in only[:3]:
+            print(f"      {p.label}: {'; '.join(p.schedule.violations[:2])}", flush=True)
+    return cert
+
+
 def _search(self, theta0, keys, reserve):
     theta, its = _SEARCH(self, theta0, keys, reserve)
     _binding(self, theta, keys, reserve, its)
@@ -55,4 +77,5 @@ def _search(self, theta0, keys, reserve):
 
 if __name__ == "__main__":
     law_search._Context.search = _search
+    law_search.certify_law = _certify
     raise SystemExit(bench_law.main(sys.argv[1:]))

@@ -514,13 +514,14 @@ IDENT_FRACTION_MIN_GAIN = 0.02
 # gain laws (oga.law) --------------------------------------------------------------------------
 #: Kinds of gain law (:mod:`oga.law.law`): Heidenhain MAC (Kp and Kf bilinear in |v| and |a|),
 #: TwinCAT CNC dynamic Kv (Kp piecewise-linear in |v|, Kf constant), LinuxCNC lincurve (Kp and
-#: Kf piecewise-linear in |v|).
-LAW_KINDS = ("mac", "pl", "lincurve")
-#: Support points per input of each kind when not given (mac: per axis of its grid).
-LAW_POINTS = {"mac": 3, "pl": 2, "lincurve": 4}
+#: Kf piecewise-linear in |v|; lincurve-sa: Kf in the signed acceleration a sign(v)).
+LAW_KINDS = ("mac", "pl", "lincurve", "lincurve-sa")
+#: Support points per input of each kind when not given (mac: per axis of its grid;
+#: lincurve-sa: 8 kept half of the robust table's reduction on freeform_xz at 100 %, 6 not).
+LAW_POINTS = {"mac": 3, "pl": 2, "lincurve": 4, "lincurve-sa": 8}
 #: Largest support points per input of each kind (lincurve: the component's 16; TwinCAT's
 #: dynamic Kv has exactly two; MAC's grid is kept small: its support points are typed in).
-LAW_POINTS_MAX = {"mac": 5, "pl": 2, "lincurve": 16}
+LAW_POINTS_MAX = {"mac": 5, "pl": 2, "lincurve": 16, "lincurve-sa": 16}
 #: Feed overrides every law is searched and certified at (shares of the programmed feed).
 LAW_OVERRIDES = (0.5, 0.8, 1.0, 1.2)
 #: Override range accepted (LinuxCNC's default MAX_FEED_OVERRIDE is 1.2; a shop uses 0.5-1.2).

@@ -24,7 +24,8 @@ from oga.law.export.heidenhain import heidenhain_text
 from oga.law.export.linuxcnc import law_hal
 from oga.law.export.twincat import twincat_files
 from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
-from oga.law.law import AxisLaw, Law, basis, interp, law_gains, quantized
+from oga.law.law import (AxisLaw, Law, basis, curve_basis, interp, law_gains, quantized,
+                         signed_support_points)
 from oga.law.override import override_path, plan_override
 from oga.law.search import Program, search_law
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine, machine_from_dict
@@ -84,6 +85,37 @@ def test_interp_is_lincurve_and_the_basis_gives_the_same_gains(short):
                 + fa * ((1 - fv) * t[1, 1] + fv * t[1, 2]))
         assert kp[k, i] == pytest.approx(want, rel=1e-12)
     assert (kp[:, 1] == 1.3).all() and (kf[:, 1] == 0.9).all()
+
+
+def test_signed_acceleration_law():
+    """``lincurve-sa``: Kf is numpy's interpolation on ``a`` where ``v >= 0`` and on ``-a``
+    where ``v < 0`` (an independent reference), the search's weights give the same Kf, the
+    support points are symmetric; no MAC or TwinCAT file can state it. zigzag_xz: both axes
+    speed up and brake in both directions."""
+    sp = plan_override(load_toolpath(DATA / "zigzag_xz.ngc"), MACHINE, 1.0, 2e-5)
+    axes = {}
+    for a, kf in (("x", [0.9, 0.7, 0.8, 0.95]), ("z", [0.75, 0.9, 0.85, 0.8])):
+        i = AXES.index(a)
+        acc = signed_support_points([sp.acc[:, i]], 4)
+        assert np.allclose(acc, -acc[::-1]) and (np.diff(acc) > 0).all()
+        axes[a] = AxisLaw(v_m_s=np.array([0.0, 0.02, 0.04]), a_m_s2=acc,
+                          kp_m_min_per_mm=np.array([[1.5, 1.8, 2.0]]), kf=np.array([kf]))
+    law = Law(kind="lincurve-sa", axes=axes, fixed_kp={"y": 1.3}, fixed_kf={"y": 0.9})
+    kp, kf = law_gains(law, sp)
+    for a, ax in axes.items():
+        i = AXES.index(a)
+        s = np.where(sp.vel[:, i] < 0, -sp.acc[:, i], sp.acc[:, i])
+        assert ((sp.vel[:, i] < 0) & (s < 0.5 * s.min())).any()
+        assert ((sp.vel[:, i] < 0) & (s > 0.5 * s.max())).any()
+        want = np.interp(s, ax.a_m_s2, ax.kf[0])
+        assert np.allclose(kf[:, i], want, rtol=0, atol=1e-15) and np.ptp(want) > 0.05
+        assert np.allclose(curve_basis(ax.a_m_s2, s) @ ax.kf[0], want, rtol=0, atol=1e-15)
+        assert np.allclose(kp[:, i], np.interp(np.abs(sp.vel[:, i]), ax.v_m_s,
+                                               ax.kp_m_min_per_mm[0]), rtol=0, atol=1e-15)
+    with pytest.raises(OptionError, match="Heidenhain MAC cannot express a lincurve-sa"):
+        heidenhain_text(law, [])
+    with pytest.raises(OptionError, match="TwinCAT"):
+        twincat_files(law, [])
 
 
 def test_derivatives_match_finite_differences(short):

@@ -2,8 +2,8 @@
 and gives oga's velocity command sample for sample.
 
 The bench: ``streamer`` stands in for motion (per axis: the position command, the setpoint
-velocity for ``command-deriv``, the same velocity for the law's input pin, and oga's simulated
-positions as feedback), the exported ``oga_law.hal`` (``abs`` and two ``lincurve`` per axis)
+velocity for ``command-deriv``, the same velocity and the setpoint acceleration for the law's
+input pins, and oga's simulated positions as feedback), the exported ``oga_law.hal`` (``abs`` and two ``lincurve`` per axis)
 runs after it and before ``pid``, and ``sampler`` records ``pid.N.output``, ``Pgain`` and
 ``FF1``. Needs ``linuxcnc-uspace`` (``.ci/run`` installs it): without ``halrun`` it fails,
 never skips.
@@ -12,6 +12,7 @@ never skips.
 from __future__ import annotations
 
 import fcntl
+import functools
 import shutil
 import subprocess
 import tempfile
@@ -23,7 +24,7 @@ import pytest
 from feedplan.read import load_toolpath
 from feedplan.setpoints import AXES
 from oga.law.export.linuxcnc import LAW_HAL, law_hal
-from oga.law.law import AxisLaw, Law, law_gains
+from oga.law.law import AxisLaw, Law, law_gains, signed_acc
 from oga.law.override import plan_override
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, load_machine
 from oga.model.response import simulate
@@ -34,19 +35,24 @@ DATA = Path(__file__).parent / "data"
 SCALE_U, SCALE_K = 2.0**40, 2.0**30
 
 
-@pytest.fixture(scope="module")
-def case():
-    """short_xz at 120 % feed on ucp710, a lincurve law whose Kp and Kf both vary with |v|
-    (not searched: any law within the ranges is what HAL must reproduce), and oga's replay."""
+@functools.cache
+def _case(kind):
+    """A program at 120 % feed on ucp710, a law whose Kp and Kf both vary (not searched: any
+    law within the ranges is what HAL must reproduce), and oga's replay. ``lincurve``: Kp and
+    Kf in ``|v|`` on short_xz; ``lincurve-sa``: Kf in the signed acceleration ``a sign(v)``
+    on zigzag_xz (both axes speed up and brake in both directions)."""
     machine = load_machine("ucp710")
-    sp = plan_override(load_toolpath(DATA / "short_xz.ngc"), machine, 1.2, 2e-5)
+    prog = "zigzag_xz" if kind == "lincurve-sa" else "short_xz"
+    sp = plan_override(load_toolpath(DATA / f"{prog}.ngc"), machine, 1.2, 2e-5)
     axes = {}
     for a, kp, kf in (("x", [1.2, 2.0, 1.6, 1.9], [0.95, 0.85, 0.9, 0.7]),
                       ("z", [1.9, 1.3, 1.7, 1.5], [0.8, 0.9, 0.75, 0.88])):
-        vmax = float(np.abs(sp.vel[:, AXES.index(a)]).max())
-        axes[a] = AxisLaw(v_m_s=np.array([0.0, 0.2, 0.55, 0.9]) * vmax, a_m_s2=np.zeros(1),
+        i = AXES.index(a)
+        vmax, amax = float(np.abs(sp.vel[:, i]).max()), float(np.abs(sp.acc[:, i]).max())
+        acc = np.array([-0.6, -0.1, 0.1, 0.6]) * amax if kind == "lincurve-sa" else np.zeros(1)
+        axes[a] = AxisLaw(v_m_s=np.array([0.0, 0.2, 0.55, 0.9]) * vmax, a_m_s2=acc,
                           kp_m_min_per_mm=np.array([kp]), kf=np.array([kf]))
-    law = Law(kind="lincurve", axes=axes, fixed_kp={"y": 1.3}, fixed_kf={"y": 0.9})
+    law = Law(kind=kind, axes=axes, fixed_kp={"y": 1.3}, fixed_kf={"y": 0.9})
     kp, kf = law_gains(law, sp)
     sim = simulate(sp, machine, kp, kf)
     return sp, law, kp, kf, sim
@@ -60,12 +66,14 @@ def _run(sp, law, feedback, units="mm"):
     axes = [a for a in AXES if a in law.axes]
     n = len(sp)
     cols = []
-    for a in axes:  # cmd, vel, vel (the law's input), feedback
+    for a in axes:  # cmd, vel, vel and acc (the law's inputs), feedback
         i = AXES.index(a)
         cols += [sp.pos[:, i] / unit, sp.vel[:, i] / unit, sp.vel[:, i] / unit,
-                 feedback[:, i] / unit]
+                 feedback[:, i] / unit, sp.acc[:, i] / unit]
     hal = law_hal(law, ["a test law"], units=units,
-                  velocity_pins={a: f"streamer.0.pin.{4 * k + 2}" for k, a in enumerate(axes)})
+                  velocity_pins={a: f"streamer.0.pin.{5 * k + 2}" for k, a in enumerate(axes)},
+                  acceleration_pins={a: f"streamer.0.pin.{5 * k + 4}"
+                                     for k, a in enumerate(axes)})
     root = Path(tempfile.mkdtemp(prefix="oga-law-hal-"))
     try:
         root.chmod(0o777)
@@ -83,9 +91,9 @@ def _run(sp, law, feedback, units="mm"):
             lines += [f"addf pid.{k}.do-pid-calcs servo-thread",
                       f"setp pid.{k}.enable 1",
                       f"setp pid.{k}.error-previous-target 0",
-                      f"net t-{a}-cmd streamer.0.pin.{4 * k} => pid.{k}.command",
-                      f"net t-{a}-vel streamer.0.pin.{4 * k + 1} => pid.{k}.command-deriv",
-                      f"net t-{a}-fb streamer.0.pin.{4 * k + 3} => pid.{k}.feedback"]
+                      f"net t-{a}-cmd streamer.0.pin.{5 * k} => pid.{k}.command",
+                      f"net t-{a}-vel streamer.0.pin.{5 * k + 1} => pid.{k}.command-deriv",
+                      f"net t-{a}-fb streamer.0.pin.{5 * k + 3} => pid.{k}.feedback"]
             for what, src, scale in (("u", f"t-{a}-u-in pid.{k}.output", SCALE_U),
                                      ("kp", f"oga-law-{a}-pgain", SCALE_K),  # the law's nets
                                      ("kf", f"oga-law-{a}-ff1", SCALE_K)):
@@ -120,9 +128,10 @@ def _run(sp, law, feedback, units="mm"):
         shutil.rmtree(root, ignore_errors=True)
 
 
-@pytest.mark.parametrize("units", ["mm", "inch"])
-def test_law_in_hal_gives_the_velocity_command(case, units):
-    sp, law, kp, kf, sim = case
+@pytest.mark.parametrize("kind, units", [("lincurve", "mm"), ("lincurve", "inch"),
+                                         ("lincurve-sa", "mm")])
+def test_law_in_hal_gives_the_velocity_command(kind, units):
+    sp, law, kp, kf, sim = _case(kind)
     axes = [a for a in AXES if a in law.axes]
     got = _run(sp, law, sim.pos, units)
     for a in axes:
@@ -132,6 +141,12 @@ def test_law_in_hal_gives_the_velocity_command(case, units):
         # input up to the units' scaling (one rounding of |v| / unit)
         kp_si = kp[:, i] * KP_SI_PER_M_MIN_PER_MM
         assert np.ptp(kp_si) > 5.0 and np.ptp(kf[:, i]) > 0.05  # the law adapts
+        if kind == "lincurve-sa":  # speeding up and braking both run, in both directions
+            s = signed_acc(sp.vel[:, i], sp.acc[:, i])
+            for d in (1.0, -1.0):
+                moving = sp.vel[:, i] * d > 0
+                assert (moving & (s > 0.3 * s.max())).any()
+                assert (moving & (s < 0.3 * s.min())).any()
         assert np.allclose(pgain, kp_si, rtol=1e-9, atol=0), np.abs(pgain - kp_si).max()
         assert np.allclose(ff1, kf[:, i], rtol=1e-9, atol=0), np.abs(ff1 - kf[:, i]).max()
         # the command, sample for sample: 1e-9 of the loop's terms plus the rounding of the

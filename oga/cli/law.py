@@ -33,11 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="G-code, CSV or JSON toolpaths the machine runs")
     p.add_argument("--machine", default="ucp710", metavar="NAME|FILE",
                    help="machine preset or file with an uncertainty set; default ucp710")
-    p.add_argument("--kind", default="lincurve", metavar="mac|pl|lincurve",
+    p.add_argument("--kind", default="lincurve", metavar="mac|pl|lincurve|lincurve-sa",
                    help="mac: Heidenhain (Kp, Kf over |v| and |a|); pl: TwinCAT CNC dynamic "
-                        "Kv (Kp over |v|, Kf constant); lincurve: LinuxCNC (Kp, Kf over |v|)")
+                        "Kv (Kp over |v|, Kf constant); lincurve: LinuxCNC (Kp, Kf over |v|); "
+                        "lincurve-sa: LinuxCNC (Kp over |v|, Kf over a sign(v))")
     p.add_argument("--points", type=int, default=None, metavar="N",
-                   help="support points per input (default mac 3, pl 2, lincurve 4)")
+                   help="support points per input (default mac 3, pl 2, lincurve 4, lincurve-sa 8)")
     p.add_argument("--overrides", default=",".join(f"{o:g}" for o in defaults.LAW_OVERRIDES),
                    metavar="O,...", help="feed overrides (shares, 1 among them); "
                    "default 0.5,0.8,1,1.2")

@@ -3,7 +3,7 @@ measures, the axis's commanded velocity ``|v|`` and acceleration ``|a|``.
 
 A table (:mod:`oga.optimize`) gives a gain per servo period of one program; a controller
 with a native gain adaptation instead evaluates a function of its own commanded motion in
-every period. Three kinds, each what one controller evaluates:
+every period. Four kinds, each what one controller evaluates:
 
 - ``"lincurve"`` (LinuxCNC): Kp and Kf each a ``lincurve`` of ``|v|`` (N <= 16 support
   points; below the first point its value, above the last the last value, no
@@ -16,6 +16,13 @@ every period. Three kinds, each what one controller evaluates:
   ``min/max(kv1, kv2)``); ``N`` points in general, exactly two for TwinCAT. Kf is one
   constant (the feedforward weighting ``vorsteuer.vs_v_faktor / vs_v_nenner``,
   P-AXIS-00228/00229).
+- ``"lincurve-sa"`` (LinuxCNC): Kp a ``lincurve`` of ``|v|`` as ``"lincurve"``'s, Kf a
+  ``lincurve`` of the signed acceleration ``s = a sign(v)`` (``sign(0) = +1``): ``s > 0``
+  while the axis speeds up, ``s < 0`` while it brakes, so the feedforward can differ entering
+  and leaving a reversal, which a function of ``|v|`` cannot. HAL evaluates it as two
+  ``lincurve`` of the commanded acceleration (``Kf(a)`` and its mirror ``Kf(-a)``) and a
+  ``mux2`` on ``abs``'s ``is-negative`` of the velocity. Neither
+  TwinCAT's dynamic Kv (Kp only) nor MAC (``|a|``) can express it.
 - ``"mac"`` (Heidenhain MAC, Motion Adaptive Control: controller parameters adapted to the
   axis's velocity and acceleration at support points, set up in TNCopt; iTNC 530 HSCI
   technical manual, software options 142 PAC / MAC): Kp and Kf bilinear on an ``N x N`` grid
@@ -23,7 +30,8 @@ every period. Three kinds, each what one controller evaluates:
 
 Each axis law holds its support points (``v_m_s``, ``a_m_s2``) and the values there
 (``kp_m_min_per_mm``, ``kf``, shape ``(len(a_m_s2), len(v_m_s))``; one row for the
-one-input kinds; ``pl``'s Kf one value). Values are convex combinations of support
+one-input kinds; ``pl``'s Kf one value; ``lincurve-sa``: ``a_m_s2`` Kf's support points in
+``s``, Kf shape ``(1, len(a_m_s2))``). Values are convex combinations of support
 values, so a law whose support values lie in a range gives gains in that range at every
 sample. :func:`quantized` rounds a law to its controller's resolution (what is exported is
 what is certified).
@@ -53,6 +61,7 @@ _RESOLUTION = {
     "pl": {"kp": 0.01 / KP_SI_PER_M_MIN_PER_MM, "kf": 1e-3, "v": 1e-6, "a": None},
     "mac": {"kp": 1e-3, "kf": 1e-3, "v": 1e-3 / 60.0, "a": 1e-3},
     "lincurve": {"kp": None, "kf": None, "v": None, "a": None},
+    "lincurve-sa": {"kp": None, "kf": None, "v": None, "a": None},
 }
 
 
@@ -85,7 +94,7 @@ class Law:
 
     Attributes
     ----------
-    kind : {"mac", "pl", "lincurve"}
+    kind : {"mac", "pl", "lincurve", "lincurve-sa"}
     axes : dict of str to AxisLaw
         The adapted axes.
     fixed_kp, fixed_kf : dict of str to float
@@ -162,11 +171,18 @@ def _bilinear(law: AxisLaw, table: np.ndarray, v: np.ndarray, a: np.ndarray) -> 
     if table.shape == (1, 1):
         return np.full(len(v), table[0, 0])
     rows = np.stack([interp(law.v_m_s, row, v) for row in table])  # (na, N)
-    if len(law.a_m_s2) == 1:
+    if table.shape[0] == 1:
         return rows[0]
     cols = np.arange(len(v))
     j, g = _hat(law.a_m_s2, a)
     return rows[j, cols] + g * (rows[j + 1, cols] - rows[j, cols])
+
+
+def signed_acc(v: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``a sign(v)`` with ``sign(0) = +1`` (what HAL's ``mux2`` selects on ``abs``'s
+    ``is-negative``): > 0 speeding up, < 0 braking, m/s^2."""
+    a = np.asarray(a, dtype=np.float64)
+    return np.where(np.asarray(v) < 0.0, -a, a)
 
 
 def law_gains(law: Law, setpoints: Setpoints) -> tuple[np.ndarray, np.ndarray]:
@@ -183,7 +199,11 @@ def law_gains(law: Law, setpoints: Setpoints) -> tuple[np.ndarray, np.ndarray]:
             ax = law.axes[a]
             v, acc = np.abs(setpoints.vel[:, i]), np.abs(setpoints.acc[:, i])
             kp[:, i] = _bilinear(ax, ax.kp_m_min_per_mm, v, acc)
-            kf[:, i] = _bilinear(ax, ax.kf, v, acc)
+            if law.kind == "lincurve-sa":
+                kf[:, i] = interp(ax.a_m_s2, ax.kf[0], signed_acc(setpoints.vel[:, i],
+                                                                  setpoints.acc[:, i]))
+            else:
+                kf[:, i] = _bilinear(ax, ax.kf, v, acc)
         else:
             kp[:, i] = law.fixed_kp.get(a, 0.0)
             kf[:, i] = law.fixed_kf.get(a, 0.0)
@@ -207,6 +227,26 @@ def basis(law: AxisLaw, table_shape: tuple[int, int], v: np.ndarray, a: np.ndarr
             ii = np.minimum(i + di, nv - 1)
             np.add.at(w, (rows, jj * nv + ii), wj * wi)
     return w
+
+
+def curve_basis(xs: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Weights ``W`` (N, len(xs)) with ``interp(xs, ys, x) = W @ ys`` (held at the ends)."""
+    n = len(x)
+    i, f = _hat(xs, np.asarray(x, dtype=np.float64))
+    w = np.zeros((n, len(xs)))
+    rows = np.arange(n)
+    np.add.at(w, (rows, i), 1.0 - f)
+    np.add.at(w, (rows, np.minimum(i + 1, len(xs) - 1)), f)
+    return w
+
+
+def signed_support_points(samples: list[np.ndarray], n: int) -> np.ndarray:
+    """``n`` support points of a signed input, symmetric about 0: the magnitudes of
+    :func:`support_points` over ``|samples|`` (0 among them for odd ``n``) and their
+    negatives, strictly increasing."""
+    k = n // 2 + 1 if n % 2 else n // 2
+    m = support_points(samples, k, positive=not n % 2)
+    return np.concatenate([-m[::-1], m[1:] if n % 2 else m])
 
 
 def support_points(samples: list[np.ndarray], n: int, positive: bool = False) -> np.ndarray:

@@ -37,7 +37,7 @@ def law_optimize(
         Each program's name and parsed toolpath.
     machine : Machine
         With an uncertainty set (the law is certified on it).
-    kind : {"mac", "pl", "lincurve"}
+    kind : {"mac", "pl", "lincurve", "lincurve-sa"}
     points : int, optional
         Support points per input (default per kind).
     overrides : sequence of float

@@ -60,7 +60,8 @@ from oga.errors import OptionError
 from oga.law.baseline import common_kp_range, program_baseline
 from oga.law.certificate import LawCertificate, certify_law
 from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
-from oga.law.law import AxisLaw, Law, basis, check_kind, law_gains, quantized, support_points
+from oga.law.law import (AxisLaw, Law, basis, check_kind, curve_basis, law_gains, quantized,
+                         signed_acc, signed_support_points, support_points)
 from oga.model.machine import Machine
 from oga.model.metrics import track_max
 from oga.search.window import _qp_active_set
@@ -235,6 +236,8 @@ def _start_law(kind, n, programs, law_axes, kp0, kf0, fixed_kp, fixed_kf) -> Law
         v = support_points(vs, n, positive=(kind == "pl"))
         if kind == "mac":
             acc = support_points([np.abs(sp.acc[~sp.rapid, i]) for sp in sps], n)
+        elif kind == "lincurve-sa":
+            acc = signed_support_points([sp.acc[~sp.rapid, i] for sp in sps], n)
         else:
             acc = np.zeros(1)
         axes[a] = AxisLaw(v_m_s=v, a_m_s2=acc, kp_m_min_per_mm=np.full(kp_shape, kp0),
@@ -276,7 +279,7 @@ def search_law(
         Each with its setpoints at every override (the same overrides for all).
     machine : Machine
         With an uncertainty set.
-    kind : {"mac", "pl", "lincurve"}
+    kind : {"mac", "pl", "lincurve", "lincurve-sa"}
     points : int, optional
         Support points per input (default per kind, :data:`oga.defaults.LAW_POINTS`).
     scenarios : ScenarioSet, optional
@@ -410,6 +413,8 @@ def _cases(programs, overrides, law_axes, start_law: Law, baselines) -> list[_Ca
                     continue
                 ax = start_law.axes[a]
                 w[i] = (basis(ax, ax.kp_m_min_per_mm.shape, sp.vel[:, i], sp.acc[:, i]),
+                        curve_basis(ax.a_m_s2, signed_acc(sp.vel[:, i], sp.acc[:, i]))
+                        if start_law.kind == "lincurve-sa" else
                         basis(ax, ax.kf.shape, sp.vel[:, i], sp.acc[:, i]))
             base = baselines[p.name]
             case = _Case(program=p.name, override=o, sp=sp, base=base,

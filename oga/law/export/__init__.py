@@ -15,8 +15,8 @@ __all__ = ["law_files"]
 
 def law_files(result, machine_name: str, plants: int, *, units: str = "mm",
               joints: dict[str, int] | None = None) -> dict[str, str]:
-    """File name -> text of ``result``'s law for its controller: ``lincurve``: LinuxCNC HAL;
-    ``pl``: TwinCAT CNC (two points) and LinuxCNC HAL; ``mac``: Heidenhain MAC."""
+    """File name -> text of ``result``'s law for its controller: ``lincurve``, ``lincurve-sa``: LinuxCNC
+    HAL; ``pl``: TwinCAT CNC (two points) and LinuxCNC HAL; ``mac``: Heidenhain MAC."""
     from oga.law.export.heidenhain import HEIDENHAIN, heidenhain_text
     from oga.law.export.linuxcnc import LAW_HAL, law_hal
     from oga.law.export.twincat import twincat_files

@@ -20,6 +20,7 @@ adapts each axis to its own motion, which the certificate covers.
 from __future__ import annotations
 
 from feedplan.setpoints import AXES
+from oga.errors import OptionError
 from oga.law.law import Law
 
 __all__ = ["HEIDENHAIN", "heidenhain_text"]
@@ -29,7 +30,17 @@ HEIDENHAIN = "oga_law_heidenhain.txt"
 
 
 def heidenhain_text(law: Law, comment: list[str]) -> str:
-    """The MAC support points of every law axis, one table per axis (module doc)."""
+    """The MAC support points of every law axis, one table per axis (module doc).
+
+    Raises
+    ------
+    OptionError
+        A law of another kind (MAC reads ``|v|`` and ``|a|``: not the signed acceleration of
+        ``lincurve-sa``).
+    """
+    if law.kind not in ("mac", "lincurve", "pl"):
+        raise OptionError(f"--kind: Heidenhain MAC cannot express a {law.kind} law (it reads "
+                          "|v| and |a|; search --kind mac)")
     lines = [f"; {x}" for x in comment]
     for n, a in enumerate(AXES):
         if a not in law.axes:
