@@ -14,13 +14,14 @@ side).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TypeVar
 
 from oga.errors import OptionError
 
-__all__ = ["available_cores", "resolve_threads", "thread_map"]
+__all__ = ["available_cores", "resolve_threads", "thread_map", "kernel_threads"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -64,3 +65,19 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int = 1) -> li
     with ThreadPoolExecutor(max_workers=min(threads, len(items))) as pool:
         futures = [pool.submit(fn, x) for x in items]
         return [f.result() for f in futures]
+
+
+@contextmanager
+def kernel_threads(threads: int) -> Iterator[None]:
+    """Run the compiled kernels' parallel loops (numba ``prange``) of the calling thread on
+    ``threads`` threads (at most numba's pool, ``NUMBA_NUM_THREADS``) inside the block; the
+    count before is restored after it. Numba keeps the count per calling thread, so jobs on
+    other threads are not affected."""
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 
@@ -14,6 +15,7 @@ from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
 from oga.verify.certificate import certify, plant_bounds
 from oga.search.robust.multi import multi_search
+from oga.parallel import kernel_threads
 from oga.search.robust.plants import perturbed_machine, scenario_set
 from oga.search.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
 from oga.model.stability import stable_range
@@ -96,6 +98,23 @@ def test_a_second_plant_in_the_search_serves_that_plant(short_xz):
     assert on_late[1].metrics.mse_m2 < on_late[0].metrics.mse_m2
     assert on_late[1].metrics.mse_m2 < base[1].metrics.mse_m2
     assert on_late[1].limits_ok and verify(sp, nom, both.kp, both.kf, kb).limits_ok
+
+
+def test_the_window_search_gives_the_same_bits_on_one_and_two_threads(short_xz):
+    # each window's simulations and costs (two plants x two axes) run on the threads given,
+    # each into its own slices, summed in the plants' order: the same table on any count
+    m, sp = short_xz
+    plants = (perturbed_machine(m, {}, 0, m.name), perturbed_machine(m, {}, 1))
+    bkp, bkf = _fixed(len(sp), 1.3, 0.9)
+    base = tuple(verify(sp, p, bkp, bkf, {a: (1.0, 2.5) for a in ("x", "z")}) for p in plants)
+    opt = options_from_dict(None)
+    with kernel_threads(2):
+        assert numba.get_num_threads() == min(2, numba.config.NUMBA_NUM_THREADS)
+    found = [multi_search(sp, plants, base, opt, 1.3, 0.9, (1.0, 2.5), 0.9, threads=t)
+             for t in (1, 2)]
+    assert found[0].windows == found[1].windows
+    np.testing.assert_array_equal(found[1].kp, found[0].kp)
+    np.testing.assert_array_equal(found[1].kf, found[0].kf)
 
 
 def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
