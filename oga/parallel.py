@@ -9,6 +9,13 @@ caller that combines them in that order gets the same bits whatever the thread c
 The default count (:func:`available_cores`) is the cores this process may run on; the
 service and the Dask workers pass 1 per job unless told otherwise (they run jobs side by
 side).
+
+The window search's simulations run in numba ``prange`` loops (:func:`kernel_threads`), also
+from several of these threads at once: numba's default ``workqueue`` layer is not safe for
+that (it aborts), so this module, imported before any parallel kernel runs, selects the
+``threadsafe`` layer (OpenMP, ``libgomp.so.1``: Debian's ``libgomp1``; or TBB) unless
+``NUMBA_THREADING_LAYER`` names one; without either, :func:`kernel_threads` raises
+:class:`ThreadingLayerError` saying what to install.
 """
 
 from __future__ import annotations
@@ -19,9 +26,21 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import TypeVar
 
-from oga.errors import OptionError
+import numba
 
-__all__ = ["available_cores", "resolve_threads", "thread_map", "kernel_threads"]
+from oga.errors import OgaError, OptionError
+
+__all__ = ["available_cores", "resolve_threads", "thread_map", "kernel_threads",
+           "ThreadingLayerError"]
+
+#: Numba's layers that are safe to enter from several threads at once.
+SAFE_LAYERS = ("threadsafe", "omp", "tbb", "safe")
+os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")  # kept by numba's config reloads
+numba.config.THREADING_LAYER = os.environ["NUMBA_THREADING_LAYER"]
+
+
+class ThreadingLayerError(OgaError, RuntimeError):
+    """Numba has no thread-safe threading layer (OpenMP or TBB) on this machine."""
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -73,9 +92,16 @@ def kernel_threads(threads: int) -> Iterator[None]:
     ``threads`` threads (at most numba's pool, ``NUMBA_NUM_THREADS``) inside the block; the
     count before is restored after it. Numba keeps the count per calling thread, so jobs on
     other threads are not affected."""
-    import numba
-
-    before = numba.get_num_threads()
+    if numba.config.THREADING_LAYER not in SAFE_LAYERS:
+        raise ThreadingLayerError(
+            f"NUMBA_THREADING_LAYER={numba.config.THREADING_LAYER!r} is not safe from several "
+            f"threads at once: use one of {', '.join(SAFE_LAYERS)} (or leave it unset)")
+    try:
+        before = numba.get_num_threads()  # loads the layer on first use
+    except ValueError as e:  # numba: "No threading layer could be loaded"
+        raise ThreadingLayerError(
+            "numba found no thread-safe threading layer: install OpenMP's runtime (Debian, "
+            "Ubuntu: apt-get install libgomp1) or TBB (pip install tbb)") from e
     numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
     try:
         yield

@@ -545,6 +545,7 @@ class Work(NamedTuple):
     plan_kp: np.ndarray  # (3, wmax) the gains committed
     plan_kf: np.ndarray
     runs: np.ndarray  # (3,) int64 the axes simulated by a parallel pass
+    cost_s: np.ndarray  # (S,) each plant's window cost of a line-search step
 
 
 
@@ -615,6 +616,17 @@ def _each_run(k, wk, prog, plants, work, states, n_run, nominal):
         else:
             _sim_axis(k, wk, a, s, (pdT, vdT), plants, work, states, work.trial[s, a],
                       work.tmp_u[s, a])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _each_cost(k, wk, prog, plants, work):
+    """Every plant's window cost of the line-search step into ``work.cost_s`` (threads as
+    :func:`_each_run`; the caller sums them in the plants' order)."""
+    pd, win_lo, win_hi, feed = prog.pd, prog.win_lo, prog.win_hi, prog.feed
+    t0, t1, t2, t3 = prog.tree  # numba's parallel loops take arrays, not tuples
+    for s in prange(plants.params.shape[0]):
+        work.cost_s[s] = _window_cost(pd, (t0, t1, t2, t3), win_lo, win_hi, k, wk, work.trial[s],
+                                      feed)
 
 
 @njit(cache=True, nogil=True)
@@ -691,7 +703,7 @@ def _workspace(prog, plants, gains, cfg, carry):
         np.empty(max_rows, dtype=np.int64), np.empty(max_rows, dtype=np.int64), np.zeros(nv),
         np.empty(nv), np.empty((3, wmax)), np.empty((3, wmax)),
         np.empty((n_s, 3, carry.states.shape[2])), np.empty((n_s, 3, wmax)), np.empty((3, wmax)),
-        np.empty((3, wmax)), np.zeros(3, dtype=np.int64),
+        np.empty((3, wmax)), np.zeros(3, dtype=np.int64), np.empty(n_s),
     )
 
 
@@ -1011,10 +1023,10 @@ def _trial_cost(k, wk, scale, nominal_d2, prog, plants, gains, cfg, work):
     if scale == 0.0:
         cost = nominal_d2 * _M2_TO_UM2
     else:
+        _each_cost(k, wk, prog, plants, work)
         cost = 0.0
         for s in range(plants.params.shape[0]):
-            cost += plants.weights[s] * _window_cost(prog.pd, prog.tree, prog.win_lo, prog.win_hi,
-                                                     k, wk, work.trial[s], prog.feed)
+            cost += plants.weights[s] * work.cost_s[s]
     nk, tp = work.nk, work.trial_points
     for a in range(3):
         if prog.moving[a]:
