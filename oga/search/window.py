@@ -85,6 +85,7 @@ import numpy as np
 from numba import njit, prange
 
 from oga import defaults
+from oga import parallel as _parallel  # noqa: F401 (selects numba's thread-safe layer first)
 from oga.model.contour import ce2_at, contour_offset, path_index
 from oga.model.kinematics import eq2_excess
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
@@ -619,14 +620,14 @@ def _each_run(k, wk, prog, plants, work, states, n_run, nominal):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _each_cost(k, wk, prog, plants, work):
-    """Every plant's window cost of the line-search step into ``work.cost_s`` (threads as
-    :func:`_each_run`; the caller sums them in the plants' order)."""
-    pd, win_lo, win_hi, feed = prog.pd, prog.win_lo, prog.win_hi, prog.feed
-    t0, t1, t2, t3 = prog.tree  # numba's parallel loops take arrays, not tuples
-    for s in prange(plants.params.shape[0]):
-        work.cost_s[s] = _window_cost(pd, (t0, t1, t2, t3), win_lo, win_hi, k, wk, work.trial[s],
-                                      feed)
+def _each_cost(k, wk, pd, tree, win_lo, win_hi, feed, trial, cost_s):
+    """Every plant's window cost of the line-search step's ``trial`` (S, 3, wmax) into
+    ``cost_s`` (S,) (threads as :func:`_each_run`; the caller sums them in the plants' order).
+    The arrays come as arguments: numba's parallel loop dropped the stores into
+    ``work.cost_s[s]``, an array taken from a NamedTuple inside the loop (the caller read
+    ``np.empty``'s garbage, the search took other steps even on one thread)."""
+    for s in prange(trial.shape[0]):
+        cost_s[s] = _window_cost(pd, tree, win_lo, win_hi, k, wk, trial[s], feed)
 
 
 @njit(cache=True, nogil=True)
@@ -1023,7 +1024,8 @@ def _trial_cost(k, wk, scale, nominal_d2, prog, plants, gains, cfg, work):
     if scale == 0.0:
         cost = nominal_d2 * _M2_TO_UM2
     else:
-        _each_cost(k, wk, prog, plants, work)
+        _each_cost(k, wk, prog.pd, prog.tree, prog.win_lo, prog.win_hi, prog.feed, work.trial,
+                   work.cost_s)
         cost = 0.0
         for s in range(plants.params.shape[0]):
             cost += plants.weights[s] * work.cost_s[s]
