@@ -15,7 +15,7 @@ from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
 from oga.verify.certificate import certify, plant_bounds
 from oga.search.robust.multi import multi_search
-from oga.parallel import kernel_threads, thread_map
+from oga.parallel import ThreadingLayerError, kernel_threads, thread_map
 from oga.search.robust.plants import perturbed_machine, scenario_set
 from oga.search.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
 from oga.model.stability import stable_range
@@ -201,3 +201,11 @@ def test_the_robust_search_holds_its_gains_inside_a_rapid():
     for plant in scenario_set(m).plants:
         if verify(sp, plant, bkp, bkf, kb).limits_ok:
             assert verify(sp, plant, r.schedule.kp_m_min_per_mm, r.schedule.kf, kb).limits_ok
+
+
+def test_a_layer_unsafe_from_several_threads_is_refused_clearly(monkeypatch):
+    # numba's workqueue layer aborts when two threads enter a parallel loop at once
+    monkeypatch.setattr(numba.config, "THREADING_LAYER", "workqueue")
+    with pytest.raises(ThreadingLayerError, match="NUMBA_THREADING_LAYER='workqueue'"):
+        with kernel_threads(2):
+            pass
