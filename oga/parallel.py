@@ -37,6 +37,11 @@ __all__ = ["available_cores", "resolve_threads", "thread_map", "kernel_threads",
 SAFE_LAYERS = ("threadsafe", "omp", "tbb", "safe")
 os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")  # kept by numba's config reloads
 numba.config.THREADING_LAYER = os.environ["NUMBA_THREADING_LAYER"]
+# OpenMP's idle threads sleep instead of spinning (read when numba loads the layer): the
+# window search enters thousands of short parallel loops, and spinning threads on a busy
+# host took the cores from the work (short_xz, 2 plants, load 6.7 on 2 cores: 3.6 s on 2
+# threads spinning, 0.38 s sleeping, 0.46-0.59 s on 1)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 class ThreadingLayerError(OgaError, RuntimeError):
