@@ -54,8 +54,9 @@ import os
 import time
 from pathlib import Path
 
-for _var in ("NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # the threads are the robust search's own
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # the threads are the robust search's own (numba's
+    # prange loops too: the window search's, on --threads, oga.parallel.kernel_threads)
 
 import numpy as np  # noqa: E402
 

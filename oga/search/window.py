@@ -82,9 +82,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from oga import defaults
+from oga import parallel as _parallel  # noqa: F401 (selects numba's thread-safe layer first)
 from oga.model.contour import ce2_at, contour_offset, path_index
 from oga.model.kinematics import eq2_excess
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
@@ -538,12 +539,14 @@ class Work(NamedTuple):
     col1: np.ndarray
     x: np.ndarray  # (nv,) the QP's step
     trust: np.ndarray  # (nv,) the trust region per point
-    kpa: np.ndarray  # (wmax,) gains of one simulation
+    kpa: np.ndarray  # (3, wmax) each axis's gains along the plan simulated
     kfa: np.ndarray
-    scratch: np.ndarray  # (Z,) a state
-    tmp_u: np.ndarray  # (wmax,) commands of one simulation
+    scratch: np.ndarray  # (S, 3, Z) one state per simulation
+    tmp_u: np.ndarray  # (S, 3, wmax) commands of a line-search step
     plan_kp: np.ndarray  # (3, wmax) the gains committed
     plan_kf: np.ndarray
+    runs: np.ndarray  # (3,) int64 the axes simulated by a parallel pass
+    cost_s: np.ndarray  # (S,) each plant's window cost of a line-search step
 
 
 
@@ -572,13 +575,59 @@ def _plan_gains(points, a, w, kspace, kpa, kfa):
 
 
 @njit(cache=True, nogil=True)
-def _sim_plan(k, wk, a, points, state, params, prog, work, out_p, out_u):
-    """Exact prediction of axis ``a`` (its ``state`` and ``params``, one plant's) over the
-    window along the plan ``points``: positions into ``out_p``, commands into ``out_u``."""
-    _plan_gains(points, a, wk, work.kspace, work.kpa, work.kfa)
-    work.scratch[:] = state[a]
-    run(work.scratch, params[a], prog.pdT[a, k:k + wk], prog.vdT[a, k:k + wk], work.kpa,
-        work.kfa, out_p, out_u)
+def _sim_axis(k, wk, a, s, sp_v, plants, work, states, out_p, out_u):
+    """Exact prediction of axis ``a`` of plant ``s`` (from ``states[s]``) over the window
+    along the gains ``work.kpa[a]``, ``work.kfa[a]`` (``sp_v``: the program's ``(pdT, vdT)``):
+    positions into ``out_p``, commands into ``out_u``."""
+    work.scratch[s, a] = states[s, a]
+    run(work.scratch[s, a], plants.params[s, a], sp_v[0][a, k:k + wk], sp_v[1][a, k:k + wk],
+        work.kpa[a], work.kfa[a], out_p, out_u)
+
+
+@njit(cache=True, nogil=True)
+def _predict_one(k, wk, a, s, sp_v, plants, work, states):
+    """Plant ``s``'s nominal prediction of axis ``a`` and its derivatives (:func:`_predict`)."""
+    lo_v, hi_v = work.lo[a], work.hi[a]
+    if work.idle[a] or lo_v == hi_v:
+        _sim_axis(k, wk, a, s, sp_v, plants, work, states, work.p0[s, a], work.u0[s, a])
+        work.sp[s, :, lo_v:hi_v] = 0.0
+        work.su[s, :, lo_v:hi_v] = 0.0
+        return
+    work.scratch[s, a] = states[s, a]
+    run_tangent(work.scratch[s, a], plants.params[s, a],
+                (sp_v[0][a, k:k + wk], sp_v[1][a, k:k + wk], work.kpa[a], work.kfa[a],
+                 work.dir_kp[:, lo_v:hi_v], work.dir_kf[:, lo_v:hi_v]),
+                work.start[lo_v:hi_v],
+                (work.p0[s, a], work.u0[s, a], work.sp[s, :, lo_v:hi_v], work.su[s, :, lo_v:hi_v]))
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _each_run(k, wk, prog, plants, work, states, n_run, nominal):
+    """The simulations of one pass, every plant's of the axes ``work.runs[:n_run]``, on the
+    caller's numba threads (``numba.set_num_threads``): ``nominal`` the predictions and
+    derivatives of :func:`_predict`, else the line-search step's (:func:`_trial_excess`). Each
+    writes its own plant's and axis's slices only: the same bits on any number of threads."""
+    n_s = states.shape[0]
+    pdT, vdT = prog.pdT, prog.vdT  # numba's parallel loops take arrays, not the program's tree
+    for item in prange(n_run * n_s):
+        a = work.runs[item // n_s]
+        s = item % n_s
+        if nominal:
+            _predict_one(k, wk, a, s, (pdT, vdT), plants, work, states)
+        else:
+            _sim_axis(k, wk, a, s, (pdT, vdT), plants, work, states, work.trial[s, a],
+                      work.tmp_u[s, a])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _each_cost(k, wk, pd, tree, win_lo, win_hi, feed, trial, cost_s):
+    """Every plant's window cost of the line-search step's ``trial`` (S, 3, wmax) into
+    ``cost_s`` (S,) (threads as :func:`_each_run`; the caller sums them in the plants' order).
+    The arrays come as arguments: numba's parallel loop dropped the stores into
+    ``work.cost_s[s]``, an array taken from a NamedTuple inside the loop (the caller read
+    ``np.empty``'s garbage, the search took other steps even on one thread)."""
+    for s in prange(trial.shape[0]):
+        cost_s[s] = _window_cost(pd, tree, win_lo, win_hi, k, wk, trial[s], feed)
 
 
 @njit(cache=True, nogil=True)
@@ -653,8 +702,9 @@ def _workspace(prog, plants, gains, cfg, carry):
         np.empty((wmax, 3)), np.empty((wmax, 3)), np.empty((nv, nv)), np.empty(nv),
         np.zeros((max_rows, nv)), np.empty(max_rows), np.empty(max_rows),
         np.empty(max_rows, dtype=np.int64), np.empty(max_rows, dtype=np.int64), np.zeros(nv),
-        np.empty(nv), np.empty(wmax), np.empty(wmax), np.empty(carry.states.shape[2]),
-        np.empty(wmax), np.empty((3, wmax)), np.empty((3, wmax)),
+        np.empty(nv), np.empty((3, wmax)), np.empty((3, wmax)),
+        np.empty((n_s, 3, carry.states.shape[2])), np.empty((n_s, 3, wmax)), np.empty((3, wmax)),
+        np.empty((3, wmax)), np.zeros(3, dtype=np.int64), np.empty(n_s),
     )
 
 
@@ -707,6 +757,7 @@ def _predict(k, wk, prog, plants, work, carry):
     derivatives with respect to every free control point of the axis (forward mode);
     an axis whose plan is unchanged since its last prediction keeps it."""
     points, states = carry.points, carry.states
+    n_run = 0
     for a in range(3):
         if not prog.moving[a]:
             for s in range(states.shape[0]):
@@ -717,23 +768,11 @@ def _predict(k, wk, prog, plants, work, carry):
         if _same_plan(points, work.nominal_points, a):
             continue  # p0, u0 and the axis's columns of sp, su still hold
         work.nominal_points[a] = points[a]
-        lo_v, hi_v = work.lo[a], work.hi[a]
-        for s in range(states.shape[0]):
-            carry.stats[STAT_WINDOWS] += 1
-            if work.idle[a] or lo_v == hi_v:
-                _sim_plan(k, wk, a, points, states[s], plants.params[s], prog, work,
-                          work.p0[s, a], work.u0[s, a])
-                work.sp[s, :, lo_v:hi_v] = 0.0
-                work.su[s, :, lo_v:hi_v] = 0.0
-                continue
-            _plan_gains(points, a, wk, work.kspace, work.kpa, work.kfa)
-            work.scratch[:] = states[s, a]
-            run_tangent(work.scratch, plants.params[s, a],
-                        (prog.pdT[a, k:k + wk], prog.vdT[a, k:k + wk], work.kpa, work.kfa,
-                         work.dir_kp[:, lo_v:hi_v], work.dir_kf[:, lo_v:hi_v]),
-                        work.start[lo_v:hi_v],
-                        (work.p0[s, a], work.u0[s, a], work.sp[s, :, lo_v:hi_v],
-                         work.su[s, :, lo_v:hi_v]))
+        _plan_gains(points, a, wk, work.kspace, work.kpa[a], work.kfa[a])
+        work.runs[n_run] = a
+        n_run += 1
+    carry.stats[STAT_WINDOWS] += n_run * states.shape[0]
+    _each_run(k, wk, prog, plants, work, states, n_run, True)
 
 
 @njit(cache=True, nogil=True)
@@ -933,7 +972,16 @@ def _trial_excess(k, wk, scale, prog, plants, cfg, work, carry):
     the window, over this commit and the next, and over this commit."""
     n_commit = min(cfg.commit, wk)
     n_next = min(2 * cfg.commit, wk)
-    te, u_hist, tmp_u = cfg.te, carry.u_hist, work.tmp_u
+    te, u_hist = cfg.te, carry.u_hist
+    if scale != 0.0:  # simulate the axes the step changes, on every plant
+        n_run = 0
+        for a in range(3):
+            if prog.moving[a] and not _same_plan(work.trial_points, carry.points, a):
+                _plan_gains(work.trial_points, a, wk, work.kspace, work.kpa[a], work.kfa[a])
+                work.runs[n_run] = a
+                n_run += 1
+        carry.stats[STAT_WINDOWS] += n_run * plants.params.shape[0]
+        _each_run(k, wk, prog, plants, work, carry.states, n_run, False)
     worst = 0.0  # over the window
     worst_n = 0.0  # over this commit and the next
     worst_c = 0.0  # over the samples to be committed
@@ -942,15 +990,12 @@ def _trial_excess(k, wk, scale, prog, plants, cfg, work, carry):
         for a in range(3):
             if not prog.moving[a]:
                 continue
+            tmp_u = work.tmp_u[s, a]  # simulated above
             if scale == 0.0:  # the plan itself: its nominal prediction
-                tmp_u[:] = work.u0[s, a]
+                tmp_u = work.u0[s, a]
             elif _same_plan(work.trial_points, carry.points, a):  # the step leaves the axis as is
                 work.trial[s, a, :wk] = work.p0[s, a, :wk]
-                tmp_u[:wk] = work.u0[s, a, :wk]
-            else:
-                _sim_plan(k, wk, a, work.trial_points, carry.states[s], plants.params[s], prog,
-                          work, work.trial[s, a], tmp_u)
-                carry.stats[STAT_WINDOWS] += 1
+                tmp_u = work.u0[s, a]
             lim = (plants.vmax[s, a], plants.amax[s, a], plants.jmax[s, a])
             worst = max(worst, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0], lim[1],
                                           lim[2], te, wk, fk))
@@ -979,10 +1024,11 @@ def _trial_cost(k, wk, scale, nominal_d2, prog, plants, gains, cfg, work):
     if scale == 0.0:
         cost = nominal_d2 * _M2_TO_UM2
     else:
+        _each_cost(k, wk, prog.pd, prog.tree, prog.win_lo, prog.win_hi, prog.feed, work.trial,
+                   work.cost_s)
         cost = 0.0
         for s in range(plants.params.shape[0]):
-            cost += plants.weights[s] * _window_cost(prog.pd, prog.tree, prog.win_lo, prog.win_hi,
-                                                     k, wk, work.trial[s], prog.feed)
+            cost += plants.weights[s] * work.cost_s[s]
     nk, tp = work.nk, work.trial_points
     for a in range(3):
         if prog.moving[a]:
