@@ -75,8 +75,9 @@ class OptimizeOptions(BaseModel):
         top); None: :data:`oga.defaults.ROBUST_MC_PLANTS`. More plants tighten the
         certificate's confidence bound (:mod:`oga.verify.certificate`) and cost time.
     threads : int or None
-        Threads for the independent work of the robust search (the certificate's replays,
-        the set's stable ranges, the baseline's candidates); None: the cores this process may
+        Threads for the independent work of a search (the certificate's replays, the set's
+        stable ranges, the baseline's candidates, the window search's simulations of every
+        plant and axis); None: the cores this process may
         use (the service and ``oga batch`` run each job on one unless set). The result does
         not depend on it, to the last bit.
     feed_mm_per_min : float or None
