@@ -38,8 +38,8 @@ the nonlinear model on a plant):
 3. **Confirmation** on every plant (the nominal one and the whole set) by
    :func:`oga.verify.verify`: the plants where the result breaks a check become critical
    (modelled at every point from then on) and the refinement goes on from there, until the
-   result keeps them all. The corners within :data:`oga.defaults.ROBUST_BASELINE_SEED` of
-   a limit at the grid's best are critical from the start. The confirmation's replays are
+   result keeps them all. The corners at :data:`oga.defaults.ROBUST_BASELINE_SEED` of a
+   limit or more at the grid's best are critical from the start. The confirmation's replays are
    returned: every certificate reuses them.
 
 The replays of one step are independent and run on ``threads`` threads; the choices depend
@@ -642,8 +642,8 @@ class _Search:
         return x
 
     def seed(self, c: _Candidate, plants) -> None:
-        """The ``plants`` where ``c`` comes within :data:`oga.defaults.ROBUST_BASELINE_SEED` of
-        a limit (or breaks one) become critical."""
+        """The ``plants`` where ``c`` reaches :data:`oga.defaults.ROBUST_BASELINE_SEED` of a
+        limit or more become critical."""
         plants = [q for q in plants if q not in self.critical]
         out = thread_map(lambda q: self.packed.tangent(q, c.kp, c.kf, False), plants,
                          self.threads)
