@@ -587,8 +587,7 @@ class _Search:
         refinement is usually refused by the plant that refused the last one. The replays
         are memoised: :meth:`point` there reuses them."""
         plants = list(modelled) + [q for q in self.critical if q not in modelled]
-        ratio = near.ratios.reshape(len(plants), -1).max(axis=1, initial=0.0) if (
-            near.ratios.size % len(plants) == 0) else np.zeros(len(plants))
+        ratio = near.ratios.reshape(len(plants), -1).max(axis=1)  # :meth:`point`'s order
         order = sorted(range(len(plants)), key=lambda j: -ratio[j])  # stable: ties keep order
         rest = [plants[j] for j in order if plants[j] not in self.breakers]
         plants = [q for q in self.breakers if q in plants] + rest
