@@ -209,3 +209,24 @@ def test_memoised_tangent_replays_are_the_fresh_ones(ucp710):
     assert np.array_equal(packed._tangent(1, 1.7, 0.85, True)[3], with_ce[3])
     other = packed.tangent(0, 1.7, 0.85, True)  # another plant: its own replay
     assert not np.array_equal(other[1], with_ce[1])
+
+
+def test_the_break_check_is_any_fresh_replay_breaking_in_any_order(ucp710):
+    """:meth:`_Search.breaks` replays the plants that refused the last step first and stops at
+    the first break: its answer is whether any plant's fresh replay breaks a limit, whatever
+    the order it learnt (both answers occur over the gains tried)."""
+    from oga.search.robust.baseline import _Packed, _Search
+
+    m, scen = ucp710
+    sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    plants = tuple(scen.plants[:3]) + tuple(scen.plants[-3:])  # Monte Carlo, then corners
+    packed = _Packed(sp, plants)
+    search = _Search(packed, (0, 1), (0, 1, 2), (0.5, 2.0), (0.0, 1.0), 1)
+    search.critical = [3, 4, 5]
+    near = search.point(1.0, 0.5, search.objective)
+    answers = set()
+    for kp, kf in [(2.0, 1.0), (1.0, 0.5), (2.0, 0.9), (1.5, 1.0), (0.6, 0.2), (2.0, 1.0)]:
+        fresh = any(not packed._tangent(q, kp, kf, False)[0] for q in range(len(plants)))
+        assert search.breaks(kp, kf, search.objective, near) == fresh, (kp, kf)
+        answers.add(fresh)
+    assert answers == {True, False}

@@ -38,8 +38,8 @@ the nonlinear model on a plant):
 3. **Confirmation** on every plant (the nominal one and the whole set) by
    :func:`oga.verify.verify`: the plants where the result breaks a check become critical
    (modelled at every point from then on) and the refinement goes on from there, until the
-   result keeps them all. The corners within :data:`oga.defaults.ROBUST_BASELINE_SEED` of
-   a limit at the grid's best are critical from the start. The confirmation's replays are
+   result keeps them all. The corners at :data:`oga.defaults.ROBUST_BASELINE_SEED` of a
+   limit or more at the grid's best are critical from the start. The confirmation's replays are
    returned: every certificate reuses them.
 
 The replays of one step are independent and run on ``threads`` threads; the choices depend
@@ -502,6 +502,7 @@ class _Search:
         self.kp_box, self.kf_box, self.threads = kp_box, kf_box, threads
         self.known: dict[tuple[float, float], _Candidate] = {}
         self.critical: list[int] = []  # packed indices
+        self.breakers: list[int] = []  # the plants that refused a step, the latest first
 
     def candidate(self, kp: float, kf: float) -> _Candidate:
         key = (round(kp, _DECIMALS), round(kf, _DECIMALS))
@@ -577,16 +578,26 @@ class _Search:
                       np.concatenate([o[1].ravel() for o in out]),
                       np.concatenate([o[2].reshape(-1, 2) for o in out]))
 
-    def breaks(self, kp: float, kf: float, modelled: tuple[int, ...]) -> bool:
+    def breaks(self, kp: float, kf: float, modelled: tuple[int, ...], near: _Point) -> bool:
         """Whether ``(kp, kf)`` breaks a limit on a plant :meth:`point` replays, found by
-        replaying the critical plants first (where earlier points broke one) ``threads`` at a
-        time and stopping at the first break (the replays are memoised: :meth:`point` there
-        reuses them)."""
-        plants = [q for q in self.critical if q not in modelled] + list(modelled)
+        replaying ``threads`` at a time, stopping at the first break: first the plants that
+        broke a refused step (the latest first), then the others by their largest limit ratio
+        at the point ``near`` (the refinement's current one), the nearest to a limit first.
+        The answer does not depend on the order, only its cost: a refused step of the
+        refinement is usually refused by the plant that refused the last one. The replays
+        are memoised: :meth:`point` there reuses them."""
+        plants = list(modelled) + [q for q in self.critical if q not in modelled]
+        ratio = near.ratios.reshape(len(plants), -1).max(axis=1)  # :meth:`point`'s order
+        order = sorted(range(len(plants)), key=lambda j: -ratio[j])  # stable: ties keep order
+        rest = [plants[j] for j in order if plants[j] not in self.breakers]
+        plants = [q for q in self.breakers if q in plants] + rest
         for k in range(0, len(plants), self.threads):
-            out = thread_map(lambda q: self.packed.tangent(q, kp, kf, q in modelled),
-                             plants[k:k + self.threads], self.threads)
-            if not all(o[0] for o in out):
+            batch = plants[k:k + self.threads]
+            out = thread_map(lambda q: self.packed.tangent(q, kp, kf, q in modelled), batch,
+                             self.threads)
+            broke = [q for q, o in zip(batch, out) if not o[0]]
+            if broke:
+                self.breakers = broke + [q for q in self.breakers if q not in broke]
                 return True
         return False
 
@@ -618,7 +629,7 @@ class _Search:
                     x.holds and gain < defaults.ROBUST_BASELINE_GAIN * len(modelled)):
                 break
             kp, kf = (round(float(v), 6) for v in np.clip(centre + step * scale, lo, hi))
-            if x.holds and self.breaks(kp, kf, modelled):  # refused, whatever its total
+            if x.holds and self.breaks(kp, kf, modelled, x):  # refused, whatever its total
                 radius = size / 4.0
                 continue
             y = self.point(kp, kf, modelled)
@@ -630,8 +641,8 @@ class _Search:
         return x
 
     def seed(self, c: _Candidate, plants) -> None:
-        """The ``plants`` where ``c`` comes within :data:`oga.defaults.ROBUST_BASELINE_SEED` of
-        a limit (or breaks one) become critical."""
+        """The ``plants`` where ``c`` reaches :data:`oga.defaults.ROBUST_BASELINE_SEED` of a
+        limit or more become critical."""
         plants = [q for q in plants if q not in self.critical]
         out = thread_map(lambda q: self.packed.tangent(q, c.kp, c.kf, False), plants,
                          self.threads)
