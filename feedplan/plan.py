@@ -43,6 +43,11 @@ plus FIR filter" of industrial interpolators:
    ``v^2 T^2 kappa / 24`` on an arc; it is optionally pre-compensated (the
    unfiltered samples are pushed outwards by that amount, smoothed, see
    :func:`_rounding_compensation`), which lets small arcs run at the feed.
+   Where the tolerance forces a short ``T`` (tight curves, curvature jumps), the curve
+   parameter ``u(t)`` is first averaged over ``T_u`` (the rest of ``sqrt(F / J)``): that
+   average keeps the exact geometry and smooths the tangential acceleration alone, so
+   ``A_t`` is a share of ``J max(T, T_u)`` instead of ``J T``; the speed ceiling's low
+   stretches are widened by ``ceil T_u / 2`` (the stretch that average mixes in).
 
 A check-and-slow-down loop then measures the filtered float64 setpoints as
 :mod:`feedplan.check` does (finite differences against every axis limit, path speed
@@ -63,7 +68,6 @@ and its profile would still need the same jerk treatment afterwards.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -97,8 +101,9 @@ __all__ = ["plan", "least_motion_s", "move_times_s", "program_tolerance_m", "pla
 GRID_M = 0.25e-3
 #: Share of the tolerance given to the spline fits of micro-segments.
 FIT_TOL_FRACTION = 0.5
-#: Filter lengths tried, as fractions of the 1-D jerk-optimal sqrt(F / J).
-_T_FRACTIONS = (1.0, 0.75, 0.55, 0.4, 0.3, 0.22)
+#: Filter lengths tried, as fractions of the 1-D jerk-optimal sqrt(F / J); each also with the
+#: curve parameter averaged over the rest of sqrt(F / J) first (:func:`_run_filter`).
+_T_FRACTIONS = (1.0, 0.75, 0.55, 0.4, 0.3, 0.22, 0.15, 0.1)
 #: Limits are met with this relative margin (float noise of the checks).
 _MARGIN = 1e-3
 #: Variants tried per filter length: (share, compensate). The initial ceiling on curves
@@ -257,6 +262,17 @@ def _cells(u, v, ceil, acc):
             a1 = (v1 * v1 - v0 * v0) / (2.0 * length)
             out[k] = (v0, a1, 2.0 * length / (v0 + v1), v1, 0.0, 0.0)
     return out
+
+
+@njit(cache=True)
+def _profile_s(u, v, ceil, acc):
+    """Duration (s) of the motion through the cells of :func:`_cells`."""
+    cells = _cells(u, v, ceil, acc)
+    total = 0.0
+    for k in range(u.shape[0] - 1):
+        t1, vp, t2, a3 = cells[k, 2], cells[k, 3], cells[k, 4], cells[k, 5]
+        total += t1 + t2 + ((vp - v[k + 1]) / a3 if a3 > 0.0 else 0.0)
+    return total
 
 
 @njit(cache=True)
@@ -495,8 +511,12 @@ def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
     return _compensation(d1, d2, ud, -0.5 * s2, m)
 
 
-def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensate: bool):
-    """Plan with one ceiling and filter length (rounding compensation on or off), check it.
+def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, m_u: int,
+                compensate: bool):
+    """Plan with one ceiling and filter lengths (rounding compensation on or off), check it.
+
+    The sampled curve parameter is first averaged over ``m_u`` samples (exact geometry: it
+    smooths the tangential acceleration alone), the positions then over ``m``.
 
     Returns
     -------
@@ -505,13 +525,18 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensa
         Per filtered sample (and the 3 at rest after it), the factor to apply to the
         speed ceiling and to ``A_t`` where it is averaged (1 where clean).
     u : ndarray
-        Curve parameter of each unfiltered sample, m.
+        Curve parameter of each sample before both averages, m.
     """
     lim, dt = fb.limits, fb.dt
     v = _forward_backward(fb.nodes, ceil, acc_t)
-    u, ud = _sample(fb.nodes, v, ceil, acc_t, dt, fb.budget - m - 3)
-    if u.size == 0:
+    u_raw, ud = _sample(fb.nodes, v, ceil, acc_t, dt, fb.budget - m - m_u - 3)
+    if u_raw.size == 0:
         raise _too_long(int(fb.seg_lines[0]), dt)
+    u = u_raw
+    if m_u > 1:
+        both = _moving_average(np.stack((u_raw, ud), axis=1), m_u, 0)
+        u, ud = np.minimum(both[:, 0], u_raw[-1]), both[:, 1]
+        u[-1] = u_raw[-1]
     p, d1, d2 = fb.block.curve.evaluate(u, order=2)
     p[0], p[-1] = fb.first, fb.last
     if compensate:
@@ -523,7 +548,7 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensa
     f_speed, f_acc = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
                               lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
                               fb.seg_feed[near] * (1.0 + SPEED_MARGIN), fb.tol_m, 1.0 - _MARGIN)
-    return _Attempt(pos, (n - 1) * dt, u, m), f_speed, f_acc, u
+    return _Attempt(pos, (n - 1) * dt, u, m), f_speed, f_acc, u_raw
 
 
 @njit(cache=True)
@@ -574,21 +599,26 @@ def _factors(pos, dt, vmax, amax, jmax, axes, dist, feed, tol, ok):
 
 
 def _converge(
-    fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, compensate: bool, beat: float
+    fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, m_u: int, compensate: bool,
+    beat: float
 ):
     """Check-and-slow-down rounds for one filter length.
 
     Returns a clean attempt faster than ``beat`` (s), or None.
     """
     for rnd in range(_ROUNDS):
-        att, f_speed, f_acc, u = _run_filter(fb, ceil, acc_t, m, compensate)
+        # the filtered duration, known before sampling: the profile's and both averages' lags
+        v = _forward_backward(fb.nodes, ceil, acc_t)
+        if _profile_s(fb.nodes, v, ceil, acc_t) + (m + m_u) * fb.dt >= beat:
+            return None
+        att, f_speed, f_acc, u = _run_filter(fb, ceil, acc_t, m, m_u, compensate)
         if att.duration >= beat:  # rounds only slow down: give up
             return None
         bad = np.flatnonzero((f_speed < 1.0) | (f_acc < 1.0))
         if bad.size == 0:
             return att
-        # filtered sample k averages unfiltered k - m + 1 .. k (its differences: 3 more)
-        lo = np.clip(bad - m - 3, 0, len(u) - 1)
+        # filtered sample k averages unfiltered k - m - m_u + 2 .. k (its differences: 3 more)
+        lo = np.clip(bad - m - (m_u - 1) - 3, 0, len(u) - 1)
         hi = np.clip(bad, 0, len(u) - 1)
         s_node = np.ones(fb.nodes.size)
         _lower(fb.nodes, u, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]), s_node)
@@ -697,15 +727,28 @@ def _reach(fb: _Feed) -> _Reach:
                   v_top=v_top, t_opt=t_opt, dev_node=curve.dev[piece])
 
 
-def _variant_limits(fb: _Feed, r: _Reach, joints, m: int, share: float, compensate: bool):
+def _least_s(fb: _Feed, r: _Reach, m: int, m_u: int) -> float:
+    """A lower bound of the duration (s) of every variant of filter lengths ``m`` and ``m_u``:
+    the profile under the static ceiling and the largest ``A_t`` they allow, and their lags."""
+    with np.errstate(divide="ignore"):
+        acc = np.minimum(r.a_path, _AT_SHARE * r.j_path * max(m, m_u) * fb.dt)
+    acc = np.minimum(acc[:-1], acc[1:])
+    v = _forward_backward(fb.nodes, r.ceil, acc)
+    return _profile_s(fb.nodes, v, r.ceil, acc) + (m + m_u) * fb.dt
+
+
+def _variant_limits(fb: _Feed, r: _Reach, joints, m: int, m_u: int, share: float,
+                    compensate: bool, near_of: dict):
     """Speed ceiling (G,) m/s and tangential acceleration (G - 1,) m/s^2 for filter length
     ``m`` samples and rounding ``share`` of the tolerance, or None where this variant would
-    plan as the first one did (its rounding bounds no speed)."""
+    plan as the first one did (its rounding bounds no speed). ``near_of`` keeps the nodes
+    near each joint per reach (the same for every variant of one filter length)."""
     dt, tol_m, spacing = fb.dt, fb.tol_m, fb.spacing
     ax = fb.limits.present
     jmax = fb.limits.jmax_m_s3[ax]
     u_jump, d_kappa, u_kink, d_tan = joints
     T = m * dt
+    T_t = max(m, m_u) * dt  # what the two averages make of a step of A_t
     rounding_m = (tol_m - r.dev_node) * share
     with np.errstate(divide="ignore"):
         v_round = np.sqrt(24.0 * rounding_m / (r.kappa * T * T))
@@ -719,25 +762,67 @@ def _variant_limits(fb: _Feed, r: _Reach, joints, m: int, share: float, compensa
     # 2 v A_t |d2r/du2| at the ceiling
     v_c = np.where(np.isfinite(ceil), ceil, r.v_top)
     with np.errstate(divide="ignore"):  # an axis neither moving nor turning
-        a_jerk = np.min(_AT_SHARE * jmax / (r.tan[:, ax] / T + 2.0 * v_c[:, None] * r.curv[:, ax]),
-                        axis=1)
+        a_jerk = np.min(
+            _AT_SHARE * jmax / (r.tan[:, ax] / T_t + 2.0 * v_c[:, None] * r.curv[:, ax]), axis=1)
     acc_node = np.minimum(a_jerk, r.a_path)
     reach = r.v_top * T  # the filter window around a jump
-    for ub, d in zip(u_jump, d_kappa):
-        near = _near(fb.nodes, ub, reach)
-        step = np.max(np.abs(d[ax]) / (jmax * T))  # jerk share per (m/s)^2 crossing it
-        with np.errstate(divide="ignore"):  # a jump on no axis that moves: no ceiling
-            ceil[near] = np.minimum(ceil[near], np.sqrt((1.0 - _JUMP_AT_SHARE) / step))
-        # what the step leaves of the jerk at the fastest crossing the ceiling allows
-        at_share = max(_JUMP_AT_SHARE, 1.0 - step * float(np.max(ceil[near], initial=0.0)) ** 2)
-        acc_node[near] = np.minimum(acc_node[near], min(at_share, _AT_SHARE) * r.j_path[near] * T)
-    for uk, d in zip(u_kink, d_tan):
-        near = _near(fb.nodes, uk, spacing)  # the speed while crossing it
+    if ("jump", m) not in near_of:  # node ranges (contiguous: the nodes are sorted)
+        near = [_near(fb.nodes, ub, reach) for ub in u_jump]
+        near_of["jump", m] = (np.array([n[0] if n.size else 0 for n in near], dtype=np.int64),
+                              np.array([n[-1] + 1 if n.size else 0 for n in near], dtype=np.int64))
+    if "kink" not in near_of:  # the speed while crossing it
+        near_of["kink"] = [_near(fb.nodes, uk, spacing) for uk in u_kink]
+    # jerk share per (m/s)^2 crossing each jump
+    step = np.max(np.abs(d_kappa[:, ax]) / jmax, axis=1, initial=0.0) / T
+    _jump_limits(ceil, acc_node, r.j_path * T_t, *near_of["jump", m], step)
+    for near, d in zip(near_of["kink"], d_tan):
         with np.errstate(divide="ignore"):
             v_jerk = np.min(jmax * T * dt / np.abs(d[ax]))
         v_cut = 8.0 * tol_m / (T * np.linalg.norm(d))  # corner cut ~ v T |dt| / 8
         ceil[near] = np.minimum(ceil[near], min(v_jerk, v_cut))
+    if m_u > 1:  # the parameter's average runs a window of about ceil T_u around each node
+        ceil = _spread_minima(fb.nodes, ceil, 0.5 * m_u * dt)
     return ceil, np.minimum(acc_node[:-1], acc_node[1:])
+
+
+@njit(cache=True)
+def _jump_limits(ceil, acc_node, jt, lo, hi, step):
+    """Ceiling (G,) m/s and ``A_t`` (G,) m/s^2 lowered, in place, on the nodes ``lo[i]:hi[i]``
+    of each curvature jump of ``step[i]`` (s^2/m^2: its share of the jerk per (m/s)^2)."""
+    for i in range(lo.shape[0]):
+        if step[i] > 0.0:  # a jump on no axis that moves: no ceiling
+            cap = math.sqrt((1.0 - _JUMP_AT_SHARE) / step[i])
+            for k in range(lo[i], hi[i]):
+                ceil[k] = min(ceil[k], cap)
+        fastest = 0.0
+        for k in range(lo[i], hi[i]):
+            fastest = max(fastest, ceil[k])
+        # what the step leaves of the jerk at the fastest crossing the ceiling allows
+        share = min(max(_JUMP_AT_SHARE, 1.0 - step[i] * fastest * fastest), _AT_SHARE)
+        for k in range(lo[i], hi[i]):
+            acc_node[k] = min(acc_node[k], share * jt[k])
+
+
+@njit(cache=True)
+def _spread_minima(u, ceil, half_t):
+    """Each node's ceiling (m/s) also over the nodes within ``ceil * half_t`` of it (the
+    stretch the average of the curve parameter mixes into that node's speed)."""
+    out = ceil.copy()
+    n = u.shape[0]
+    for k in range(n):
+        c = ceil[k]
+        if not c < np.inf:
+            continue
+        reach = c * half_t
+        j = k - 1
+        while j >= 0 and u[k] - u[j] <= reach:
+            out[j] = min(out[j], c)
+            j -= 1
+        j = k + 1
+        while j < n and u[j] - u[k] <= reach:
+            out[j] = min(out[j], c)
+            j += 1
+    return out
 
 
 def _plan_feed(
@@ -761,15 +846,19 @@ def _plan_feed(
     r = _reach(fb)
     joints = _joints(block.curve)
     best = None
+    m_opt, near_of = max(1, round(r.t_opt / dt)), {}
     lengths = sorted({max(1, round(r.t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
-    variants = list(itertools.product(lengths, _VARIANTS))
-    for tried, (m, (share, compensate)) in enumerate(variants):
+    pairs = [(m, m_u) for m in lengths for m_u in sorted({1, max(1, m_opt - m)})]
+    variants = [(m, m_u, v) for m, m_u in pairs for v in _VARIANTS]
+    for tried, (m, m_u, (share, compensate)) in enumerate(variants):
         progress(tried / len(variants))
-        bounds = _variant_limits(fb, r, joints, m, share, compensate)
+        beat = math.inf if best is None else best.duration
+        if _least_s(fb, r, m, m_u) >= beat:
+            continue
+        bounds = _variant_limits(fb, r, joints, m, m_u, share, compensate, near_of)
         if bounds is None:
             continue
-        beat = math.inf if best is None else best.duration
-        att = _converge(fb, *bounds, m, compensate, beat)
+        att = _converge(fb, *bounds, m, m_u, compensate, beat)
         if att is not None:
             best = att
     if best is None:
