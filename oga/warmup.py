@@ -106,16 +106,23 @@ def _run_chain(names: tuple[str, ...]) -> tuple[dict[str, float], str | None]:
     return seconds, None
 
 
-def warmup(groups: tuple[str, ...] = GROUPS, jobs: int = 2) -> WarmupResult:
-    """Compile the kernels of ``groups`` (names of :data:`GROUPS`) in up to ``jobs`` processes.
+def warmup(groups: tuple[str, ...] = GROUPS, jobs: int | None = None) -> WarmupResult:
+    """Compile the kernels of ``groups`` (names of :data:`GROUPS`) in up to ``jobs`` processes
+    (None: one per chain, at most the cores this process may use).
 
-    Raises ValueError naming an unknown group or a ``jobs`` below 1.
+    Raises OptionError naming an unknown group or a ``jobs`` below 1.
     """
+    from oga.errors import OptionError
+    from oga.parallel import available_cores
+
     unknown = sorted(set(groups) - set(GROUPS))
     if unknown:
-        raise ValueError(f"unknown group(s) {', '.join(unknown)}; known: {', '.join(GROUPS)}")
+        raise OptionError(f"--only: unknown group(s) {', '.join(unknown)}; known: "
+                          f"{', '.join(GROUPS)}")
+    if jobs is None:
+        jobs = min(len(CHAINS), available_cores())
     if jobs < 1:
-        raise ValueError(f"jobs must be at least 1, got {jobs}")
+        raise OptionError(f"--jobs: must be at least 1, got {jobs}")
     chains = [tuple(g for g in chain if g in groups) for chain in CHAINS]
     chains = [c for c in chains if c]
     if jobs == 1:
