@@ -67,8 +67,6 @@ _SCREEN, _SCREEN_ROUNDS = 0.5, 6
 _SCREEN_CHANGE, _SCREEN_REACH = 0.02, 8
 #: Least share of the iterate's x a program may go down to.
 _TRUST = 0.5
-import os
-_DEBUG = bool(os.environ.get('PROFILE_DEBUG'))
 
 
 @dataclass(frozen=True, eq=False)
@@ -519,8 +517,6 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
             if not res.ok:
                 break
             over = (np.einsum("rw,rw->r", val, res.z[at]) - b > LP_TOL * (1.0 + np.abs(b)))
-            if _DEBUG:
-                print(f"    LP {rnd}: {res.status} {res.iterations} it, rows {sel.sum()} of {b.size}, {over.sum()} broken")
             if not over.any():
                 break
             near = np.zeros(N + 1, np.int64)
@@ -551,8 +547,6 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
                 break
         change = abs(t_cur - t_new) / t_new
         x, g, t_cur, feasible = x_new, g_new, t_new, True
-        if _DEBUG:
-            print(f"      time {t_new:.5f}")
         if change <= SLP_TOL:
             break
     if not feasible:
