@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -148,46 +149,100 @@ def _max_step(x, dx, mask):
     return a
 
 
-@njit(cache=True)
-def _directions(col0, val, rp, rd, rl, ru, s, y, wl, pl, wu, pu, hl, hu, active, band,
-                rcs, rcl, rcu, dz, ds, dy, dwl, dpl, dwu, dpu, tmp_m, tmp_n):
-    """The Newton direction for complementarity targets rcs, rcl, rcu (module docstring)."""
-    m, n = s.shape[0], dz.shape[0]
-    for r in range(m):
-        tmp_m[r] = (rcs[r] + y[r] * rp[r]) / s[r]
-    _rmatvec(col0, val, tmp_m, tmp_n)
-    for i in range(n):
-        v = -rd[i] - tmp_n[i]
-        if hl[i]:
-            v += (rcl[i] - pl[i] * rl[i]) / wl[i]
-        if hu[i]:
-            v -= (rcu[i] + pu[i] * ru[i]) / wu[i]
-        tmp_n[i] = v if active[i] else 0.0
-    _solve(band, tmp_n, dz)
-    _matvec(col0, val, dz, ds)
-    for r in range(m):
-        ds[r] = -rp[r] - ds[r]
-        dy[r] = (rcs[r] - y[r] * ds[r]) / s[r]
-    for i in range(n):
-        if hl[i]:
-            dwl[i] = dz[i] + rl[i]
-            dpl[i] = (rcl[i] - pl[i] * dwl[i]) / wl[i]
-        else:
-            dwl[i] = dpl[i] = 0.0
-        if hu[i]:
-            dwu[i] = -dz[i] - ru[i]
-            dpu[i] = (rcu[i] - pu[i] * dwu[i]) / wu[i]
-        else:
-            dwu[i] = dpu[i] = 0.0
+class _Band(NamedTuple):
+    """The constraint matrix ``A``: row ``r`` is ``val[r] . z[col0[r]:col0[r] + W]``."""
+
+    col0: np.ndarray
+    val: np.ndarray
+
+
+class _Masks(NamedTuple):
+    """Which unknowns have a lower bound (``hl``), an upper bound (``hu``), are solved for."""
+
+    hl: np.ndarray
+    hu: np.ndarray
+    active: np.ndarray
+    rows: np.ndarray  # all True, one per row
+
+
+class _Point(NamedTuple):
+    """An iterate: unknowns ``z``, row slacks ``s`` and duals ``y``, bound slacks ``wl``,
+    ``wu`` and their duals ``pl``, ``pu`` (a direction has the same layout)."""
+
+    z: np.ndarray
+    s: np.ndarray
+    y: np.ndarray
+    wl: np.ndarray
+    pl: np.ndarray
+    wu: np.ndarray
+    pu: np.ndarray
+
+
+class _Residuals(NamedTuple):
+    """Primal rows ``rp``, dual ``rd``, lower ``rl`` and upper bound ``ru`` residuals."""
+
+    rp: np.ndarray
+    rd: np.ndarray
+    rl: np.ndarray
+    ru: np.ndarray
+
+
+class _Targets(NamedTuple):
+    """Complementarity targets of the rows (``rcs``) and of the bounds (``rcl``, ``rcu``)."""
+
+    rcs: np.ndarray
+    rcl: np.ndarray
+    rcu: np.ndarray
 
 
 @njit(cache=True)
-def _interior_point(c, col0, val, b, lo, hi, active, z0, tol, max_iter):
-    m, n, w = b.shape[0], c.shape[0], val.shape[1]
-    hl = active & (lo > -np.inf)
-    hu = active & (hi < np.inf)
+def _point(m, n):
+    """An uninitialised :class:`_Point` (or direction)."""
+    return _Point(np.empty(n), np.empty(m), np.empty(m), np.empty(n), np.empty(n),
+                  np.empty(n), np.empty(n))
+
+
+@njit(cache=True)
+def _directions(A, res, p, masks, band, t, d, tmp_m, tmp_n):
+    """The Newton direction ``d`` at ``p`` for the complementarity targets ``t`` (module
+    docstring); ``band`` is :func:`_factor`'s, ``tmp_m``, ``tmp_n`` scratch of m and n."""
+    m, n = p.s.shape[0], d.z.shape[0]
+    hl, hu = masks.hl, masks.hu
+    for r in range(m):
+        tmp_m[r] = (t.rcs[r] + p.y[r] * res.rp[r]) / p.s[r]
+    _rmatvec(A.col0, A.val, tmp_m, tmp_n)
+    for i in range(n):
+        v = -res.rd[i] - tmp_n[i]
+        if hl[i]:
+            v += (t.rcl[i] - p.pl[i] * res.rl[i]) / p.wl[i]
+        if hu[i]:
+            v -= (t.rcu[i] + p.pu[i] * res.ru[i]) / p.wu[i]
+        tmp_n[i] = v if masks.active[i] else 0.0
+    _solve(band, tmp_n, d.z)
+    _matvec(A.col0, A.val, d.z, d.s)
+    for r in range(m):
+        d.s[r] = -res.rp[r] - d.s[r]
+        d.y[r] = (t.rcs[r] - p.y[r] * d.s[r]) / p.s[r]
+    for i in range(n):
+        if hl[i]:
+            d.wl[i] = d.z[i] + res.rl[i]
+            d.pl[i] = (t.rcl[i] - p.pl[i] * d.wl[i]) / p.wl[i]
+        else:
+            d.wl[i] = d.pl[i] = 0.0
+        if hu[i]:
+            d.wu[i] = -d.z[i] - res.ru[i]
+            d.pu[i] = (t.rcu[i] - p.pu[i] * d.wu[i]) / p.wu[i]
+        else:
+            d.wu[i] = d.pu[i] = 0.0
+
+
+@njit(cache=True)
+def _start(A, b, lo, hi, masks, z0):
+    """The starting point: ``z0`` moved strictly inside the box, slacks at least 1, duals 1."""
+    m, n = b.shape[0], z0.shape[0]
+    hl, hu = masks.hl, masks.hu
     z = z0.copy()
-    for i in range(n):  # strictly inside the box
+    for i in range(n):
         if hl[i] and hu[i]:
             gap = hi[i] - lo[i]
             z[i] = min(max(z[i], lo[i] + 0.01 * gap), hi[i] - 0.01 * gap)
@@ -196,7 +251,7 @@ def _interior_point(c, col0, val, b, lo, hi, active, z0, tol, max_iter):
         elif hu[i]:
             z[i] = min(z[i], hi[i] - 1.0)
     az = np.empty(m)
-    _matvec(col0, val, z, az)
+    _matvec(A.col0, A.val, z, az)
     s, y = np.empty(m), np.ones(m)
     for r in range(m):
         s[r] = max(b[r] - az[r], 1.0)
@@ -208,96 +263,152 @@ def _interior_point(c, col0, val, b, lo, hi, active, z0, tol, max_iter):
         if hu[i]:
             wu[i] = hi[i] - z[i]
             pu[i] = 1.0
-    nb = m + int(np.sum(hl)) + int(np.sum(hu))
+    return _Point(z, s, y, wl, pl, wu, pu)
+
+
+@njit(cache=True)
+def _residuals(c, A, b, lo, hi, masks, p, res):
+    """Fill ``res`` at ``p``; return the duality gap."""
+    m, n = b.shape[0], c.shape[0]
+    hl, hu = masks.hl, masks.hu
+    az = np.empty(m)
+    _matvec(A.col0, A.val, p.z, az)
+    _rmatvec(A.col0, A.val, p.y, res.rd)
+    gap = 0.0
+    for r in range(m):
+        res.rp[r] = az[r] + p.s[r] - b[r]
+        gap += p.s[r] * p.y[r]
+    for i in range(n):
+        res.rd[i] = (c[i] + res.rd[i] - p.pl[i] + p.pu[i]) if masks.active[i] else 0.0
+        if hl[i]:
+            res.rl[i] = p.z[i] - p.wl[i] - lo[i]
+            gap += p.wl[i] * p.pl[i]
+        if hu[i]:
+            res.ru[i] = p.z[i] + p.wu[i] - hi[i]
+            gap += p.wu[i] * p.pu[i]
+    return gap
+
+
+@njit(cache=True)
+def _status(c, b, p, res, gap, tol):
+    """OPTIMAL or NUMERICAL when the iteration ends at ``p``, else -1."""
+    m = b.shape[0]
     norm_b = 1.0 + np.max(np.abs(b)) if m else 1.0
     norm_c = 1.0 + np.max(np.abs(c))
+    obj = 0.0
+    for i in range(c.shape[0]):
+        obj += c[i] * p.z[i]
+    res_p = max(np.max(np.abs(res.rp)) if m else 0.0, np.max(np.abs(res.rl)),
+                np.max(np.abs(res.ru)))
+    res_d = np.max(np.abs(res.rd))
+    # the dual residual stalls near 1e-8 on ill-conditioned programs (the normal
+    # equations' rounding) while the iterate is primal feasible and the gap closed: the
+    # objective is then within about res_d |z| of the optimum
+    if res_p <= tol * norm_b and res_d <= _DUAL_TOL * norm_c and gap <= tol * (1.0 + abs(obj)):
+        return OPTIMAL
+    if not (math.isfinite(gap) and math.isfinite(res_p) and math.isfinite(res_d)):
+        return NUMERICAL
+    return -1
+
+
+@njit(cache=True)
+def _normal_matrix(A, masks, p, d_row, d_var, band):
+    """Factor the Newton steps' normal matrix at ``p`` into ``band`` (:func:`_factor`)."""
+    hl, hu = masks.hl, masks.hu
+    for r in range(d_row.shape[0]):
+        d_row[r] = p.y[r] / p.s[r]
+    for i in range(d_var.shape[0]):
+        d_var[i] = (p.pl[i] / p.wl[i] if hl[i] else 0.0) + (p.pu[i] / p.wu[i] if hu[i] else 0.0)
+    _factor(A.col0, A.val, d_row, d_var, masks.active, band)
+
+
+@njit(cache=True)
+def _step_lengths(p, d, masks):
+    """The largest primal and dual steps along ``d`` that keep ``p``'s slacks and duals >= 0."""
+    ap = min(_max_step(p.s, d.s, masks.rows), _max_step(p.wl, d.wl, masks.hl),
+             _max_step(p.wu, d.wu, masks.hu))
+    ad = min(_max_step(p.y, d.y, masks.rows), _max_step(p.pl, d.pl, masks.hl),
+             _max_step(p.pu, d.pu, masks.hu))
+    return ap, ad
+
+
+@njit(cache=True)
+def _predictor(p, masks, t):
+    """The affine scaling targets: complementarity 0."""
+    hl, hu = masks.hl, masks.hu
+    for r in range(p.s.shape[0]):
+        t.rcs[r] = -p.s[r] * p.y[r]
+    for i in range(p.z.shape[0]):
+        t.rcl[i] = -p.wl[i] * p.pl[i] if hl[i] else 0.0
+        t.rcu[i] = -p.wu[i] * p.pu[i] if hu[i] else 0.0
+
+
+@njit(cache=True)
+def _corrector(p, da, masks, gap, nb, t):
+    """Mehrotra's targets from the affine direction ``da``: centring ``sigma mu`` with
+    ``sigma`` the cube of the gap ratio the affine step reaches, and the second-order term."""
+    hl, hu = masks.hl, masks.hu
+    ap, ad = _step_lengths(p, da, masks)
+    gap_a = 0.0
+    for r in range(p.s.shape[0]):
+        gap_a += (p.s[r] + ap * da.s[r]) * (p.y[r] + ad * da.y[r])
+    for i in range(p.z.shape[0]):
+        if hl[i]:
+            gap_a += (p.wl[i] + ap * da.wl[i]) * (p.pl[i] + ad * da.pl[i])
+        if hu[i]:
+            gap_a += (p.wu[i] + ap * da.wu[i]) * (p.pu[i] + ad * da.pu[i])
+    sigma = min((gap_a / gap) ** 3, 1.0)
+    target = sigma * (gap / max(nb, 1))
+    for r in range(p.s.shape[0]):
+        t.rcs[r] = -p.s[r] * p.y[r] - da.s[r] * da.y[r] + target
+    for i in range(p.z.shape[0]):
+        t.rcl[i] = (-p.wl[i] * p.pl[i] - da.wl[i] * da.pl[i] + target) if hl[i] else 0.0
+        t.rcu[i] = (-p.wu[i] * p.pu[i] - da.wu[i] * da.pu[i] + target) if hu[i] else 0.0
+
+
+@njit(cache=True)
+def _move(p, d, masks):
+    """Step from ``p`` along ``d``, :data:`_ETA` of the way to the boundary (at most 1)."""
+    ap, ad = _step_lengths(p, d, masks)
+    ap, ad = min(_ETA * ap, 1.0), min(_ETA * ad, 1.0)
+    hl, hu = masks.hl, masks.hu
+    for i in range(p.z.shape[0]):
+        if masks.active[i]:
+            p.z[i] += ap * d.z[i]
+        if hl[i]:
+            p.wl[i] += ap * d.wl[i]
+            p.pl[i] += ad * d.pl[i]
+        if hu[i]:
+            p.wu[i] += ap * d.wu[i]
+            p.pu[i] += ad * d.pu[i]
+    for r in range(p.s.shape[0]):
+        p.s[r] += ap * d.s[r]
+        p.y[r] += ad * d.y[r]
+
+
+@njit(cache=True)
+def _interior_point(c, A, b, lo, hi, masks, z0, tol, max_iter):
+    """Mehrotra's predictor-corrector iteration (module docstring): (z, status, iterations)."""
+    m, n, w = b.shape[0], c.shape[0], A.val.shape[1]
+    p = _start(A, b, lo, hi, masks, z0)
+    nb = m + int(np.sum(masks.hl)) + int(np.sum(masks.hu))
     band = np.empty((n, w))
-    rp, rd, rl, ru = np.empty(m), np.empty(n), np.zeros(n), np.zeros(n)
-    d_row, d_var = np.empty(m), np.empty(n)
-    rcs, rcl, rcu = np.empty(m), np.zeros(n), np.zeros(n)
-    dz, ds, dy = np.empty(n), np.empty(m), np.empty(m)
-    dwl, dpl, dwu, dpu = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    az_, ds_a, dy_a = np.empty(m), np.empty(m), np.empty(m)
-    dwl_a, dpl_a, dwu_a, dpu_a = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    tmp_m, tmp_n = np.empty(m), np.empty(n)
-    ones_m = np.ones(m, dtype=np.bool_)
+    res = _Residuals(np.empty(m), np.empty(n), np.zeros(n), np.zeros(n))
+    t = _Targets(np.empty(m), np.zeros(n), np.zeros(n))
+    d_row, d_var, tmp_m, tmp_n = np.empty(m), np.empty(n), np.empty(m), np.empty(n)
+    da, d = _point(m, n), _point(m, n)
     for it in range(max_iter):
-        _matvec(col0, val, z, az_)
-        _rmatvec(col0, val, y, rd)
-        gap = 0.0
-        for r in range(m):
-            rp[r] = az_[r] + s[r] - b[r]
-            gap += s[r] * y[r]
-        for i in range(n):
-            rd[i] = (c[i] + rd[i] - pl[i] + pu[i]) if active[i] else 0.0
-            if hl[i]:
-                rl[i] = z[i] - wl[i] - lo[i]
-                gap += wl[i] * pl[i]
-            if hu[i]:
-                ru[i] = z[i] + wu[i] - hi[i]
-                gap += wu[i] * pu[i]
-        mu = gap / max(nb, 1)
-        obj = 0.0
-        for i in range(n):
-            obj += c[i] * z[i]
-        res_p = max(np.max(np.abs(rp)) if m else 0.0, np.max(np.abs(rl)), np.max(np.abs(ru)))
-        res_d = np.max(np.abs(rd))
-        # the dual residual stalls near 1e-8 on ill-conditioned programs (the normal
-        # equations' rounding) while the iterate is primal feasible and the gap closed: the
-        # objective is then within about res_d |z| of the optimum
-        if res_p <= tol * norm_b and res_d <= _DUAL_TOL * norm_c and gap <= tol * (1.0 + abs(obj)):
-            return z, OPTIMAL, it
-        if not (math.isfinite(gap) and math.isfinite(res_p) and math.isfinite(res_d)):
-            return z, NUMERICAL, it
-        for r in range(m):
-            d_row[r] = y[r] / s[r]
-        for i in range(n):
-            d_var[i] = (pl[i] / wl[i] if hl[i] else 0.0) + (pu[i] / wu[i] if hu[i] else 0.0)
-        _factor(col0, val, d_row, d_var, active, band)
-        # predictor (affine scaling)
-        for r in range(m):
-            rcs[r] = -s[r] * y[r]
-        for i in range(n):
-            rcl[i] = -wl[i] * pl[i] if hl[i] else 0.0
-            rcu[i] = -wu[i] * pu[i] if hu[i] else 0.0
-        _directions(col0, val, rp, rd, rl, ru, s, y, wl, pl, wu, pu, hl, hu, active, band,
-                    rcs, rcl, rcu, dz, ds_a, dy_a, dwl_a, dpl_a, dwu_a, dpu_a, tmp_m, tmp_n)
-        ap = min(_max_step(s, ds_a, ones_m), _max_step(wl, dwl_a, hl), _max_step(wu, dwu_a, hu))
-        ad = min(_max_step(y, dy_a, ones_m), _max_step(pl, dpl_a, hl), _max_step(pu, dpu_a, hu))
-        gap_a = 0.0
-        for r in range(m):
-            gap_a += (s[r] + ap * ds_a[r]) * (y[r] + ad * dy_a[r])
-        for i in range(n):
-            if hl[i]:
-                gap_a += (wl[i] + ap * dwl_a[i]) * (pl[i] + ad * dpl_a[i])
-            if hu[i]:
-                gap_a += (wu[i] + ap * dwu_a[i]) * (pu[i] + ad * dpu_a[i])
-        sigma = min((gap_a / gap) ** 3, 1.0)
-        target = sigma * mu
-        # corrector
-        for r in range(m):
-            rcs[r] = -s[r] * y[r] - ds_a[r] * dy_a[r] + target
-        for i in range(n):
-            rcl[i] = (-wl[i] * pl[i] - dwl_a[i] * dpl_a[i] + target) if hl[i] else 0.0
-            rcu[i] = (-wu[i] * pu[i] - dwu_a[i] * dpu_a[i] + target) if hu[i] else 0.0
-        _directions(col0, val, rp, rd, rl, ru, s, y, wl, pl, wu, pu, hl, hu, active, band,
-                    rcs, rcl, rcu, dz, ds, dy, dwl, dpl, dwu, dpu, tmp_m, tmp_n)
-        ap = _ETA * min(_max_step(s, ds, ones_m), _max_step(wl, dwl, hl), _max_step(wu, dwu, hu))
-        ad = _ETA * min(_max_step(y, dy, ones_m), _max_step(pl, dpl, hl), _max_step(pu, dpu, hu))
-        ap, ad = min(ap, 1.0), min(ad, 1.0)
-        for i in range(n):
-            if active[i]:
-                z[i] += ap * dz[i]
-            if hl[i]:
-                wl[i] += ap * dwl[i]
-                pl[i] += ad * dpl[i]
-            if hu[i]:
-                wu[i] += ap * dwu[i]
-                pu[i] += ad * dpu[i]
-        for r in range(m):
-            s[r] += ap * ds[r]
-            y[r] += ad * dy[r]
-    return z, ITERATION_LIMIT, max_iter
+        gap = _residuals(c, A, b, lo, hi, masks, p, res)
+        status = _status(c, b, p, res, gap, tol)
+        if status >= 0:
+            return p.z, status, it
+        _normal_matrix(A, masks, p, d_row, d_var, band)
+        _predictor(p, masks, t)
+        _directions(A, res, p, masks, band, t, da, tmp_m, tmp_n)
+        _corrector(p, da, masks, gap, nb, t)
+        _directions(A, res, p, masks, band, t, d, tmp_m, tmp_n)
+        _move(p, d, masks)
+    return p.z, ITERATION_LIMIT, max_iter
 
 
 def banded_lp(c, col0, val, b, lo, hi, *, active=None, z0=None, tol: float = 1e-9,
@@ -346,6 +457,8 @@ def banded_lp(c, col0, val, b, lo, hi, *, active=None, z0=None, tol: float = 1e-
         raise ValueError("banded_lp: a row's band reaches beyond the unknowns")
     if np.any(act & ~(lo < hi)):
         raise ValueError("banded_lp: lo < hi is required for every active unknown")
-    z, status, it = _interior_point(c, col0, val, b, lo, hi, act, start, float(tol),
+    masks = _Masks(act & (lo > -np.inf), act & (hi < np.inf), act,
+                   np.ones(b.shape[0], dtype=np.bool_))
+    z, status, it = _interior_point(c, _Band(col0, val), b, lo, hi, masks, start, float(tol),
                                     int(max_iter))
     return LPResult(z, _STATUS[status], int(it))

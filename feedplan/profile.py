@@ -457,24 +457,10 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
     """
     u = grid(curve) if u is None else u
     n = len(u) - 1
-    h = np.diff(u)
-    ub = _upper(curve, u, feed(u), limits)
-    um = 0.5 * (u[:-1] + u[1:])
-    ub_mid = _upper(curve, um, feed(um), limits)
-    r0, r1 = _rest_ub(curve, u, limits)
-    ub[1], ub[n - 1] = min(ub[1], r0), min(ub[n - 1], r1)
-    if cap is not None:
-        ub = np.minimum(ub, cap)
-        ub_mid = np.minimum(ub_mid, np.minimum(cap[:-1], cap[1:]))
-    ub[0] = ub[n] = 0.0
+    ub, ub_mid = _speed_bounds(curve, u, feed, limits, cap)
     rows = _rows(curve, u, ub, ub_mid, limits)
+    active, lo, hi, hn = _unknowns(u, ub)
     N = 2 * (n + 1)
-    active = np.ones(N, bool)
-    active[[0, 1, 3, 2 * n - 1, 2 * n, 2 * n + 1]] = False
-    lo = np.full(N, -np.inf)
-    hi = np.full(N, np.inf)
-    lo[0::2], hi[0::2] = 0.0, np.maximum(ub, 1e-300)
-    hn = np.minimum(np.r_[h[0], h], np.r_[h, h[-1]])
     if start is not None:
         x = np.minimum(start.x, ub)
         g = start.g.copy()
@@ -487,7 +473,6 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
     feasible = False
     t_cur = math.inf
     status, done = "optimal", 0
-    cols = np.arange(4)
     change = math.inf
     for rnd in range(rounds):
         xs = max(float(np.max(x)), float(np.max(ub[np.isfinite(ub)], initial=0.0)), 1e-12)
@@ -497,7 +482,6 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
         col0, val, b = _program(rows, x, xs, scale)
         z0 = np.zeros(N)
         z0[0::2], z0[1::2] = x / xs, g / scale[1::2]
-        at = col0[:, None] + cols
         w = np.zeros(N)
         w[0::2] = _weights(u, x)
         c = -w * scale
@@ -505,46 +489,16 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
         lo_s = lo / scale
         if feasible:  # the linearised time is trusted down to half the speed squared
             lo_s[0::2] = np.minimum(_TRUST * x, 0.5 * ub) / xs
-        # rows far from binding at the iterate are left out once the profile settles; any
-        # the solution then breaks are put back with their neighbours'
-        sel = np.ones(b.size, bool)
-        if feasible and change < _SCREEN_CHANGE:
-            az = np.einsum("rw,rw->r", val, z0[at])
-            sel = b - az <= _SCREEN * (np.abs(b) + np.abs(az))
-        for _ in range(_SCREEN_ROUNDS):
-            res = banded_lp(c, col0[sel], val[sel], b[sel], lo_s, hi / scale,
-                            active=active, z0=z0, tol=LP_TOL, max_iter=LP_ITER)
-            if not res.ok:
-                break
-            over = (np.einsum("rw,rw->r", val, res.z[at]) - b > LP_TOL * (1.0 + np.abs(b)))
-            if not over.any():
-                break
-            near = np.zeros(N + 1, np.int64)
-            np.add.at(near, np.clip(col0[over] - 2 * _SCREEN_REACH, 0, N), 1)
-            np.add.at(near, np.clip(col0[over] + 2 * _SCREEN_REACH + 1, 0, N), -1)
-            sel |= over | (np.cumsum(near)[col0] > 0)
+        res, broken = _screened_lp(c, (col0, val, b), lo_s, hi / scale, active, z0,
+                                   feasible and change < _SCREEN_CHANGE)
         done = rnd + 1
-        if not res.ok or over.any():
+        if not res.ok or broken:
             status = res.status if not res.ok else "rows left out broken"
             break
-        z = res.z * scale
-        x_new = np.clip(z[0::2], 0.0, ub)
-        g_new = z[1::2]
-        g_new[1] = 4.0 * x_new[1] / (3.0 * h[0])
-        g_new[n - 1] = -4.0 * x_new[n - 1] / (3.0 * h[-1])
-        g_new[0] = g_new[n] = 0.0
-        t_new = float(np.sum(cell_times(u, x_new, g_new)))
-        if feasible and not t_new < t_cur:
-            # the linearised time misled: the best point of the segment (in the program's
-            # feasible set, as both ends are), or the iterate itself
-            for a in (0.5, 0.25, 0.125):
-                xa, ga = x + a * (x_new - x), g + a * (g_new - g)
-                ta = float(np.sum(cell_times(u, xa, ga)))
-                if ta < t_cur:
-                    x_new, g_new, t_new = xa, ga, ta
-                    break
-            else:
-                break
+        step = _step(u, x, g, res.z * scale, ub, t_cur if feasible else None)
+        if step is None:
+            break
+        x_new, g_new, t_new = step
         change = abs(t_cur - t_new) / t_new
         x, g, t_cur, feasible = x_new, g_new, t_new, True
         if change <= SLP_TOL:
@@ -553,3 +507,84 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
         zero = np.zeros(n + 1)
         return Profile(u, zero, zero.copy(), math.inf, status, done)
     return Profile(u, x, g, t_cur, status, done)
+
+
+def _speed_bounds(curve, u: np.ndarray, feed, limits, cap) -> tuple[np.ndarray, np.ndarray]:
+    """Upper bounds of ``x`` at the nodes (0 at both ends) and at the cells' middles: the
+    feed, the axes' velocity, the rest cells' jerk-limited speed and ``cap``."""
+    n = len(u) - 1
+    ub = _upper(curve, u, feed(u), limits)
+    um = 0.5 * (u[:-1] + u[1:])
+    ub_mid = _upper(curve, um, feed(um), limits)
+    r0, r1 = _rest_ub(curve, u, limits)
+    ub[1], ub[n - 1] = min(ub[1], r0), min(ub[n - 1], r1)
+    if cap is not None:
+        ub = np.minimum(ub, cap)
+        ub_mid = np.minimum(ub_mid, np.minimum(cap[:-1], cap[1:]))
+    ub[0] = ub[n] = 0.0
+    return ub, ub_mid
+
+
+def _unknowns(u: np.ndarray, ub: np.ndarray):
+    """The linear programs' unknowns ``(x_0, g_0, x_1, g_1, ...)``: which are solved for (not
+    the ends' and the rest cells' fixed ones), their bounds, and each node's shorter cell."""
+    n = len(u) - 1
+    h = np.diff(u)
+    N = 2 * (n + 1)
+    active = np.ones(N, bool)
+    active[[0, 1, 3, 2 * n - 1, 2 * n, 2 * n + 1]] = False
+    lo = np.full(N, -np.inf)
+    hi = np.full(N, np.inf)
+    lo[0::2], hi[0::2] = 0.0, np.maximum(ub, 1e-300)
+    hn = np.minimum(np.r_[h[0], h], np.r_[h, h[-1]])
+    return active, lo, hi, hn
+
+
+def _screened_lp(c, program, lo, hi, active, z0, screen: bool):
+    """Solve one scaled program ``(col0, val, b)``; with ``screen``, first without the rows far
+    from binding at ``z0``, putting back those the solution breaks (and their neighbours').
+    Returns the :class:`feedplan.lp.LPResult` and whether rows left out stay broken."""
+    col0, val, b = program
+    N = c.size
+    at = col0[:, None] + np.arange(4)
+    sel = np.ones(b.size, bool)
+    if screen:
+        az = np.einsum("rw,rw->r", val, z0[at])
+        sel = b - az <= _SCREEN * (np.abs(b) + np.abs(az))
+    for _ in range(_SCREEN_ROUNDS):
+        res = banded_lp(c, col0[sel], val[sel], b[sel], lo, hi,
+                        active=active, z0=z0, tol=LP_TOL, max_iter=LP_ITER)
+        if not res.ok:
+            return res, False
+        over = (np.einsum("rw,rw->r", val, res.z[at]) - b > LP_TOL * (1.0 + np.abs(b)))
+        if not over.any():
+            return res, False
+        near = np.zeros(N + 1, np.int64)
+        np.add.at(near, np.clip(col0[over] - 2 * _SCREEN_REACH, 0, N), 1)
+        np.add.at(near, np.clip(col0[over] + 2 * _SCREEN_REACH + 1, 0, N), -1)
+        sel |= over | (np.cumsum(near)[col0] > 0)
+    return res, True
+
+
+def _step(u, x, g, z, ub, t_cur):
+    """The next iterate ``(x, g, time)`` from a program's solution ``z`` (unscaled), or None
+    when neither it nor a point on the segment to it beats the time ``t_cur`` of the
+    iterate ``x, g`` (None: no iterate yet, any solution is taken)."""
+    n = len(u) - 1
+    h0, h1 = u[1] - u[0], u[n] - u[n - 1]
+    x_new = np.clip(z[0::2], 0.0, ub)
+    g_new = z[1::2]
+    g_new[1] = 4.0 * x_new[1] / (3.0 * h0)
+    g_new[n - 1] = -4.0 * x_new[n - 1] / (3.0 * h1)
+    g_new[0] = g_new[n] = 0.0
+    t_new = float(np.sum(cell_times(u, x_new, g_new)))
+    if t_cur is None or t_new < t_cur:
+        return x_new, g_new, t_new
+    # the linearised time misled: the best point of the segment (in the program's
+    # feasible set, as both ends are), or the iterate itself
+    for a in (0.5, 0.25, 0.125):
+        xa, ga = x + a * (x_new - x), g + a * (g_new - g)
+        ta = float(np.sum(cell_times(u, xa, ga)))
+        if ta < t_cur:
+            return xa, ga, ta
+    return None
