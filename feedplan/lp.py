@@ -4,8 +4,20 @@
 among ``W`` consecutive columns (``W = val.shape[1]``; the speed profile's rows touch the two
 unknowns of each end of one grid cell: ``W = 4``). Then ``A^T D A`` is a band matrix of
 half-bandwidth ``W - 1`` and one Newton step of an interior point method costs ``O(n W^2)``:
-the solve is linear in the number of unknowns (HiGHS, measured on the same programs, took
-0.3-0.5 s per 1 000 grid nodes).
+the solve is linear in the number of unknowns.
+
+Why not a library: the project uses a well-kept solver where one serves. HiGHS
+(:func:`scipy.optimize.linprog`, sparse, scipy 1.17) was measured on the very programs the
+planner builds (``bench/bench_lp.py``: every LP of 200 grid nodes or more planning
+freeform_xz, micro_2k, line-contouring-xz, plasmatest, 51MeanderAve and a 9 000-segment
+micro program; CPU time of the solves, shared host): its dual simplex took 4.9-9.1x this
+solver's time per program (line-contouring-xz's 52 LPs of 280-398 nodes 8.8 s against 1.0 s,
+plasmatest's 57 of 253-499 nodes 5.9 s against 1.0 s, the 3 000-node block's 3 LPs 3.2 s
+against 0.52 s), its interior point 11-19x: line-contouring-xz's planning (4.6 s CPU) would
+about triple. Both agree with this solver: the objectives within 6e-6 relative (4.5e-4 on one
+line-contouring-xz LP that stopped at the iteration limit here), HiGHS's solutions breaking
+rows by up to 1e-7 (its feasibility tolerance). OSQP (first-order, about 1e-4 accuracy)
+was not tried.
 
 Method: Mehrotra's predictor-corrector primal-dual interior point method (infeasible start,
 separate primal and dual step lengths), the Newton steps by a banded Cholesky factorisation
