@@ -60,7 +60,8 @@ def _projected(d: np.ndarray, lim: np.ndarray) -> float:
 ])
 def test_line_time_and_limits(end_mm, feed_mm_min):
     x, y, z = end_mm
-    path = parse_gcode(f"G21 G90 G94\nG0 X0 Y0 Z0\nG1 X{x} Y{y} Z{z} F{feed_mm_min}\nM2\n", source="line")
+    text = f"G21 G90 G94\nG0 X0 Y0 Z0\nG1 X{x} Y{y} Z{z} F{feed_mm_min}\nM2\n"
+    path = parse_gcode(text, source="line")
     (block,) = blocks_of(path, 1e-5)
     curve = block.curve
     end = np.array(end_mm) * 1e-3
@@ -72,7 +73,8 @@ def test_line_time_and_limits(end_mm, feed_mm_min):
 
     share = profile.LIMIT_SHARE
     ref = _ruckig_s(length, min(feed, _projected(d, LIMITS.vmax_m_s)),
-                    share * _projected(d, LIMITS.amax_m_s2), share * _projected(d, LIMITS.jmax_m_s3))
+                    share * _projected(d, LIMITS.amax_m_s2),
+                    share * _projected(d, LIMITS.jmax_m_s3))
     assert ref * (1 - 1e-9) <= prof.duration <= ref * (1 + TIME_TOL), (prof.duration, ref)
 
     pos = curve.evaluate(profile.sample(prof, DT), order=2)[0]
