@@ -78,6 +78,7 @@ from ruckig import InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from feedplan.blend import BLEND_CENTRIPETAL_SHARE
 from feedplan.check import SPEED_MARGIN, deviation_m, finite_differences, segment_table
+from feedplan import profile
 from feedplan.fit import Block, Blending, blocks_of
 from feedplan.limits import AxisLimits
 from feedplan.path import PLANES, Arc, Line, Path
@@ -133,6 +134,10 @@ _STEP = (0.98, 0.95)
 _GENTLE_ROUNDS = 10
 #: Largest number of check-and-slow-down rounds per filter length.
 _ROUNDS = 60
+#: Most check-and-slow-down rounds of a block planned along its exact curve.
+_PROFILE_ROUNDS = 20
+#: Most grid nodes of a block planned along its exact curve (longer ones: the filter).
+_PROFILE_NODES = 4000
 #: Most speed-profile grid nodes of one block (a longer block gets a coarser grid).
 _MAX_NODES = 1_000_000
 #: Most turns of one arc (a helix of hand-built paths; G-code arcs turn once at most).
@@ -825,6 +830,57 @@ def _spread_minima(u, ceil, half_t):
     return out
 
 
+def _feed_at(fb: _Feed):
+    """``feed(u)``: the feed (m/s) at each parameter of the block's curve, the lower of the
+    moves meeting there."""
+    seg_u0, last = fb.block.seg_u0, len(fb.seg_feed) - 1
+
+    def feed(u: np.ndarray) -> np.ndarray:
+        right = np.clip(np.searchsorted(seg_u0, u, side="right") - 1, 0, last)
+        left = np.clip(np.searchsorted(seg_u0, u, side="left") - 1, 0, last)
+        return np.minimum(fb.seg_feed[right], fb.seg_feed[left])
+
+    return feed
+
+
+def _plan_profile(fb: _Feed, u: np.ndarray):
+    """Samples of a curvature-continuous feed block along its exact curve: the jerk-limited
+    profile of :mod:`feedplan.profile`, checked as :func:`_run_filter` checks and, where a
+    sample fails, capped there (:data:`_STEP`) and solved again. Returns (positions (n, 3) m,
+    source lines (n,)), or None when no clean profile is found (the filter plans the block)."""
+    curve, lim, dt = fb.block.curve, fb.limits, fb.dt
+    feed = _feed_at(fb)
+    cap, prof = None, None
+    axes = lim.present
+    for rnd in range(_PROFILE_ROUNDS):
+        prof = profile.solve(curve, feed, lim, u=u, cap=cap, start=prof)
+        if not math.isfinite(prof.duration):
+            return None
+        if not prof.duration / dt + 4 < fb.budget:  # the filter's rounds decide
+            return None
+        us = profile.sample(prof, dt)
+        pos = curve.evaluate(us, order=2)[0]
+        pos[0] = fb.first
+        pos[us >= curve.length] = fb.last
+        dist, near = deviation_m(pos, fb.table)
+        f_speed, _ = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
+                              lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
+                              fb.seg_feed[near] * (1.0 + SPEED_MARGIN), fb.tol_m, 1.0 - _MARGIN)
+        bad = np.flatnonzero(f_speed < 1.0)
+        if bad.size == 0:
+            seg_at = np.searchsorted(fb.block.seg_u0, us, side="right") - 1
+            return pos, fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
+        if np.any(dist > fb.tol_m):  # off the curve: a slower profile would not help
+            return None
+        # sample k differences samples k - 3 .. k: cap x on the nodes they span
+        lo = np.clip(bad - 3, 0, len(us) - 1)
+        hi = np.clip(bad, 0, len(us) - 1)
+        scale = np.ones(u.size)
+        _lower(u, us, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]) ** 2, scale)
+        cap = np.minimum(cap if cap is not None else np.inf, scale * prof.x)
+    return None
+
+
 def _plan_feed(
     block: Block,
     path: Path,
@@ -843,8 +899,12 @@ def _plan_feed(
     block's variants tried.
     """
     fb = _feed_block(block, path, limits, feeds, tol_m, dt, budget)
-    r = _reach(fb)
     joints = _joints(block.curve)
+    exact = None  # curvature-continuous: the profile along the exact curve competes
+    if joints[0].size == 0 and joints[2].size == 0:
+        u = profile.grid(block.curve)
+        exact = _plan_profile(fb, u) if u.size <= _PROFILE_NODES else None
+    r = _reach(fb)
     best = None
     m_opt, near_of = max(1, round(r.t_opt / dt)), {}
     lengths = sorted({max(1, round(r.t_opt * f / dt)) for f in _T_FRACTIONS}, reverse=True)
@@ -853,6 +913,8 @@ def _plan_feed(
     for tried, (m, m_u, (share, compensate)) in enumerate(variants):
         progress(tried / len(variants))
         beat = math.inf if best is None else best.duration
+        if exact is not None:
+            beat = min(beat, (len(exact[0]) - 1) * dt)
         if _least_s(fb, r, m, m_u) >= beat:
             continue
         bounds = _variant_limits(fb, r, joints, m, m_u, share, compensate, near_of)
@@ -861,6 +923,8 @@ def _plan_feed(
         att = _converge(fb, *bounds, m, m_u, compensate, beat)
         if att is not None:
             best = att
+    if exact is not None and (best is None or best.duration >= (len(exact[0]) - 1) * dt):
+        return exact
     if best is None:
         raise PlanError(
             f"line {path.segments[block.segments[0]].line}: no plan within the limits and "
