@@ -187,6 +187,82 @@ def _spline_values(t, c, x, order):
     return out
 
 
+@njit(cache=True)
+def _bases_d2(t, x, ell):
+    """The four cubic B-splines of the interval ``ell`` at ``x`` and their first and second
+    derivatives, three 4-tuples: :func:`_spline_values`'s de Boor steps for ``order`` 2
+    unrolled (the same operations in the same order), where ``t[ell] < t[ell + 1]`` (then no
+    step meets a repeated knot)."""
+    # value steps j = 1, 2 (saved for the derivatives), then j = 3
+    w = 1.0 / (t[ell + 1] - t[ell])
+    a0, a1 = 0.0 + w * (t[ell + 1] - x), w * (x - t[ell])
+    w = a0 / (t[ell + 1] - t[ell - 1])
+    b0, b1 = 0.0 + w * (t[ell + 1] - x), w * (x - t[ell - 1])
+    w = a1 / (t[ell + 2] - t[ell])
+    b1, b2 = b1 + w * (t[ell + 2] - x), w * (x - t[ell])
+    w = b0 / (t[ell + 1] - t[ell - 2])
+    v0, v1 = 0.0 + w * (t[ell + 1] - x), w * (x - t[ell - 2])
+    w = b1 / (t[ell + 2] - t[ell - 1])
+    v1, v2 = v1 + w * (t[ell + 2] - x), w * (x - t[ell - 1])
+    w = b2 / (t[ell + 3] - t[ell])
+    v2, v3 = v2 + w * (t[ell + 3] - x), w * (x - t[ell])
+    # first derivative: step j = 3 on (b0, b1, b2); second: j = 2 on (a0, a1), then j = 3
+    w = 2 * a0 / (t[ell + 1] - t[ell - 1])
+    e0, e1 = 0.0 - w, w
+    w = 2 * a1 / (t[ell + 2] - t[ell])
+    return ((v0, v1, v2, v3), _derivative_step3(t, ell, b0, b1, b2),
+            _derivative_step3(t, ell, e0, e1 - w, w))
+
+
+@njit(cache=True)
+def _derivative_step3(t, ell, h0, h1, h2):
+    """De Boor's derivative step j = 3 on (h0, h1, h2): a 4-tuple."""
+    w = 3 * h0 / (t[ell + 1] - t[ell - 2])
+    g0, g1 = 0.0 - w, w
+    w = 3 * h1 / (t[ell + 2] - t[ell - 1])
+    g1, g2 = g1 - w, w
+    w = 3 * h2 / (t[ell + 3] - t[ell])
+    return g0, g1, g2 - w, w
+
+
+@njit(cache=True)
+def _dot4(c, row, col, b):
+    """``sum(c[row + a, col] * b[a])`` summed as :func:`_spline_values` sums it."""
+    acc = 0.0
+    acc += c[row, col] * b[0]
+    acc += c[row + 1, col] * b[1]
+    acc += c[row + 2, col] * b[2]
+    acc += c[row + 3, col] * b[3]
+    return acc
+
+
+@njit(cache=True)
+def _spline_values_d2(t, c, x):
+    """:func:`_spline_values` with ``order`` 2, bit for bit, about 2x faster (the de Boor
+    steps unrolled where no knot repeats next to ``x``: every interval inside the curve)."""
+    out = np.empty((3, x.shape[0], c.shape[1]))
+    ell = 3
+    for i in range(x.shape[0]):
+        ell = _interval(t, x[i], ell)
+        if not t[ell] < t[ell + 1]:
+            one = _spline_values(t, c, x[i:i + 1], 2)
+            for nu in range(3):
+                for col in range(c.shape[1]):
+                    out[nu, i, col] = one[nu, 0, col]
+            continue
+        b0, b1, b2 = _bases_d2(t, x[i], ell)
+        for col in range(c.shape[1]):
+            out[0, i, col] = _dot4(c, ell - 3, col, b0)
+            out[1, i, col] = _dot4(c, ell - 3, col, b1)
+            out[2, i, col] = _dot4(c, ell - 3, col, b2)
+    return out
+
+
+def _spline_eval(t, c, x, order):
+    """:func:`_spline_values`, by the unrolled kernel for ``order`` 2 (the planner's rounds)."""
+    return _spline_values_d2(t, c, x) if order == 2 else _spline_values(t, c, x, order)
+
+
 @dataclass(frozen=True, eq=False)
 class Curve:
     """A chain of pieces (lines, arcs, cubic splines) continuous in position.
@@ -259,7 +335,7 @@ class Curve:
         u = np.asarray(u, dtype=np.float64)
         if self.kind.size == 1 and self.kind[0] == _SPLINE:  # one fitted run: no piece lookup
             spl = self.splines[0]
-            return tuple(_spline_values(spl.t, spl.c, u - self.u0[0], order))
+            return tuple(_spline_eval(spl.t, spl.c, u - self.u0[0], order))
         side = "left" if left else "right"
         idx = np.clip(np.searchsorted(self.u0, u, side=side) - 1, 0, len(self.kind) - 1)
         ul = (u - self.u0[idx])[:, None]
@@ -297,7 +373,7 @@ class Curve:
             ids, first = np.unique(np.sort(sid), return_index=True)
             for k, mk in zip(ids, np.split(at, first[1:])):
                 spl = self.splines[k]
-                val = _spline_values(spl.t, spl.c, ul[mk, 0], order)
+                val = _spline_eval(spl.t, spl.c, ul[mk, 0], order)
                 p[mk], d1[mk], d2[mk] = val[0], val[1], val[2]
                 if order == 3:
                     d3[mk] = val[3]

@@ -495,6 +495,8 @@ def _compensation(d1, d2, ud, coef, m):
     odd = m | 1
     off = _centred_mean(_centred_mean(off, odd), odd)
     for k in range(n):
+        if 2 * m <= k <= n - 1 - 2 * m:  # the ramp is 1 there: the factor is 1.0
+            continue
         ramp = min(max(min(k, n - 1 - k) / (2.0 * m), 0.0), 1.0)
         f = ramp * ramp * (3.0 - 2.0 * ramp)
         for i in range(3):
@@ -517,11 +519,12 @@ def _rounding_compensation(d1, d2, ud, m: int, dt: float) -> np.ndarray:
 
 
 def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, m_u: int,
-                compensate: bool):
+                compensate: bool, beat: float = math.inf):
     """Plan with one ceiling and filter lengths (rounding compensation on or off), check it.
 
     The sampled curve parameter is first averaged over ``m_u`` samples (exact geometry: it
-    smooths the tangential acceleration alone), the positions then over ``m``.
+    smooths the tangential acceleration alone), the positions then over ``m``. The duration
+    is known once sampled: at ``beat`` (s) or longer, None (nothing evaluated nor checked).
 
     Returns
     -------
@@ -537,6 +540,9 @@ def _run_filter(fb: _Feed, ceil: np.ndarray, acc_t: np.ndarray, m: int, m_u: int
     u_raw, ud = _sample(fb.nodes, v, ceil, acc_t, dt, fb.budget - m - m_u - 3)
     if u_raw.size == 0:
         raise _too_long(int(fb.seg_lines[0]), dt)
+    # samples: u_raw, + m_u - 1 by the parameter's average, + m - 1 + 3 by the positions'
+    if (u_raw.size + m + m_u) * dt >= beat:
+        return None
     u = u_raw
     if m_u > 1:
         both = _moving_average(np.stack((u_raw, ud), axis=1), m_u, 0)
@@ -596,9 +602,14 @@ def _factors(pos, dt, vmax, amax, jmax, axes, dist, feed, tol, ok):
             r_s = math.sqrt(sq) / feed[k]
             r_d = dist[k] / tol
         fa = ok / max(max(r_a, r_j), ok)
-        fs = min(ok / max(max(r_v, r_s), ok), math.sqrt(ok / max(r_d, ok)))
+        fs = ok / max(max(r_v, r_s), ok)  # <= 1: the roots below are 1 where r <= ok
         # accelerations grow with the speed squared, jerks (curvature changes) cubed
-        fs = min(fs, math.sqrt(ok / max(r_a, ok)), (ok / max(r_j, ok)) ** (1.0 / 3.0))
+        if r_d > ok:
+            fs = min(fs, math.sqrt(ok / r_d))
+        if r_a > ok:
+            fs = min(fs, math.sqrt(ok / r_a))
+        if r_j > ok:
+            fs = min(fs, (ok / r_j) ** (1.0 / 3.0))
         f_acc[k], f_speed[k] = fa, fs
     return f_speed, f_acc
 
@@ -616,9 +627,10 @@ def _converge(
         v = _forward_backward(fb.nodes, ceil, acc_t)
         if _profile_s(fb.nodes, v, ceil, acc_t) + (m + m_u) * fb.dt >= beat:
             return None
-        att, f_speed, f_acc, u = _run_filter(fb, ceil, acc_t, m, m_u, compensate)
-        if att.duration >= beat:  # rounds only slow down: give up
+        run = _run_filter(fb, ceil, acc_t, m, m_u, compensate, beat)
+        if run is None:  # rounds only slow down: give up
             return None
+        att, f_speed, f_acc, u = run
         bad = np.flatnonzero((f_speed < 1.0) | (f_acc < 1.0))
         if bad.size == 0:
             return att

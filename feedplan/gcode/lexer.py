@@ -28,6 +28,10 @@ _TOKEN = re.compile(
     r"|(?P<bad>.))"
 )
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)")
+#: A line of plain words only (no comment, blank inside a number, N, O or E word, and at most
+#: 30 digits each side of the point: finite): read at once, as the tokens below read it.
+_PLAIN = re.compile(r"(?:[ \t]*[A-DF-MP-Za-df-mp-z][-+]?(?:\d{1,30}\.?\d{0,30}|\.\d{1,30}))*[ \t]*")
+_PLAIN_WORD = re.compile(r"([A-Za-z])([-+.0-9]+)")
 _PROGRAM_NUMBER = re.compile(r"[ \t]*[Oo][ \t]*\d[\d \t]*(?:\([^)]*\)[ \t]*)*(?:;.*)?")
 _UNSUPPORTED_CHAR = {
     "#": "# parameters",
@@ -73,6 +77,8 @@ def words(text: str, line: int, source: str, notes: list[str] | None = None) -> 
         A character or number that does not parse (``unsupported`` set for what LinuxCNC
         reads: parameters, expressions, O-words, polar words).
     """
+    if _PLAIN.fullmatch(text):
+        return [Word(m[1].upper(), float(m[2]), m.start() + 1) for m in _PLAIN_WORD.finditer(text)]
     if _PROGRAM_NUMBER.fullmatch(text):
         return []
     start = len(text) - len(text.lstrip(" \t"))

@@ -92,7 +92,8 @@ class PathBuilder:
     def _end(self, end, line: int, column: int) -> np.ndarray | None:
         """The end as an array; None for the first move (it positions the tool)."""
         end = np.array(end, dtype=np.float64).reshape(3)
-        if not np.all(np.abs(end) <= MAX_COORD_M):
+        if not (abs(end[0]) <= MAX_COORD_M and abs(end[1]) <= MAX_COORD_M
+                and abs(end[2]) <= MAX_COORD_M):  # nan too; no numpy call per move
             k = int(np.argmax(np.abs(end)))
             raise self.error(f"{'XYZ'[k]} {end[k] * 1e3:.6g} mm (machine coordinates, offsets "
                              f"included): out of range (|{'XYZ'[k]}| <= {MAX_COORD_M * 1e3:g} mm)",
