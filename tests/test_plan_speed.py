@@ -96,7 +96,7 @@ def test_spline_values_as_scipy():
     """The compiled cubic evaluation gives scipy's BSpline values and derivatives bit for bit."""
     from scipy.interpolate import make_lsq_spline
 
-    from feedplan.fit import _spline_values
+    from feedplan.fit import _spline_values, _spline_values_d2
 
     rng = np.random.default_rng(5)
     u = np.concatenate([[0.0], np.cumsum(rng.uniform(10e-6, 50e-6, 400))])
@@ -107,6 +107,13 @@ def test_spline_values_as_scipy():
     got = _spline_values(spl.t, spl.c, x, 3)
     for nu in range(4):
         assert np.array_equal(got[nu], spl(x, nu)), nu
+    # the planner's unrolled order-2 kernel: the same bits, also beside repeated knots
+    assert np.array_equal(_spline_values_d2(spl.t, spl.c, x), got[:3])
+    t2 = np.array([0, 0, 0, 0, 0.2, 0.5, 0.5, 0.5, 0.8, 1, 1, 1, 1.0])
+    c2 = rng.standard_normal((t2.size - 4, 3))
+    x2 = np.concatenate([np.linspace(0, 1, 501), t2, rng.uniform(-0.1, 1.1, 99)])
+    assert np.array_equal(_spline_values_d2(t2, c2, x2), _spline_values(t2, c2, x2, 2),
+                          equal_nan=True)
 
 
 def _track_reference(pos, segs, window=64):
