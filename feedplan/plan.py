@@ -852,23 +852,25 @@ def _plan_profile(fb: _Feed, u: np.ndarray):
     the block)."""
     curve, lim, dt = fb.block.curve, fb.limits, fb.dt
     feed = _feed_at(fb)
-    m = profile.spread_samples(curve, lim, dt, fb.tol_m)
-    cap = None if m == 1 else profile.spread_cap(curve, u, lim, m, dt, fb.tol_m)
+    m, m2 = spread = profile.spread_samples(curve, lim, dt, fb.tol_m)
+    cap = None if m == 1 else profile.spread_cap(curve, u, lim, spread, dt, fb.tol_m)
     prof = None
     axes = lim.present
     for rnd in range(_PROFILE_ROUNDS):
         prof = profile.solve(curve, feed, lim, u=u, cap=cap, start=prof)
         if not math.isfinite(prof.duration):
             return None
-        if not prof.duration / dt + m + 4 < fb.budget:  # the filter's rounds decide
+        if not prof.duration / dt + m + m2 + 4 < fb.budget:  # the filter's rounds decide
             return None
         us = profile.sample(prof, dt)
         pos = curve.evaluate(us, order=2)[0]
         pos[0] = fb.first
         pos[us >= curve.length] = fb.last
         if m > 1:
-            pos = _moving_average(pos, m, 3)
-            us = us[np.clip(np.arange(len(pos)) - m // 2, 0, len(us) - 1)]
+            pos = _moving_average(pos, m, 0 if m2 > 1 else 3)
+            if m2 > 1:
+                pos = _moving_average(pos, m2, 3)
+            us = us[np.clip(np.arange(len(pos)) - (m + m2) // 2, 0, len(us) - 1)]
         dist, near = deviation_m(pos, fb.table)
         f_speed, _ = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
                               lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
@@ -879,9 +881,9 @@ def _plan_profile(fb: _Feed, u: np.ndarray):
             return pos, fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
         if m == 1 and np.any(dist > fb.tol_m):  # off the curve: slower would not help
             return None
-        # sample k differences samples k - 3 .. k, each the mean of m: cap x on the nodes
-        lo = np.clip(bad - 3 - m // 2, 0, len(us) - 1)
-        hi = np.clip(bad + m // 2, 0, len(us) - 1)
+        # sample k differences samples k - 3 .. k, each a mean of m + m2: cap x on the nodes
+        lo = np.clip(bad - 3 - (m + m2) // 2, 0, len(us) - 1)
+        hi = np.clip(bad + (m + m2) // 2, 0, len(us) - 1)
         scale = np.ones(u.size)
         _lower(u, us, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]) ** 2, scale)
         cap = np.minimum(cap if cap is not None else np.inf, scale * prof.x)

@@ -159,36 +159,42 @@ def joints(curve):
     return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
 
 
-def spread_cap(curve, u: np.ndarray, limits, m: int, dt: float, tol_m: float) -> np.ndarray:
+def spread_cap(curve, u: np.ndarray, limits, spread: tuple[int, int], dt: float,
+               tol_m: float) -> np.ndarray:
     """Upper bounds of ``x`` (m^2/s^2) at the nodes ``u`` of a profile whose samples (period
-    ``dt``) are then averaged over ``m`` samples (``T = m dt``), shape (n + 1,).
+    ``dt``) are then averaged over ``m1`` and again over ``m2`` samples (``spread``,
+    ``T1 = m1 dt >= T2 = m2 dt``), shape (n + 1,).
 
-    The average spreads a curvature jump's acceleration step ``x |d kappa_i|`` into a ramp
-    over ``T``: a jerk ``x |d kappa_i| / T``, kept within :data:`JOINT_SHARE` of each axis's
-    ``J``; a kink's velocity step ``sqrt(x) |d tan_i|`` into an acceleration
-    ``sqrt(x) |d tan_i| / T`` and jerk steps of it over one sample, within that share of ``A``
-    and ``J``, and its corner cut ``sqrt(x) T |d tan| / 8`` within :data:`ROUND_SHARE` of the
-    tolerance left by the curve's own deviation; and every node's rounding of the curve,
-    ``x kappa T^2 / 24``, within that share too. ``m = 1``: no average (a joint: a stop)."""
+    The averages spread a curvature jump's acceleration step ``x |d kappa_i|`` into a ramp
+    over ``T1``: a jerk ``x |d kappa_i| / T1``, kept within :data:`JOINT_SHARE` of each axis's
+    ``J``; a kink's velocity step ``sqrt(x) |d tan_i|`` into a trapezoid of acceleration
+    ``sqrt(x) |d tan_i| / T1`` (within that share of ``A``) whose ramps last ``T2`` (one
+    sample if ``m2 = 1``): a jerk ``sqrt(x) |d tan_i| / (T1 T2)``; its corner cut, at most
+    ``sqrt(x) (T1 + T2) |d tan| / 8``, within :data:`ROUND_SHARE` of the tolerance left by
+    the curve's own deviation; and every node's rounding of the curve,
+    ``x kappa (T1^2 + T2^2) / 24``, within that share too. ``m1 = 1``: no average (a joint:
+    a stop)."""
     cap = np.full(u.size, np.inf)
     ax = limits.present
     J = JOINT_SHARE * LIMIT_SHARE * limits.jmax_m_s3[ax]
     A = JOINT_SHARE * LIMIT_SHARE * limits.amax_m_s2[ax]
-    T = m * dt if m > 1 else 0.0
+    m1, m2 = spread
+    t1 = m1 * dt if m1 > 1 else 0.0
+    t2 = m2 * dt if m1 > 1 else 0.0
     piece = np.clip(np.searchsorted(curve.u0, u, side="right") - 1, 0, len(curve.dev) - 1)
     room = ROUND_SHARE * np.maximum(tol_m - curve.dev[piece], 0.0)
     u_jump, d_kappa, u_kink, d_tan = joints(curve)
     kappa = np.maximum(*(np.linalg.norm(curve.evaluate(u, left=s, order=2)[2], axis=1)
                          for s in (False, True)))
-    if T > 0.0:
+    if t1 > 0.0:
         with np.errstate(divide="ignore"):
-            cap = np.minimum(cap, 24.0 * room / (kappa * T * T))
+            cap = np.minimum(cap, 24.0 * room / (kappa * (t1 * t1 + t2 * t2)))
     at = np.clip(np.searchsorted(u, u_jump), 0, u.size - 1)
-    np.minimum.at(cap, at, _per_axis(J * T, d_kappa[:, ax]))
+    np.minimum.at(cap, at, _per_axis(J * t1, d_kappa[:, ax]))
     at = np.clip(np.searchsorted(u, u_kink), 0, u.size - 1)
-    v = _per_axis(np.minimum(J * T * dt, A * T), d_tan[:, ax])
-    if T > 0.0:
-        v = np.minimum(v, 8.0 * room[at] / (T * np.linalg.norm(d_tan, axis=1)))
+    v = _per_axis(np.minimum(J * t1 * (t2 if m2 > 1 else dt), A * t1), d_tan[:, ax])
+    if t1 > 0.0:
+        v = np.minimum(v, 8.0 * room[at] / ((t1 + t2) * np.linalg.norm(d_tan, axis=1)))
     np.minimum.at(cap, at, v * v)
     return cap
 
@@ -200,25 +206,34 @@ def _per_axis(bound: np.ndarray, step: np.ndarray) -> np.ndarray:
     return np.min(np.where(mag > 0.0, bound / safe, np.inf), axis=1, initial=np.inf)
 
 
-def spread_samples(curve, limits, dt: float, tol_m: float) -> int:
-    """Samples ``m`` to average a profile's samples over (:func:`spread_cap`) along a curve
-    with joints: the ``T`` at which a joint's cap from its step equals the rounding's cap
-    (a curvature jump ``d kappa`` between curvatures up to ``kappa``:
-    ``T^3 = 24 tol |d kappa_i| / (share J_i kappa)``, the median over the jumps; without any,
-    for the kinks ``T^2 = 8 tol / (share J dt)``); 1 without joints."""
+def spread_samples(curve, limits, dt: float, tol_m: float) -> tuple[int, int]:
+    """Samples ``(m1, m2)`` to average a profile's samples over (:func:`spread_cap`) along a
+    curve with joints, ``(1, 1)`` without. ``T1``: where a curvature jump's cap from its step
+    equals the rounding's cap (a jump ``d kappa`` between curvatures up to ``kappa``:
+    ``T1^3 = 24 tol |d kappa_i| / (share J_i kappa)``), the median over the jumps. With kinks,
+    ``T2`` where a kink's caps from its jerk and its corner cut meet,
+    ``share J T1 T2 (T1 + T2) = 8 tol`` (``T1 = T2`` without jumps); else ``m2 = 1``."""
     u_jump, d_kappa, u_kink, _ = joints(curve)
     if u_jump.size + u_kink.size == 0:
-        return 1
+        return 1, 1
     ax = limits.present
     J = JOINT_SHARE * LIMIT_SHARE * limits.jmax_m_s3[ax]
     room = ROUND_SHARE * max(tol_m - float(np.max(curve.dev)), 0.0)
-    kappa = np.maximum(*(np.linalg.norm(curve.evaluate(u_jump, left=s, order=2)[2], axis=1)
-                         for s in (False, True)))
-    s_jump = 1.0 / _per_axis(J, d_kappa[:, ax])
-    t = np.cbrt(24.0 * room * s_jump / np.maximum(kappa, 1e-300))
-    if t.size == 0:
-        t = np.array([math.sqrt(8.0 * room / (float(np.min(J)) * dt))])
-    return max(2, round(float(np.median(t)) / dt))
+    j_min = float(np.min(J))
+    if u_jump.size:
+        kappa = np.maximum(*(np.linalg.norm(curve.evaluate(u_jump, left=s, order=2)[2], axis=1)
+                             for s in (False, True)))
+        s_jump = 1.0 / _per_axis(J, d_kappa[:, ax])
+        t1 = float(np.median(np.cbrt(24.0 * room * s_jump / np.maximum(kappa, 1e-300))))
+    else:
+        t1 = math.cbrt(4.0 * room / j_min)
+    m1 = max(2, round(t1 / dt))
+    if u_kink.size == 0:
+        return m1, 1
+    t1 = m1 * dt  # T2 (T1 + T2) = c: the positive root
+    c = 8.0 * room / (j_min * t1)
+    t2 = 0.5 * (math.sqrt(t1 * t1 + 4.0 * c) - t1)
+    return m1, min(m1, max(1, round(t2 / dt)))
 
 
 @dataclass(frozen=True, eq=False)

@@ -83,10 +83,11 @@ def _distance(pos: np.ndarray) -> np.ndarray:
 
 def test_line_arc_line_joint_bound_time_and_every_sample():
     curve = _block().curve
-    m = profile.spread_samples(curve, LIMITS, DT, TOL_M)
+    m, m2 = profile.spread_samples(curve, LIMITS, DT, TOL_M)
+    assert m > 1 and m2 == 1  # no kink: one average
     T = m * DT
     u = profile.grid(curve)
-    cap = profile.spread_cap(curve, u, LIMITS, m, DT, TOL_M)
+    cap = profile.spread_cap(curve, u, LIMITS, (m, m2), DT, TOL_M)
     prof = profile.solve(curve, lambda s: np.full(np.shape(s), FEED), LIMITS, u=u, cap=cap)
     assert prof.status == "optimal" and math.isfinite(prof.duration)
 
