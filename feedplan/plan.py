@@ -125,9 +125,6 @@ _AT_SHARE = 0.9
 #: > 0 so that speed can change). Where a lower ceiling (the feed) crosses the jump, the
 #: tangential acceleration gets what the step leaves, up to :data:`_AT_SHARE`.
 _JUMP_AT_SHARE = 0.1
-#: Smallest curvature jump treated as one, 1/m (a 1 km radius; below, the float noise of a
-#: corner blend's curvature where it meets a line: a step of v^2 / 1 km is nothing).
-_JUMP_MIN_PER_M = 1e-3
 #: Largest ceiling factor applied where a sample fails: 2 % slower per round, 5 % after
 #: :data:`_GENTLE_ROUNDS` rounds (the last stubborn samples).
 _STEP = (0.98, 0.95)
@@ -651,14 +648,7 @@ def _joints(curve):
     d_tan : ndarray, shape (K, 3)
         Jump of the unit tangent.
     """
-    u_b = curve.u0[1:-1]
-    right, left = curve.evaluate(u_b), curve.evaluate(u_b, left=True)
-    d_kappa = right[2] - left[2]
-    d_tan = right[1] / np.linalg.norm(right[1], axis=1)[:, None]
-    d_tan -= left[1] / np.linalg.norm(left[1], axis=1)[:, None]
-    jumps = np.linalg.norm(d_kappa, axis=1) > _JUMP_MIN_PER_M
-    kinks = np.linalg.norm(d_tan, axis=1) > 1e-9
-    return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
+    return profile.joints(curve)
 
 
 def _near(nodes: np.ndarray, u: float, reach: float) -> np.ndarray:

@@ -1,7 +1,6 @@
-"""The time-optimal jerk-limited speed profile along a curvature-continuous curve.
+"""The time-optimal jerk-limited speed profile along a curve.
 
-Along a curve ``r(u)`` (:class:`feedplan.fit.Curve`, no kink and no step of curvature
-inside), the motion ``u(t)`` from rest to rest is described on a grid of nodes ``u_k`` by
+Along a curve ``r(u)`` (:class:`feedplan.fit.Curve`), the motion ``u(t)`` from rest to rest is described on a grid of nodes ``u_k`` by
 ``x_k = udot^2`` and its slope ``g_k = dx/du``; on each cell ``x(u)`` is the cubic Hermite of
 them. Then ``udot = sqrt(x)``, ``uddot = x' / 2``, ``udddot = sqrt(x) x'' / 2`` and per axis
 
@@ -22,6 +21,11 @@ whose rows touch the unknowns of one cell: :func:`feedplan.lp.banded_lp` solves 
 linear in the grid's length. A few such programs (sequential linear programming) converge to
 the profile, where tangential and centripetal jerk share each axis's limit sample by sample
 (no fixed shares).
+
+Joints (piece boundaries where the curvature jumps or the tangent kinks) are nodes, the
+acceleration is imposed on both sides of a jump, and the jumps' steps are left to averages
+of the samples that follow (:func:`spread_samples`, :func:`spread_cap`: the planner's), which
+turn them into ramps of bounded jerk, with the speed at each joint capped to fit.
 
 The motion is sampled exactly: each cell's duration is the integral of ``du / sqrt(x)``
 (Gauss-Legendre; the rest cells in closed form) and each sample's ``u`` solves that integral
@@ -68,7 +72,8 @@ _SCREEN, _SCREEN_ROUNDS = 0.5, 6
 _SCREEN_CHANGE, _SCREEN_REACH = 0.02, 8
 #: Least share of the iterate's x a program may go down to.
 _TRUST = 0.5
-#: Least jump of the curvature vector (1/m) and of the unit tangent that is a joint.
+#: Least jump of the curvature vector (1/m: a 1 km radius; below, the float noise of a corner
+#: blend's curvature where it meets a line) and of the unit tangent that is a joint.
 _JUMP_MIN_PER_M, _KINK_MIN = 1e-3, 1e-9
 #: Share of each axis's jerk (and acceleration) a joint's step may take once averaged
 #: (:func:`spread_cap`; the rest is the profile's own jerk around it), and of the tolerance
@@ -544,7 +549,7 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
     Parameters
     ----------
     curve : feedplan.fit.Curve
-        Curvature-continuous inside (no kink, no curvature step).
+        Its joints' steps are not bounded here: see :func:`spread_cap`.
     feed : callable
         ``feed(u)``: the path speed allowed at each parameter (m/s), array in, array out.
     limits : AxisLimits
