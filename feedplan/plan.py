@@ -125,9 +125,6 @@ _AT_SHARE = 0.9
 #: > 0 so that speed can change). Where a lower ceiling (the feed) crosses the jump, the
 #: tangential acceleration gets what the step leaves, up to :data:`_AT_SHARE`.
 _JUMP_AT_SHARE = 0.1
-#: Smallest curvature jump treated as one, 1/m (a 1 km radius; below, the float noise of a
-#: corner blend's curvature where it meets a line: a step of v^2 / 1 km is nothing).
-_JUMP_MIN_PER_M = 1e-3
 #: Largest ceiling factor applied where a sample fails: 2 % slower per round, 5 % after
 #: :data:`_GENTLE_ROUNDS` rounds (the last stubborn samples).
 _STEP = (0.98, 0.95)
@@ -663,14 +660,7 @@ def _joints(curve):
     d_tan : ndarray, shape (K, 3)
         Jump of the unit tangent.
     """
-    u_b = curve.u0[1:-1]
-    right, left = curve.evaluate(u_b), curve.evaluate(u_b, left=True)
-    d_kappa = right[2] - left[2]
-    d_tan = right[1] / np.linalg.norm(right[1], axis=1)[:, None]
-    d_tan -= left[1] / np.linalg.norm(left[1], axis=1)[:, None]
-    jumps = np.linalg.norm(d_kappa, axis=1) > _JUMP_MIN_PER_M
-    kinks = np.linalg.norm(d_tan, axis=1) > 1e-9
-    return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
+    return profile.joints(curve)
 
 
 def _near(nodes: np.ndarray, u: float, reach: float) -> np.ndarray:
@@ -856,24 +846,33 @@ def _feed_at(fb: _Feed):
 
 
 def _plan_profile(fb: _Feed, u: np.ndarray):
-    """Samples of a curvature-continuous feed block along its exact curve: the jerk-limited
-    profile of :mod:`feedplan.profile`, checked as :func:`_run_filter` checks and, where a
-    sample fails, capped there (:data:`_STEP`) and solved again. Returns (positions (n, 3) m,
-    source lines (n,)), or None when no clean profile is found (the filter plans the block)."""
+    """Samples of a feed block along its exact curve: the jerk-limited profile of
+    :mod:`feedplan.profile` (with joints, averaged over :func:`profile.spread_samples` samples
+    and capped by :func:`profile.spread_cap`), checked as :func:`_run_filter` checks and,
+    where a sample fails, capped there (:data:`_STEP`) and solved again. Returns (positions
+    (n, 3) m, source lines (n,)), or None when no clean profile is found (the filter plans
+    the block)."""
     curve, lim, dt = fb.block.curve, fb.limits, fb.dt
     feed = _feed_at(fb)
-    cap, prof = None, None
+    m, m2 = spread = profile.spread_samples(curve, lim, dt, fb.tol_m)
+    cap = None if m == 1 else profile.spread_cap(curve, u, lim, spread, dt, fb.tol_m)
+    prof = None
     axes = lim.present
     for rnd in range(_PROFILE_ROUNDS):
         prof = profile.solve(curve, feed, lim, u=u, cap=cap, start=prof)
         if not math.isfinite(prof.duration):
             return None
-        if not prof.duration / dt + 4 < fb.budget:  # the filter's rounds decide
+        if not prof.duration / dt + m + m2 + 4 < fb.budget:  # the filter's rounds decide
             return None
         us = profile.sample(prof, dt)
         pos = curve.evaluate(us, order=2)[0]
         pos[0] = fb.first
         pos[us >= curve.length] = fb.last
+        if m > 1:
+            pos = _moving_average(pos, m, 0 if m2 > 1 else 3)
+            if m2 > 1:
+                pos = _moving_average(pos, m2, 3)
+            us = us[np.clip(np.arange(len(pos)) - (m + m2) // 2, 0, len(us) - 1)]
         dist, near = deviation_m(pos, fb.table)
         f_speed, _ = _factors(pos, dt, lim.vmax_m_s[axes], lim.amax_m_s2[axes],
                               lim.jmax_m_s3[axes], np.flatnonzero(axes), dist,
@@ -882,11 +881,11 @@ def _plan_profile(fb: _Feed, u: np.ndarray):
         if bad.size == 0:
             seg_at = np.searchsorted(fb.block.seg_u0, us, side="right") - 1
             return pos, fb.seg_lines[np.clip(seg_at, 0, len(fb.seg_lines) - 1)]
-        if np.any(dist > fb.tol_m):  # off the curve: a slower profile would not help
+        if m == 1 and np.any(dist > fb.tol_m):  # off the curve: slower would not help
             return None
-        # sample k differences samples k - 3 .. k: cap x on the nodes they span
-        lo = np.clip(bad - 3, 0, len(us) - 1)
-        hi = np.clip(bad, 0, len(us) - 1)
+        # sample k differences samples k - 3 .. k, each a mean of m + m2: cap x on the nodes
+        lo = np.clip(bad - 3 - (m + m2) // 2, 0, len(us) - 1)
+        hi = np.clip(bad + (m + m2) // 2, 0, len(us) - 1)
         scale = np.ones(u.size)
         _lower(u, us, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]) ** 2, scale)
         cap = np.minimum(cap if cap is not None else np.inf, scale * prof.x)
@@ -912,10 +911,10 @@ def _plan_feed(
     """
     fb = _feed_block(block, path, limits, feeds, tol_m, dt, budget)
     joints = _joints(block.curve)
-    exact = None  # curvature-continuous: the profile along the exact curve competes
-    if joints[0].size == 0 and joints[2].size == 0:
-        u = profile.grid(block.curve)
-        exact = _plan_profile(fb, u) if u.size <= _PROFILE_NODES else None
+    u = profile.grid(block.curve)  # the profile along the exact curve competes
+    if u.size > _PROFILE_NODES and (joints[0].size or joints[2].size):  # long runs of lines
+        u = profile.grid(block.curve, spacing_m=profile.GRID_M * u.size / (0.8 * _PROFILE_NODES))
+    exact = _plan_profile(fb, u) if u.size <= _PROFILE_NODES else None
     r = _reach(fb)
     best = None
     m_opt, near_of = max(1, round(r.t_opt / dt)), {}

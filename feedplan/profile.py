@@ -1,7 +1,6 @@
-"""The time-optimal jerk-limited speed profile along a curvature-continuous curve.
+"""The time-optimal jerk-limited speed profile along a curve.
 
-Along a curve ``r(u)`` (:class:`feedplan.fit.Curve`, no kink and no step of curvature
-inside), the motion ``u(t)`` from rest to rest is described on a grid of nodes ``u_k`` by
+Along a curve ``r(u)`` (:class:`feedplan.fit.Curve`), the motion ``u(t)`` from rest to rest is described on a grid of nodes ``u_k`` by
 ``x_k = udot^2`` and its slope ``g_k = dx/du``; on each cell ``x(u)`` is the cubic Hermite of
 them. Then ``udot = sqrt(x)``, ``uddot = x' / 2``, ``udddot = sqrt(x) x'' / 2`` and per axis
 
@@ -23,6 +22,11 @@ linear in the grid's length. A few such programs (sequential linear programming)
 the profile, where tangential and centripetal jerk share each axis's limit sample by sample
 (no fixed shares).
 
+Joints (piece boundaries where the curvature jumps or the tangent kinks) are nodes, the
+acceleration is imposed on both sides of a jump, and the jumps' steps are left to averages
+of the samples that follow (:func:`spread_samples`, :func:`spread_cap`: the planner's), which
+turn them into ramps of bounded jerk, with the speed at each joint capped to fit.
+
 The motion is sampled exactly: each cell's duration is the integral of ``du / sqrt(x)``
 (Gauss-Legendre; the rest cells in closed form) and each sample's ``u`` solves that integral
 by Newton's method to rounding, so the sampled positions' finite differences are averages of
@@ -39,7 +43,8 @@ from numba import njit
 
 from feedplan.lp import banded_lp
 
-__all__ = ["Profile", "grid", "solve", "sample", "cell_times", "GRID_M", "REST_M"]
+__all__ = ["Profile", "grid", "solve", "sample", "cell_times", "joints", "spread_cap", "GRID_M",
+           "REST_M"]
 
 #: Largest cell of the grid, metres.
 GRID_M = 0.2e-3
@@ -67,6 +72,13 @@ _SCREEN, _SCREEN_ROUNDS = 0.5, 6
 _SCREEN_CHANGE, _SCREEN_REACH = 0.02, 8
 #: Least share of the iterate's x a program may go down to.
 _TRUST = 0.5
+#: Least jump of the curvature vector (1/m: a 1 km radius; below, the float noise of a corner
+#: blend's curvature where it meets a line) and of the unit tangent that is a joint.
+_JUMP_MIN_PER_M, _KINK_MIN = 1e-3, 1e-9
+#: Share of each axis's jerk (and acceleration) a joint's step may take once averaged
+#: (:func:`spread_cap`; the rest is the profile's own jerk around it), and of the tolerance
+#: the average's rounding may take.
+JOINT_SHARE, ROUND_SHARE = 0.5, 0.9
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,6 +151,96 @@ def grid(curve, spacing_m: float = GRID_M, rest_m: float = REST_M) -> np.ndarray
     return np.concatenate([[0.0], u[max(first, 1):min(last, u.size - 1)], [L]])
 
 
+def joints(curve):
+    """Piece boundaries of ``curve`` where the curvature vector ``d2r/du2`` jumps (u (J,) m,
+    jump (J, 3) 1/m) and where the unit tangent turns (u (K,) m, its jump (K, 3))."""
+    u_b = curve.u0[1:-1]
+    right, left = curve.evaluate(u_b, order=2), curve.evaluate(u_b, left=True, order=2)
+    d_kappa = right[2] - left[2]
+    d_tan = right[1] / np.linalg.norm(right[1], axis=1)[:, None]
+    d_tan -= left[1] / np.linalg.norm(left[1], axis=1)[:, None]
+    jumps = np.linalg.norm(d_kappa, axis=1) > _JUMP_MIN_PER_M
+    kinks = np.linalg.norm(d_tan, axis=1) > _KINK_MIN
+    return u_b[jumps], d_kappa[jumps], u_b[kinks], d_tan[kinks]
+
+
+def spread_cap(curve, u: np.ndarray, limits, spread: tuple[int, int], dt: float,
+               tol_m: float) -> np.ndarray:
+    """Upper bounds of ``x`` (m^2/s^2) at the nodes ``u`` of a profile whose samples (period
+    ``dt``) are then averaged over ``m1`` and again over ``m2`` samples (``spread``,
+    ``T1 = m1 dt >= T2 = m2 dt``), shape (n + 1,).
+
+    The averages spread a curvature jump's acceleration step ``x |d kappa_i|`` into a ramp
+    over ``T1``: a jerk ``x |d kappa_i| / T1``, kept within :data:`JOINT_SHARE` of each axis's
+    ``J``; a kink's velocity step ``sqrt(x) |d tan_i|`` into a trapezoid of acceleration
+    ``sqrt(x) |d tan_i| / T1`` (within that share of ``A``) whose ramps last ``T2`` (one
+    sample if ``m2 = 1``): a jerk ``sqrt(x) |d tan_i| / (T1 T2)``; its corner cut, at most
+    ``sqrt(x) (T1 + T2) |d tan| / 8``, within :data:`ROUND_SHARE` of the tolerance left by
+    the curve's own deviation; and every node's rounding of the curve,
+    ``x kappa (T1^2 + T2^2) / 24``, within that share too. ``m1 = 1``: no average (a joint:
+    a stop)."""
+    cap = np.full(u.size, np.inf)
+    ax = limits.present
+    J = JOINT_SHARE * LIMIT_SHARE * limits.jmax_m_s3[ax]
+    A = JOINT_SHARE * LIMIT_SHARE * limits.amax_m_s2[ax]
+    m1, m2 = spread
+    t1 = m1 * dt if m1 > 1 else 0.0
+    t2 = m2 * dt if m1 > 1 else 0.0
+    piece = np.clip(np.searchsorted(curve.u0, u, side="right") - 1, 0, len(curve.dev) - 1)
+    room = ROUND_SHARE * np.maximum(tol_m - curve.dev[piece], 0.0)
+    u_jump, d_kappa, u_kink, d_tan = joints(curve)
+    kappa = np.maximum(*(np.linalg.norm(curve.evaluate(u, left=s, order=2)[2], axis=1)
+                         for s in (False, True)))
+    if t1 > 0.0:
+        with np.errstate(divide="ignore"):
+            cap = np.minimum(cap, 24.0 * room / (kappa * (t1 * t1 + t2 * t2)))
+    at = np.clip(np.searchsorted(u, u_jump), 0, u.size - 1)
+    np.minimum.at(cap, at, _per_axis(J * t1, d_kappa[:, ax]))
+    at = np.clip(np.searchsorted(u, u_kink), 0, u.size - 1)
+    v = _per_axis(np.minimum(J * t1 * (t2 if m2 > 1 else dt), A * t1), d_tan[:, ax])
+    if t1 > 0.0:
+        v = np.minimum(v, 8.0 * room[at] / ((t1 + t2) * np.linalg.norm(d_tan, axis=1)))
+    np.minimum.at(cap, at, v * v)
+    return cap
+
+
+def _per_axis(bound: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """Least ``bound_i / |step_i|`` over the axes (inf on the axes that do not step), (J,)."""
+    mag = np.abs(step)
+    safe = np.where(mag > 0.0, mag, 1.0)
+    return np.min(np.where(mag > 0.0, bound / safe, np.inf), axis=1, initial=np.inf)
+
+
+def spread_samples(curve, limits, dt: float, tol_m: float) -> tuple[int, int]:
+    """Samples ``(m1, m2)`` to average a profile's samples over (:func:`spread_cap`) along a
+    curve with joints, ``(1, 1)`` without. ``T1``: where a curvature jump's cap from its step
+    equals the rounding's cap (a jump ``d kappa`` between curvatures up to ``kappa``:
+    ``T1^3 = 24 tol |d kappa_i| / (share J_i kappa)``), the median over the jumps. With kinks,
+    ``T2`` where a kink's caps from its jerk and its corner cut meet,
+    ``share J T1 T2 (T1 + T2) = 8 tol`` (``T1 = T2`` without jumps); else ``m2 = 1``."""
+    u_jump, d_kappa, u_kink, _ = joints(curve)
+    if u_jump.size + u_kink.size == 0:
+        return 1, 1
+    ax = limits.present
+    J = JOINT_SHARE * LIMIT_SHARE * limits.jmax_m_s3[ax]
+    room = ROUND_SHARE * max(tol_m - float(np.max(curve.dev)), 0.0)
+    j_min = float(np.min(J))
+    if u_jump.size:
+        kappa = np.maximum(*(np.linalg.norm(curve.evaluate(u_jump, left=s, order=2)[2], axis=1)
+                             for s in (False, True)))
+        s_jump = 1.0 / _per_axis(J, d_kappa[:, ax])
+        t1 = float(np.median(np.cbrt(24.0 * room * s_jump / np.maximum(kappa, 1e-300))))
+    else:
+        t1 = math.cbrt(4.0 * room / j_min)
+    m1 = max(2, round(t1 / dt))
+    if u_kink.size == 0:
+        return m1, 1
+    t1 = m1 * dt  # T2 (T1 + T2) = c: the positive root
+    c = 8.0 * room / (j_min * t1)
+    t2 = 0.5 * (math.sqrt(t1 * t1 + 4.0 * c) - t1)
+    return m1, min(m1, max(1, round(t2 / dt)))
+
+
 @dataclass(frozen=True, eq=False)
 class _Rows:
     """The linear program's rows that do not depend on the iterate, and the jerk rows'
@@ -170,6 +272,11 @@ def _hermite(H: np.ndarray):
 
 def _rows(curve, u: np.ndarray, ub: np.ndarray, ub_mid: np.ndarray, limits) -> _Rows:
     n = len(u) - 1
+    # cells (index into ``cells`` below) ending at a curvature jump: the acceleration there
+    # on the side of the cell too (the next cell's start has the other side's)
+    u_jump = joints(curve)[0]
+    ends_jump = np.searchsorted(u, u_jump) - 2
+    ends_jump = ends_jump[(ends_jump >= 0) & (ends_jump < n - 3)]
     h = np.diff(u)
     ax = np.flatnonzero(limits.present)
     A = LIMIT_SHARE * limits.amax_m_s2
@@ -193,8 +300,8 @@ def _rows(curve, u: np.ndarray, ub: np.ndarray, ub_mid: np.ndarray, limits) -> _
         cx, cx1, cx2 = coef[p]
         for i in moving:
             # the acceleration at the start and middle of each cell (x is C1: a cell's end
-            # is the next one's start), at the end of the last
-            at = slice(None) if p < 2 else slice(-1, None)
+            # is the next one's start), at the end of the last and of those ending at a jump
+            at = slice(None) if p < 2 else np.r_[ends_jump, n - 3]
             acc = (r2[:, i, None] * cx + 0.5 * r1[:, i, None] * cx1)[at]
             for sg in (1.0, -1.0):
                 col0.append(c0[at])
@@ -365,9 +472,11 @@ def sample(prof: Profile, dt: float, extra: int = 3) -> np.ndarray:
     return _sample(prof.u, prof.x, prof.g, tau, dt, count, _GL_X, _GL_W)
 
 
-def _weights(u: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _weights(u: np.ndarray, x: np.ndarray, jointed: bool = False) -> np.ndarray:
     """-d(time)/dx at each node (the rest cells' exactly, the others by the trapezoid rule),
-    the slowest nodes' capped (a node nearly at rest would take the whole objective)."""
+    the slowest nodes' capped (a node nearly at rest would take the whole objective): at the
+    95th percentile, or with ``jointed`` (a curve with joints, whose few slow nodes there
+    are what the time hinges on) at the largest weight of a node not next to a rest cell."""
     n = len(u) - 1
     h = np.diff(u)
     v = np.sqrt(np.maximum(x, 1e-12))
@@ -378,7 +487,10 @@ def _weights(u: np.ndarray, x: np.ndarray) -> np.ndarray:
     w[1] += 1.5 * h[0] / v[1] ** 3
     w[n - 1] += 1.5 * h[-1] / v[n - 1] ** 3
     inner = w[1:n]
-    w[1:n] = np.minimum(inner, np.percentile(inner, 95) if inner.size > 20 else inner.max())
+    if jointed:
+        w[1:n] = np.minimum(inner, np.max(w[2:n - 1], initial=0.0))
+    else:
+        w[1:n] = np.minimum(inner, np.percentile(inner, 95) if inner.size > 20 else inner.max())
     w[0] = w[n] = 0.0
     return w
 
@@ -437,7 +549,7 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
     Parameters
     ----------
     curve : feedplan.fit.Curve
-        Curvature-continuous inside (no kink, no curvature step).
+        Its joints' steps are not bounded here: see :func:`spread_cap`.
     feed : callable
         ``feed(u)``: the path speed allowed at each parameter (m/s), array in, array out.
     limits : AxisLimits
@@ -460,6 +572,7 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
     ub, ub_mid = _speed_bounds(curve, u, feed, limits, cap)
     rows = _rows(curve, u, ub, ub_mid, limits)
     active, lo, hi, hn = _unknowns(u, ub)
+    jointed = sum(j.size for j in joints(curve)) > 0
     N = 2 * (n + 1)
     if start is not None:
         x = np.minimum(start.x, ub)
@@ -483,7 +596,7 @@ def solve(curve, feed: np.ndarray, limits, *, u: np.ndarray | None = None,
         z0 = np.zeros(N)
         z0[0::2], z0[1::2] = x / xs, g / scale[1::2]
         w = np.zeros(N)
-        w[0::2] = _weights(u, x)
+        w[0::2] = _weights(u, x, jointed)
         c = -w * scale
         c /= max(float(np.max(np.abs(c))), 1e-300)
         lo_s = lo / scale
