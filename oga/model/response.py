@@ -174,18 +174,20 @@ def simulate(setpoints: Setpoints, machine: Machine | Plant, kp_m_min_per_mm, kf
     MachineError
         A setpoint moves an axis the machine lacks.
     """
-    n = len(setpoints)
     plant = plant_of(machine)
-    machine = plant.machine
-    if not math.isclose(setpoints.dt, machine.te, rel_tol=1e-9):
-        raise OptionError(
-            f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
-        )
-    kp, kf_t = gain_tables(kp_m_min_per_mm, kf, n)
+    _same_period(setpoints, plant)
+    kp, kf_t = gain_tables(kp_m_min_per_mm, kf, len(setpoints))
     pos, u = simulate_si(setpoints, plant, kp * KP_SI_PER_M_MIN_PER_MM, kf_t)
     for arr in (kp, kf_t):
         arr.flags.writeable = False
     return Simulation(pos=pos, u=u, kp_m_min_per_mm=kp, kf=kf_t)
+
+
+def _same_period(setpoints: Setpoints, plant: Plant) -> None:
+    """Raise :class:`OptionError` unless the setpoints' period is the machine's Te."""
+    te = plant.machine.te
+    if not math.isclose(setpoints.dt, te, rel_tol=1e-9):
+        raise OptionError(f"setpoints period {setpoints.dt} s differs from the machine's Te {te} s")
 
 
 def simulate_si(setpoints: Setpoints, plant: Plant, kp_si: np.ndarray, kf: np.ndarray
@@ -196,7 +198,7 @@ def simulate_si(setpoints: Setpoints, plant: Plant, kp_si: np.ndarray, kf: np.nd
     Parameters
     ----------
     setpoints : Setpoints
-        The planned motion (N samples); its period must be the plant's Te (not checked).
+        The planned motion (N samples); its period must be the plant's Te.
     plant : Plant
         The packed machine.
     kp_si, kf : ndarray, shape (N, 3), float64
@@ -210,9 +212,12 @@ def simulate_si(setpoints: Setpoints, plant: Plant, kp_si: np.ndarray, kf: np.nd
 
     Raises
     ------
+    OptionError
+        Sample period different from Te.
     MachineError
         A setpoint moves an axis the machine lacks.
     """
+    _same_period(setpoints, plant)
     n = len(setpoints)
     machine = plant.machine
     pos = np.empty((n, 3))
