@@ -27,9 +27,9 @@ emptied; numba's compiled kernels are warm). It prints:
   schedule and certificate, bit for bit;
 - the robust baseline (Kp, Kf), the rounds, the shrink's shares (1: none) and the plants
   searched on besides the nominal one;
-- on the next line, the one-thread run's CPU time by phase: the set's stable ranges, the
-  robust baseline, the multi-plant window searches, the certificates (the shrink's
-  included) and the rest;
+- on the next lines, per thread count, the run's CPU and wall time by phase: the set's
+  stable ranges, the robust baseline, the multi-plant window searches, the certificates
+  (the shrink's included) and the rest;
 - with ``--kernels``, on one more line, the one-thread run's compiled calls: per kernel the
   calls, their CPU time in all and per call (the tangent and limit replays of the baseline,
   the simulations of :func:`oga.verify.verify` (the confirmations and certificates), the
@@ -141,27 +141,37 @@ class _Timed:
 
 
 class _Phases:
-    """The CPU time spent in each phase of :func:`robust_optimize` (its module's names of
-    them wrapped), seconds."""
+    """The CPU and wall time spent in each phase of :func:`robust_optimize` (its module's
+    names of them wrapped), seconds."""
 
     names = {"plant_bounds": "ranges", "robust_baseline": "baseline", "multi_search": "window",
              "certify": "certificates"}
 
     def __init__(self):
-        self.cpu = dict.fromkeys(self.names.values(), 0.0)
+        self.clear()
         module = importlib.import_module("oga.search.robust.search")
         for name, phase in self.names.items():
             setattr(module, name, self._wrap(getattr(module, name), phase))
 
-    def _wrap(self, f, phase):
-        def add(dt):
-            self.cpu[phase] += dt
-        return _timed(f, add)
+    def clear(self) -> None:
+        self.cpu = dict.fromkeys(self.names.values(), 0.0)
+        self.wall = dict.fromkeys(self.names.values(), 0.0)
 
-    def line(self, total: float) -> str:
-        rest = total - sum(self.cpu.values())
-        return "  cpu by phase: " + ", ".join(
-            f"{k} {v:.2f} s" for k, v in (*self.cpu.items(), ("rest", rest)))
+    def _wrap(self, f, phase):
+        def add_cpu(dt):
+            self.cpu[phase] += dt
+
+        def add_wall(dt):
+            self.wall[phase] += dt
+        return _timed(_timed(f, add_cpu), add_wall, time.perf_counter)
+
+    def line(self, threads: int, cpu: float, wall: float) -> str:
+        """The phases' CPU / wall time of a run of ``threads`` threads that took ``cpu`` and
+        ``wall`` seconds in all (``rest``: outside the phases)."""
+        rest = (cpu - sum(self.cpu.values()), wall - sum(self.wall.values()))
+        return f"  {threads} thread(s), cpu / wall by phase: " + ", ".join(
+            f"{k} {c:.2f} / {w:.2f} s" for k, c, w in
+            (*((k, self.cpu[k], self.wall[k]) for k in self.cpu), ("rest", *rest)))
 
 
 class _Kernels:
@@ -239,21 +249,23 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:18s} (missing: {file})")
             continue
         sp = plan_toolpath(_path(file, lines), machine, feed_m_s=None, tol_m=2e-5)
-        runs, walls, cpu, par = [], [], None, None
+        runs, walls, cpu, par, split = [], [], None, None, []
         try:
             for t in threads:
                 _cold()
                 timed.inside = 0.0
-                phases.cpu = dict.fromkeys(phases.cpu, 0.0)
+                phases.clear()
                 if kernels is not None and t == 1:
                     kernels.clear()
                 w0, c0 = time.perf_counter(), time.process_time()
                 runs.append(robust_optimize(sp, machine, options, scenarios=scen, threads=t))
                 walls.append(time.perf_counter() - w0)
+                split.append(phases.line(t, time.process_time() - c0, walls[-1]))
                 if t == 1:  # on one thread the time inside thread_map is its CPU time, roughly
                     cpu = time.process_time() - c0
                     par = min(timed.inside / walls[-1], 1.0)
-                    split = phases.line(cpu) + ("" if kernels is None else "\n" + kernels.line())
+                    if kernels is not None:
+                        split.append(kernels.line())
         except OgaError as err:
             print(f"{name:18s} {sp.duration:8.1f} failed: {err}", flush=True)
             continue
@@ -275,8 +287,7 @@ def main(argv: list[str] | None = None) -> int:
               f"Kp {rob.result.baseline_kp[a]:.4f} Kf {rob.result.baseline_kf[a]:.4f}, "
               f"{rob.rounds} rounds, {rob.alpha}, on "
               f"{', '.join(x.removeprefix('corner ') for x in rob.active) or '-'}", flush=True)
-        if cpu:
-            print(split, flush=True)
+        print("\n".join(split), flush=True)
         if args.nominal:
             res = optimize(sp, machine, {"nominal": True})
             c = certify_result(res, scen, threads=max(threads))

@@ -77,18 +77,30 @@ def resolve_threads(threads: int | None, where: str = "threads") -> int:
     return threads
 
 
-def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int = 1) -> list[R]:
+def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int = 1,
+               done: Callable[[int], None] | None = None) -> list[R]:
     """``[fn(x) for x in items]``, on ``threads`` threads (results in the items' order).
 
     The first exception raised by ``fn`` (in the items' order) is raised here, after every
-    item has ended.
+    item has ended. ``done``, when given, is called in the calling thread with the count of
+    results collected, after each one in the items' order (a progress report that needs no
+    barrier between batches of items).
     """
     items = list(items)
+    out: list[R] = []
     if threads <= 1 or len(items) <= 1:
-        return [fn(x) for x in items]
+        for x in items:
+            out.append(fn(x))
+            if done is not None:
+                done(len(out))
+        return out
     with ThreadPoolExecutor(max_workers=min(threads, len(items))) as pool:
         futures = [pool.submit(fn, x) for x in items]
-        return [f.result() for f in futures]
+        for f in futures:
+            out.append(f.result())
+            if done is not None:
+                done(len(out))
+        return out
 
 
 @contextmanager

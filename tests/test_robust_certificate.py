@@ -194,3 +194,28 @@ def test_stable_range_is_found_on_every_plant_of_the_default_set():
         for a in ("x", "z"):
             rng = stable_range(plant, a)
             assert 1.0 <= rng.kp_max <= 5.0
+
+
+def test_one_certificate_on_one_or_two_threads_with_progress(case):
+    # the table prepared once for every plant (oga.verify.replay.ReplayGains) and the
+    # replays submitted at once: the same replays, bit for bit, as simulate and
+    # contour_error give each plant afresh, on 1 and 2 threads; the progress rises to 1
+    m, sp, res = case
+    scen = scenario_set(m, n=9, seed=3, corners=False)
+    kp, kf = res.schedule.kp_m_min_per_mm, res.schedule.kf
+    bkp = np.tile([res.baseline_kp[a] for a in "xyz"], (len(sp), 1))
+    bkf = np.tile([res.baseline_kf[a] for a in "xyz"], (len(sp), 1))
+    seen = {1: [], 2: []}
+    certs = [certify(sp, m, kp, kf, bkp, bkf, scen, threads=t, progress=seen[t].append)
+             for t in (1, 2)]
+    for t, every in ((1, 4), (2, 8)):  # after every 4 plants per thread, and at the end
+        np.testing.assert_allclose(seen[t], [*(k / 9 for k in range(every, 9, every)), 1.0])
+    for plant, one, two in zip(scen.plants, *(c.plants for c in certs)):
+        sim = simulate(sp, plant, kp, kf)
+        for got in (one.schedule, two.schedule):
+            np.testing.assert_array_equal(got.pos, sim.pos)
+            np.testing.assert_array_equal(got.u, sim.u)
+            np.testing.assert_array_equal(got.ce, contour_error(sp.pos, sim.pos, sp.plane))
+            np.testing.assert_array_equal(got.max_dkp_per_sample,
+                                          np.abs(np.diff(kp, axis=0)).max(axis=0))
+    np.testing.assert_array_equal(certs[0].ratio, certs[1].ratio)

@@ -19,7 +19,7 @@ from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.model.plant import Plant, plant_of
 from oga.model.simulate import _CASCADE, _KIND, _P, rest_state, run_axes, simulate_axis
 
-__all__ = ["Simulation", "simulate", "axis_arrays"]
+__all__ = ["Simulation", "simulate", "simulate_si", "gain_tables", "axis_arrays"]
 
 
 def axis_arrays(machine: Machine | Plant, p0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -107,6 +107,22 @@ def _gain_table(value, name: str, n: int) -> np.ndarray:
     return table
 
 
+def gain_tables(kp_m_min_per_mm, kf, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The gains of :func:`simulate` (each a scalar, {axis: value} or (N, 3) array) as new
+    (N, 3) float64 arrays ``(kp, kf)``, checked.
+
+    Raises
+    ------
+    OptionError
+        Malformed, not finite, or a Kp not positive.
+    """
+    kp = _gain_table(kp_m_min_per_mm, "kp_m_min_per_mm", n)
+    kf_t = _gain_table(kf, "kf", n)
+    if np.any(kp <= 0.0):
+        raise OptionError("kp_m_min_per_mm: gains must be positive")
+    return kp, kf_t
+
+
 def _at_rest(model, pd: np.ndarray, vd: np.ndarray) -> bool:
     """Whether a cascade axis started at rest at ``pd[0]`` stays there exactly, whatever the
     gains: its setpoint never moves (``pd == pd[0]``, ``vd == 0`` at every sample).
@@ -158,17 +174,52 @@ def simulate(setpoints: Setpoints, machine: Machine | Plant, kp_m_min_per_mm, kf
     MachineError
         A setpoint moves an axis the machine lacks.
     """
-    n = len(setpoints)
     plant = plant_of(machine)
+    _same_period(setpoints, plant)
+    kp, kf_t = gain_tables(kp_m_min_per_mm, kf, len(setpoints))
+    pos, u = simulate_si(setpoints, plant, kp * KP_SI_PER_M_MIN_PER_MM, kf_t)
+    for arr in (kp, kf_t):
+        arr.flags.writeable = False
+    return Simulation(pos=pos, u=u, kp_m_min_per_mm=kp, kf=kf_t)
+
+
+def _same_period(setpoints: Setpoints, plant: Plant) -> None:
+    """Raise :class:`OptionError` unless the setpoints' period is the machine's Te."""
+    te = plant.machine.te
+    if not math.isclose(setpoints.dt, te, rel_tol=1e-9):
+        raise OptionError(f"setpoints period {setpoints.dt} s differs from the machine's Te {te} s")
+
+
+def simulate_si(setpoints: Setpoints, plant: Plant, kp_si: np.ndarray, kf: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`simulate` of gains already checked: the same positions and commands, for
+    callers that replay one gain table on many plants (:func:`oga.verify.replay.verify_prepared`).
+
+    Parameters
+    ----------
+    setpoints : Setpoints
+        The planned motion (N samples); its period must be the plant's Te.
+    plant : Plant
+        The packed machine.
+    kp_si, kf : ndarray, shape (N, 3), float64
+        Position gain in 1/s (``Kp * KP_SI_PER_M_MIN_PER_MM``, positive) and feed-forward
+        factor per sample and axis, finite (not checked; read only).
+
+    Returns
+    -------
+    pos, u : ndarray, shape (N, 3)
+        As :class:`Simulation`'s, read-only.
+
+    Raises
+    ------
+    OptionError
+        Sample period different from Te.
+    MachineError
+        A setpoint moves an axis the machine lacks.
+    """
+    _same_period(setpoints, plant)
+    n = len(setpoints)
     machine = plant.machine
-    if not math.isclose(setpoints.dt, machine.te, rel_tol=1e-9):
-        raise OptionError(
-            f"setpoints period {setpoints.dt} s differs from the machine's Te {machine.te} s"
-        )
-    kp = _gain_table(kp_m_min_per_mm, "kp_m_min_per_mm", n)
-    kf_t = _gain_table(kf, "kf", n)
-    if np.any(kp <= 0.0):
-        raise OptionError("kp_m_min_per_mm: gains must be positive")
     pos = np.empty((n, 3))
     u = np.zeros((n, 3))
     params, states = np.zeros(plant.params.shape), np.zeros((3, plant.state_size))
@@ -194,11 +245,10 @@ def simulate(setpoints: Setpoints, machine: Machine | Plant, kp_m_min_per_mm, kf
             fused.append(c)
         else:
             pos[:, c], u[:, c] = simulate_axis(params[c], pd[0], np.ascontiguousarray(pd),
-                                               setpoints.vel[:, c],
-                                               kp[:, c] * KP_SI_PER_M_MIN_PER_MM, kf_t[:, c])
+                                               setpoints.vel[:, c], kp_si[:, c], kf[:, c])
     if fused:
         run_axes(states, params, np.array(fused, dtype=np.int64), setpoints.pos, setpoints.vel,
-                 kp * KP_SI_PER_M_MIN_PER_MM, kf_t, pos, u)
-    for arr in (pos, u, kp, kf_t):
+                 kp_si, kf, pos, u)
+    for arr in (pos, u):
         arr.flags.writeable = False
-    return Simulation(pos=pos, u=u, kp_m_min_per_mm=kp, kf=kf_t)
+    return pos, u

@@ -36,7 +36,7 @@ from oga.model.machine import Machine
 from oga.parallel import thread_map
 from oga.search.robust.plants import ScenarioSet, scenario_set
 from oga.model.stability import stable_ends
-from oga.verify.replay import Verification, verify
+from oga.verify.replay import ReplayGains, Verification, verify_prepared
 
 __all__ = ["PlantReplay", "Certificate", "share_bound", "confidence_text", "plant_bounds",
            "certify", "certify_result"]
@@ -278,14 +278,19 @@ def certify(
     if bounds is None:
         bounds = plant_bounds(scenarios, moving)
 
+    # the tables' plant-independent work (checks, SI gains, largest steps) once, not per plant
+    table = ReplayGains.of(setpoints, kp_m_min_per_mm, kf)
+    base = (None if baseline_replays is not None
+            else ReplayGains.of(setpoints, baseline_kp_m_min_per_mm, baseline_kf))
+
     def replay(i: int) -> PlantReplay:
         plant, bnd = scenarios.plants[i], bounds[i]
         return PlantReplay(
             label=scenarios.labels[i],
             kp_bounds=bnd,
             schedule=(schedule_replays[i] if schedule_replays and i in schedule_replays
-                      else verify(setpoints, plant, kp_m_min_per_mm, kf, bnd)),
-            baseline=(verify(setpoints, plant, baseline_kp_m_min_per_mm, baseline_kf, bnd)
+                      else verify_prepared(setpoints, plant, table, bnd)),
+            baseline=(verify_prepared(setpoints, plant, base, bnd)
                       if baseline_replays is None else baseline_replays[i]),
         )
 
@@ -295,14 +300,14 @@ def certify(
 
 def _batched(replay, n, progress, threads) -> list:
     """``replay(i)`` for ``i < n`` on ``threads`` threads, ``progress`` told the share done
-    after every batch."""
-    replays = []
-    for start in range(0, n, _PROGRESS_BATCH * threads):
-        replays += thread_map(replay, range(start, min(start + _PROGRESS_BATCH * threads, n)),
-                              threads)
-        if progress is not None:
-            progress(len(replays) / n)
-    return replays
+    after every :data:`_PROGRESS_BATCH` plants per thread (all submitted at once: no thread
+    waits for a batch's slowest replay)."""
+    every = _PROGRESS_BATCH * threads
+
+    def done(k: int) -> None:
+        if progress is not None and (k % every == 0 or k == n):
+            progress(k / n)
+    return thread_map(replay, range(n), threads, done)
 
 
 def _verdict(replays, scenarios) -> Certificate:

@@ -23,13 +23,14 @@ from numba import njit
 
 from feedplan.setpoints import AXES, Setpoints
 from oga.model.contour import contour_error_of
-from oga.model.machine import Machine
+from oga.model.machine import KP_SI_PER_M_MIN_PER_MM, Machine
 from oga.model.plant import Plant, plant_of
 from oga.model.metrics import ContourMetrics, nan_max, contour_metrics
 from oga.model.kinematics import command_peaks
-from oga.model.response import simulate
+from oga.model.response import gain_tables, simulate_si
 
-__all__ = ["Verification", "command_ratios", "ferror_ratios", "verify"]
+__all__ = ["Verification", "ReplayGains", "command_ratios", "ferror_ratios", "verify",
+           "verify_prepared"]
 
 #: Relative slack on the limit checks, for float64 rounding only.
 _SLACK = 1e-9
@@ -160,6 +161,52 @@ class Verification:
         return "ok" if self.ok else "failed"
 
 
+@dataclass(frozen=True, eq=False)
+class ReplayGains:
+    """A gain table as :func:`verify_prepared` replays it, with what its checks need that does
+    not depend on the plant: prepared once for a table replayed on many plants (a
+    certificate), the same :class:`Verification` as :func:`verify`'s.
+
+    Attributes
+    ----------
+    kp, kf : ndarray, shape (N, 3)
+        The gains, (m/min)/mm and factor (private copies: never written).
+    kp_si : ndarray, shape (N, 3)
+        ``kp * KP_SI_PER_M_MIN_PER_MM``, 1/s.
+    kp_range, kf_range : ndarray, shape (3, 2)
+        Least and largest Kp and Kf per axis.
+    max_dkp_per_sample, max_dkf_per_sample : ndarray, shape (3,)
+        Largest gain change between consecutive samples per axis.
+    """
+
+    kp: np.ndarray
+    kf: np.ndarray
+    kp_si: np.ndarray
+    kp_range: np.ndarray
+    kf_range: np.ndarray
+    max_dkp_per_sample: np.ndarray
+    max_dkf_per_sample: np.ndarray
+
+    @classmethod
+    def of(cls, setpoints: Setpoints, kp_m_min_per_mm, kf) -> "ReplayGains":
+        """The table ``kp_m_min_per_mm``, ``kf`` (N, 3) prepared for ``setpoints``.
+
+        Raises
+        ------
+        OptionError
+            Gains malformed, not finite or Kp not positive (as :func:`simulate`).
+        """
+        n = len(setpoints)
+        kp, kf_t = gain_tables(kp_m_min_per_mm, kf, n)
+
+        def ranges(t):
+            return np.column_stack([t.min(axis=0), t.max(axis=0)]) if n else np.zeros((3, 2))
+        shared = (ranges(kp), ranges(kf_t), _largest_steps(kp), _largest_steps(kf_t))
+        for arr in shared:  # in every Verification of the table
+            arr.flags.writeable = False
+        return cls(kp, kf_t, kp * KP_SI_PER_M_MIN_PER_MM, *shared)
+
+
 def verify(
     setpoints: Setpoints,
     machine: Machine,
@@ -184,17 +231,22 @@ def verify(
     -------
     Verification
     """
+    return verify_prepared(setpoints, machine, ReplayGains.of(setpoints, kp_m_min_per_mm, kf),
+                           kp_bounds)
+
+
+def verify_prepared(setpoints: Setpoints, machine: Machine, gains: ReplayGains,
+                    kp_bounds: dict[str, tuple[float, float]]) -> Verification:
+    """:func:`verify` of a table prepared once (:class:`ReplayGains`) for many plants."""
     plant = plant_of(machine)
     machine = plant.machine
-    kp = np.asarray(kp_m_min_per_mm, dtype=np.float64)
-    kf = np.asarray(kf, dtype=np.float64)
-    sim = simulate(setpoints, plant, kp, kf)
-    ce = contour_error_of(setpoints, sim.pos)
-    metrics = contour_metrics(ce, setpoints.pos, sim.pos, setpoints.counted)
-    ratio = command_ratios(sim.u, setpoints, plant)
+    pos, u = simulate_si(setpoints, plant, gains.kp_si, gains.kf)
+    ce = contour_error_of(setpoints, pos)
+    metrics = contour_metrics(ce, setpoints.pos, pos, setpoints.counted)
+    ratio = command_ratios(u, setpoints, plant)
     limit_v = [
         f"axis {a}: velocity command {what} reaches {ratio[k, j]:.3f}x its limit "
-        + _where(setpoints, _peak_sample(sim.u[:, k], j))
+        + _where(setpoints, _peak_sample(u[:, k], j))
         for k, a in enumerate(AXES)
         for j, what in enumerate(("velocity", "acceleration", "jerk"))
         if ratio[k, j] > 1.0 + _SLACK
@@ -205,33 +257,31 @@ def verify(
     limit_v += [
         f"axis {a}: following error reaches {track_max[k] * 1e3:.4f} mm, "
         f"{ferror_ratio[k]:.3f}x its limit ferror_max_m = {ferror_max[k] * 1e3:.4f} mm "
-        + _where(setpoints, int(np.argmax(np.abs(setpoints.pos[:, k] - sim.pos[:, k]))))
+        + _where(setpoints, int(np.argmax(np.abs(setpoints.pos[:, k] - pos[:, k]))))
         for k, a in enumerate(AXES)
         if ferror_ratio[k] > 1.0 + _SLACK
     ]
     gain_v = []
     for a, (lo, hi) in kp_bounds.items():
-        col = kp[:, AXES.index(a)]
-        if col.min() < lo - 1e-12 or col.max() > hi + 1e-12:
-            gain_v.append(
-                f"axis {a}: Kp leaves [{lo}, {hi}] (m/min)/mm: {col.min():.4f}..{col.max():.4f}"
-            )
+        k_lo, k_hi = gains.kp_range[AXES.index(a)]
+        if k_lo < lo - 1e-12 or k_hi > hi + 1e-12:
+            gain_v.append(f"axis {a}: Kp leaves [{lo}, {hi}] (m/min)/mm: {k_lo:.4f}..{k_hi:.4f}")
     kf_lo, kf_hi = machine.gains.kf_range
-    if kf.min() < kf_lo - 1e-12 or kf.max() > kf_hi + 1e-12:
-        gain_v.append(f"Kf leaves [{kf_lo}, {kf_hi}]: {kf.min():.4f}..{kf.max():.4f}")
+    f_lo, f_hi = gains.kf_range[:, 0].min(), gains.kf_range[:, 1].max()
+    if f_lo < kf_lo - 1e-12 or f_hi > kf_hi + 1e-12:
+        gain_v.append(f"Kf leaves [{kf_lo}, {kf_hi}]: {f_lo:.4f}..{f_hi:.4f}")
     limits_ok, stability_ok = not limit_v, not gain_v
-    dkp, dkf = _largest_steps(kp), _largest_steps(kf)
     return Verification(
         ok=limits_ok and stability_ok,
         limits_ok=limits_ok,
         stability_ok=stability_ok,
-        pos=sim.pos,
-        u=sim.u,
+        pos=pos,
+        u=u,
         ce=ce,
         metrics=metrics,
         command_ratio=ratio,
         ferror_ratio=ferror_ratio,
-        max_dkp_per_sample=dkp,
-        max_dkf_per_sample=dkf,
+        max_dkp_per_sample=gains.max_dkp_per_sample,
+        max_dkf_per_sample=gains.max_dkf_per_sample,
         violations=tuple(limit_v + gain_v),
     )

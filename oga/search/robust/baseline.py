@@ -68,7 +68,7 @@ from oga.search.robust.plants import ScenarioSet, perturbed_machine
 from oga.model.simulate import axis_params, rest_state, run, run_axes
 from oga.model.tangent import run_tangent
 from oga.model.stability import decimal_grid
-from oga.verify.replay import Verification, verify
+from oga.verify.replay import ReplayGains, Verification, verify_prepared
 
 __all__ = ["BaselineResult", "robust_baseline"]
 
@@ -713,8 +713,9 @@ def robust_baseline(
 
     def confirm(x: _Point) -> list[Verification]:
         n = len(setpoints)
-        kp_t, kf_t = np.full((n, 3), x.kp), np.full((n, 3), x.kf)
-        return thread_map(lambda i: verify(setpoints, all_plants[i], kp_t, kf_t, all_bounds[i]),
+        gains = ReplayGains.of(setpoints, np.full((n, 3), x.kp), np.full((n, 3), x.kf))
+        return thread_map(lambda i: verify_prepared(setpoints, all_plants[i], gains,
+                                                    all_bounds[i]),
                           range(len(all_plants)), threads)
 
     confirmations, x = 0, None
