@@ -19,7 +19,7 @@ import pytest
 
 from feedplan.read import read_toolpath
 from oga.identify.excite import excite_program
-from oga.identify.fit import PARAMETERS, fit_axis
+from oga.identify.fit import PARAMETERS, fit_axis, start_position
 from oga.identify.sim import random_cascade, simulate_forces, synthetic_trace
 from oga.identify.trace import AxisTrace, TraceError, read_trace, trace_csv
 from oga.model.machine import load_machine, machine_from_dict
@@ -210,6 +210,23 @@ def test_simulate_forces_matches_the_simulator(ucp, excite_x):
     sl = slice(k + 1000, k + 1500)
     assert np.all(np.abs(vd[sl] - 0.01) < 1e-12)
     np.testing.assert_allclose(f[sl], cas.coulomb_n + cas.viscous_n_s_m * 0.01, rtol=1e-6)
+
+
+def test_the_start_position_is_the_command_unless_measurably_off():
+    """The simulation starts where the axis stands: at its command where the positions before
+    the first move cannot tell them apart (a first sample 3 sigma off included), at their
+    median where the standing error is measurable (50 sigma)."""
+    rng = np.random.default_rng(0)
+    cmd = np.r_[np.full(2000, 0.01), 0.01 + np.linspace(0.0, 1e-3, 3000)]
+
+    def measured(offset_m):  # 0.1 um noise and quantum
+        return np.round((cmd + offset_m + rng.normal(0.0, 1e-7, cmd.size)) / 1e-7) * 1e-7
+
+    meas = measured(0.0)
+    meas[0] = cmd[0] + 3e-7
+    assert start_position(cmd, meas) == cmd[0]
+    assert start_position(cmd[2000:], meas[2000:]) == cmd[2000]  # moving from the first sample
+    assert start_position(cmd, measured(5e-6)) == pytest.approx(cmd[0] + 5e-6, abs=1e-8)
 
 
 @pytest.fixture(scope="module")

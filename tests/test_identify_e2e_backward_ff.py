@@ -1,0 +1,9 @@
+"""End to end identification from a feed-forward velocity recorded as the backward difference of
+the commands: the table made with the identified machine holds on the true perturbed plant
+(tests/identify_e2e_cases.py; one case per file, so that xdist spreads them)."""
+
+from tests.identify_e2e_cases import check_case
+
+
+def test_identified_table_holds_on_the_true_plant_backward_ff():
+    check_case("backward_ff")
