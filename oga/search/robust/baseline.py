@@ -440,6 +440,36 @@ def _peak_slopes(u, su, p, sp, pd, te, peaks, slopes):
     peaks[0], peaks[1], peaks[2], peaks[3] = v_pk, da_pk / te, dj_pk / (te * te), e_pk
 
 
+class _Cuts:
+    """The limits a refused step broke, linearised where it broke them (ratio and slope at
+    that point's own peak sample), as rows of the next steps' QPs.
+
+    Why: a limit's model at the current point is its peak sample's; along the boundary of
+    the feasible gains the peak moves to another sample, the model promises room that is not
+    there, and the region shrank until the refinement stopped (circle_r50_f3000: stopped at
+    Kp 1.4257 / Kf 0.8966 on a limit, where Kp 1.41 / Kf 0.90 keeps every plant's checks
+    and its aggregate is 5.8 % lower)."""
+
+    def __init__(self):
+        self.at, self.ratios, self.slopes = [], [], []
+
+    def add(self, kp: float, kf: float, ratios: np.ndarray, slopes: np.ndarray) -> None:
+        """The broken limits (ratio > 1) of one plant at ``(kp, kf)``: ratios (A, 4), slopes
+        (A, 4, 2) per unit of Kp and Kf."""
+        broken = ratios.ravel() > 1.0
+        self.at += [(kp, kf)] * int(broken.sum())
+        self.ratios += list(ratios.ravel()[broken])
+        self.slopes += list(slopes.reshape(-1, 2)[broken])
+
+    def rows(self, centre: np.ndarray, scale: np.ndarray, cap: float):
+        """Rows and right-hand sides in grid steps ``scale`` from ``centre``: each cut's
+        ratio, extended linearly from where it broke, at most ``cap``."""
+        if not self.at:
+            return np.zeros((0, 2)), np.zeros(0)
+        at, s = np.array(self.at), np.array(self.slopes)
+        return s * scale, cap - np.array(self.ratios) - ((centre - at) * s).sum(axis=1)
+
+
 @dataclass
 class _Point:
     """One point of the refinement: its figures over the objective plants (the sum of squared
@@ -611,6 +641,7 @@ class _Search:
         box = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
         margin = defaults.ROBUST_BASELINE_MARGIN
         radius = 2.0  # in grid steps
+        cuts = _Cuts()
         for _ in range(defaults.ROBUST_BASELINE_ITERATIONS):
             slopes = x.slopes * scale
             reach = x.ratios + np.abs(slopes).sum(axis=1) * radius  # the most within the region
@@ -621,8 +652,10 @@ class _Search:
             centre = np.array([x.kp, x.kf])
             box_rhs = np.maximum(np.concatenate([(hi - centre) / scale, (centre - lo) / scale]),
                                  0.0)
-            step = _qp(x.g * scale, x.h * np.outer(scale, scale), np.vstack([slopes[near], box]),
-                       np.concatenate([rhs, box_rhs]), radius)
+            cut_rows, cut_rhs = cuts.rows(centre, scale, 1.0 - margin)
+            step = _qp(x.g * scale, x.h * np.outer(scale, scale),
+                       np.vstack([slopes[near], cut_rows, box]),
+                       np.concatenate([rhs, cut_rhs, box_rhs]), radius)
             size = float(np.max(np.abs(step)))
             gain = -(2.0 * x.g @ (step * scale) + (step * scale) @ x.h @ (step * scale))
             if size < defaults.ROBUST_BASELINE_TOL or (
@@ -630,6 +663,8 @@ class _Search:
                 break
             kp, kf = (round(float(v), 6) for v in np.clip(centre + step * scale, lo, hi))
             if x.holds and self.breaks(kp, kf, modelled, x):  # refused, whatever its total
+                q = self.breakers[0]
+                cuts.add(kp, kf, *self.packed.tangent(q, kp, kf, q in modelled)[1:3])
                 radius = size / 4.0
                 continue
             y = self.point(kp, kf, modelled)
