@@ -25,7 +25,7 @@ LONG = "G21 G90\nG1 X0 Y0 F600\nG1 X1000\nM2\n"
 #: Three circles twice at F600 (150 s of motion): several seconds of CPU, most of it in the
 #: best-fixed-gains grid and the search (a lone line is planned by ruckig in no time).
 HOG = "G21 G90\nG1 X0 Y0 F600\n" + "G2 X0 Y0 I50 J0\nG2 X0 Y0 I40 J0\nG2 X0 Y0 I30 J0\n" * 2 + "M2\n"
-#: 600 s of motion: its worker's resident memory passes 300 MiB (about 220 MiB for SHORT).
+#: 600 s of motion: its worker's resident memory passes 1.5 GB within 20 s (SHORT's: about 280 MB).
 BIG = "G21 G90\nG1 X0 Y0 F600\nG1 X6000\nM2\n"
 FINISHED = ("succeeded", "failed", "cancelled")
 
@@ -238,7 +238,9 @@ def test_a_stalled_worker_shows_in_healthz_and_delete_ends_it_at_once(tmp_path):
 
 @pytest.mark.parametrize("flags, program, words, kind", [
     (("--job-cpu-s", "2"), HOG, "job exceeded its CPU-time limit of 2 s", "CpuTimeLimit"),
-    (("--job-memory-mb", "300"), BIG, "job exceeded its memory limit of 300 MiB", "MemoryLimit"),
+    # 500 MiB: a short job's worker peaks at ~280 MB resident (measured, oga optimize alone:
+    # 278 MB; 300 MiB failed it in CI), BIG's passes 1.5 GB within 20 s
+    (("--job-memory-mb", "500"), BIG, "job exceeded its memory limit of 500 MiB", "MemoryLimit"),
 ], ids=["cpu", "memory"])
 def test_a_job_over_its_cap_fails_once_and_the_next_job_runs(tmp_path, flags, program, words,
                                                             kind):

@@ -200,11 +200,13 @@ def test_curvature_of_a_circle_is_one_over_its_radius():
     kappa = curvature(sp)
     speed = np.linalg.norm(sp.vel, axis=1)
     tangential = np.abs(np.sum(sp.vel * sp.acc, axis=1)) / np.maximum(speed, 1e-300)
-    steady = ~sp.rapid & (speed > 0) & (tangential < 1e-4)  # at constant feed, m/s^2
+    # at constant feed, m/s^2 (the exact-curve profile's speed wobbles by ~1e-6 relative on
+    # the arc: tangential acceleration up to ~1e-3 on 93 % of the samples, measured)
+    steady = ~sp.rapid & (speed > 1e-3 * speed.max()) & (tangential < 1e-3)  # kappa defined
     assert steady.sum() > 0.9 * len(sp)
     # exact geometry: 1/R (the setpoints lie within the 20 um chord tolerance of R 50 mm)
     assert np.allclose(kappa[steady], 1 / 0.05, rtol=1e-3)
-    assert np.isnan(kappa[speed == 0]).all()
+    assert np.isnan(kappa[speed <= 1e-3 * speed.max()]).all() and (speed == 0).any()
 
 
 def test_drawn_command_derivatives_are_the_eq2_peaks(paper_job):
