@@ -175,7 +175,6 @@ def simulate(setpoints: Setpoints, machine: Machine | Plant, kp_m_min_per_mm, kf
         A setpoint moves an axis the machine lacks.
     """
     plant = plant_of(machine)
-    _same_period(setpoints, plant)
     kp, kf_t = gain_tables(kp_m_min_per_mm, kf, len(setpoints))
     pos, u = simulate_si(setpoints, plant, kp * KP_SI_PER_M_MIN_PER_MM, kf_t)
     for arr in (kp, kf_t):
