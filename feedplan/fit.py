@@ -109,6 +109,10 @@ FIT_KNOT_SPACING_M = 0.5e-3
 BLEND_MIN_TURN_RAD = 1e-3
 #: Corners turning more than this are exact stops whatever the path control (a reversal).
 BLEND_MAX_TURN_RAD = 0.95 * np.pi
+#: Least turn of the unit tangent (rad) and jump of the curvature vector (1/m: a radius of
+#: 1 km) where two pieces meet that is blended (:func:`_jointed`); below, a piece's float
+#: noise at its end.
+JOINT_MIN_TURN_RAD, JOINT_MIN_JUMP_PER_M = 1e-9, 1e-3
 #: Largest number of knot refinements of one fit.
 _FIT_ROUNDS = 12
 #: Smoothing length of a fit, in mean chords of the run (the cut-off wavelength of the
@@ -743,10 +747,10 @@ class _CurveBuilder:
         self.rows.append(row)
         self.length += row[0]
 
-    def line(self, a: np.ndarray, b: np.ndarray) -> None:
+    def line(self, a: np.ndarray, b: np.ndarray, dev: float = 0.0) -> None:
         L = float(np.linalg.norm(b - a))
         z = np.zeros(3)
-        self._append([L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z, 0.0])
+        self._append([L, _LINE, a, (b - a) / L, z, z, 0.0, 0.0, z, dev])
 
     def arc(self, seg: Arc) -> None:
         i, j, n = PLANES[seg.plane]
@@ -879,53 +883,93 @@ def _feed_chains(path: Path, idx: list[int], blending: Blending | None) -> list[
     return chains
 
 
-def _pieces(path: Path, ids: list[int], fit_tol_m: float,
-            fitted: set[int]) -> list[_CurveBuilder]:
-    """Curves of consecutive moves without a blended corner; more than one where a fit
-    splits (blends or exact stops between them, :func:`_chain_blocks`). ``fitted``: the
-    moves whose corner with the previous move lies inside a fitted run
-    (:func:`_fitted_corners`)."""
+def _chord_stretches(verts: np.ndarray, fit_tol_m: float) -> list[tuple[int, int]]:
+    """Consecutive stretches ``verts[first..last]`` of a short run of micro-segments, each as
+    long as its vertices stay within ``fit_tol_m`` of its chord (:func:`collinear_run`): a
+    CAM's jitter of micrometre moves dropped, the corners between stretches kept."""
+    out, first, n = [], 0, len(verts) - 1
+    while first < n:
+        last = first + 1
+        while last < n and collinear_run(verts[first:last + 2], fit_tol_m) is not None:
+            last += 1
+        out.append((first, last))
+        first = last
+    return out
+
+
+def _add_run(out: list, run_ids: list[int], verts: np.ndarray, fit_tol_m: float) -> None:
+    """Append a run of at least :data:`MICRO_RUN_MIN` micro-segments to the last curve of
+    ``out``: its chord where straight, else its fitted splines (a new curve where a fit
+    splits, an exact stop unless blended)."""
+    b = out[-1][0]
+    straight = collinear_run(verts, COLLINEAR_TOL_SHARE * fit_tol_m)
+    if straight is not None:  # a straight run: the line itself (ruckig plans it alone)
+        along, dev = straight
+        base = b.seg_u[-1]
+        b.line(verts[0], verts[-1], dev)
+        b.seg_ids.extend(run_ids)
+        b.seg_u.extend(base + along[1:])
+        b.fit_dev = max(b.fit_dev, dev)
+        return
+    for first, last, spl, dev in fit_polyline(verts, fit_tol_m):
+        if first > 0:
+            out.append((_CurveBuilder(), True))
+            b = out[-1][0]
+        chord = np.linalg.norm(np.diff(verts[first : last + 1], axis=0), axis=1)
+        base = b.seg_u[-1]
+        b.spline(spl, float(chord.sum()), dev)
+        b.seg_ids.extend(run_ids[first:last])
+        b.seg_u.extend(base + np.cumsum(chord))
+        b.fit_dev = max(b.fit_dev, dev)
+
+
+def _pieces(path: Path, ids: list[int], fit_tol_m: float, fitted: set[int],
+            blending: Blending | None) -> list[tuple[_CurveBuilder, bool]]:
+    """Curves of consecutive moves without a blended corner between them, each with whether
+    an exact stop separates it from the previous one unless blended (a fit's split,
+    :func:`_chain_blocks`) or not (a joint: passed as it is unless blended).
+
+    ``fitted``: the moves whose corner with the previous move lies inside a fitted run
+    (:func:`_fitted_corners`). Where the move before may be blended (:func:`_blendable`),
+    every move or run starts a curve of its own, so that a tangent joint with a jump of
+    curvature (a line into an arc) or of the tangent (a spline's end into a line) is blended
+    too; a run of fewer than :data:`MICRO_RUN_MIN` fitted micro-segments is then cut into
+    stretches within ``fit_tol_m`` of their chords (:func:`_chord_stretches`), one line each.
+    """
     segs = path.segments
-    out = [_CurveBuilder()]
+    out = [(_CurveBuilder(), False)]
     k = 0
     while k < len(ids):
-        b = out[-1]
         run = k + 1
         while run < len(ids) and ids[run] in fitted:
             run += 1
+        split = _blendable(path, ids[k - 1], blending) if k > 0 else False
+        if split:
+            out.append((_CurveBuilder(), False))
+        run_ids = ids[k:run]
+        verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
         if run - k >= MICRO_RUN_MIN:
-            run_ids = ids[k:run]
-            verts = np.vstack([segs[run_ids[0]].start] + [segs[i].end for i in run_ids])
-            straight = collinear_run(verts, COLLINEAR_TOL_SHARE * fit_tol_m)
-            if straight is not None:  # a straight run: the line itself (ruckig plans it alone)
-                along, dev = straight
-                base = b.seg_u[-1]
-                b.line(verts[0], verts[-1])
-                b.seg_ids.extend(run_ids)
-                b.seg_u.extend(base + along[1:])
-                b.fit_dev = max(b.fit_dev, dev)
-                k = run
-                continue
-            for first, last, spl, dev in fit_polyline(verts, fit_tol_m):
-                if first > 0:
-                    out.append(_CurveBuilder())
-                    b = out[-1]
-                chord = np.linalg.norm(np.diff(verts[first : last + 1], axis=0), axis=1)
-                base = b.seg_u[-1]
-                b.spline(spl, float(chord.sum()), dev)
-                b.seg_ids.extend(run_ids[first:last])
-                b.seg_u.extend(base + np.cumsum(chord))
-                b.fit_dev = max(b.fit_dev, dev)
+            _add_run(out, run_ids, verts, fit_tol_m)
             k = run
             continue
-        seg = segs[ids[k]]
-        if isinstance(seg, Line):
-            b.line(seg.start, seg.end)
-        else:
-            b.arc(seg)
-        b.seg_ids.append(ids[k])
-        b.seg_u.append(b.seg_u[-1] + seg.length)
-        k += 1
+        stretches = _chord_stretches(verts, fit_tol_m) if blending is not None else [(0, 1)]
+        for j, (first, last) in enumerate(stretches):
+            if j > 0:
+                out.append((_CurveBuilder(), False))
+            b, seg = out[-1][0], segs[run_ids[first]]
+            if last - first > 1:
+                along, dev = collinear_run(verts[first:last + 1], fit_tol_m)
+                b.line(verts[first], verts[last], dev)
+                b.seg_u.extend(b.seg_u[-1] + along[1:])
+                b.fit_dev = max(b.fit_dev, dev)
+            elif isinstance(seg, Line):
+                b.line(seg.start, seg.end)
+                b.seg_u.append(b.seg_u[-1] + seg.length)
+            else:
+                b.arc(seg)
+                b.seg_u.append(b.seg_u[-1] + seg.length)
+            b.seg_ids.extend(run_ids[first:last])
+        k += stretches[-1][1]
     return out
 
 
@@ -970,6 +1014,17 @@ def _blend(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -
     if corner_speed_m_s(blend, lim.amax_m_s2, lim.jmax_m_s3) < BLEND_MIN_SPEED_SHARE * feed:
         return None
     return blend
+
+
+def _jointed(a: _CurveBuilder, b: _CurveBuilder) -> bool:
+    """Whether the end of ``a`` meets the start of ``b`` with a jump of the unit tangent or of
+    the curvature vector (above :data:`JOINT_MIN_TURN_RAD`, :data:`JOINT_MIN_JUMP_PER_M`)."""
+    end, start = a.piece_curve(-1), b.piece_curve(0)
+    _, t0, k0, _ = end.evaluate(np.array([end.length]), left=True)
+    _, t1, k1, _ = start.evaluate(np.array([0.0]))
+    t0, t1 = t0[0] / np.linalg.norm(t0[0]), t1[0] / np.linalg.norm(t1[0])
+    return (float(np.linalg.norm(t1 - t0)) > JOINT_MIN_TURN_RAD
+            or float(np.linalg.norm(k1[0] - k0[0])) > JOINT_MIN_JUMP_PER_M)
 
 
 def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
@@ -1065,20 +1120,19 @@ def _chain_blocks(path: Path, chain: list[int], turns: list[float], fit_tol_m: f
     blocks: list[Block] = []
     cur: _CurveBuilder | None = None
     for run, turn in zip(runs, into):
-        parts = _pieces(path, run, fit_tol_m, fitted)
-        if cur is None:
-            cur = parts[0]
-        else:
-            blend = _blend(cur, parts[0], path, blending)
-            if blend is not None or turn <= CORNER_ANGLE_RAD:
-                _merge(cur, parts[0], blend)
-            else:
-                blocks.append(cur.block())
-                cur = parts[0]
-        for part in parts[1:]:  # where a fit splits
-            blend = (_blend(cur, part, path, blending)
-                     if _blendable(path, cur.seg_ids[-1], blending) else None)
-            if blend is not None:
+        for i, (part, stop) in enumerate(_pieces(path, run, fit_tol_m, fitted, blending)):
+            if cur is None:
+                cur = part
+                continue
+            if i == 0:  # a corner between runs: blended, or a kink, or an exact stop
+                blend = _blend(cur, part, path, blending)
+                keep = blend is not None or turn <= CORNER_ANGLE_RAD
+            else:  # a fit's split (blended or an exact stop) or a joint (blended or kept)
+                blend = (_blend(cur, part, path, blending)
+                         if _blendable(path, cur.seg_ids[-1], blending) and _jointed(cur, part)
+                         else None)
+                keep = blend is not None or not stop
+            if keep:
                 _merge(cur, part, blend)
             else:
                 blocks.append(cur.block())
