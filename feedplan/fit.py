@@ -110,9 +110,16 @@ BLEND_MIN_TURN_RAD = 1e-3
 #: Corners turning more than this are exact stops whatever the path control (a reversal).
 BLEND_MAX_TURN_RAD = 0.95 * np.pi
 #: Least turn of the unit tangent (rad) and jump of the curvature vector (1/m: a radius of
-#: 1 km) where two pieces meet that is blended (:func:`_jointed`); below, a piece's float
+#: 1 km) where two pieces meet that is blended (:func:`_costly_joint`); below, a piece's float
 #: noise at its end.
 JOINT_MIN_TURN_RAD, JOINT_MIN_JUMP_PER_M = 1e-9, 1e-3
+#: A tangent joint with a jump of curvature is blended where a sampled plan would pass it
+#: slower than this share of the feed (:func:`_costly_joint`). Measured on ucp710: plasmatest's
+#: 0.75 mm corner arcs at F5840 (about 0.14 of it) and 3.85 mm ones (0.31) blended, 1.0 %
+#: faster than the 0.75 mm ones alone (share 0.3); reference_xz's 3.5-10 mm arcs at F3000
+#: (0.44-0.98) kept (blended: 1.7 % slower, the planner's own rounding of such a joint costs
+#: less than a blend taking its share of the tolerance).
+JOINT_BLEND_SPEED_SHARE = 0.4
 #: Largest number of knot refinements of one fit.
 _FIT_ROUNDS = 12
 #: Smoothing length of a fit, in mean chords of the run (the cut-off wavelength of the
@@ -1016,15 +1023,32 @@ def _blend(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -
     return blend
 
 
-def _jointed(a: _CurveBuilder, b: _CurveBuilder) -> bool:
-    """Whether the end of ``a`` meets the start of ``b`` with a jump of the unit tangent or of
-    the curvature vector (above :data:`JOINT_MIN_TURN_RAD`, :data:`JOINT_MIN_JUMP_PER_M`)."""
+def _costly_joint(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blending) -> bool:
+    """Whether the end of ``a`` meets the start of ``b`` at a joint worth blending: a kink of
+    more than :data:`BLEND_MIN_TURN_RAD`, or a jump of the curvature vector ``d kappa`` (above
+    :data:`JOINT_MIN_JUMP_PER_M`) that slows a sampled plan below
+    :data:`JOINT_BLEND_SPEED_SHARE` of the feed: spread over the time ``T`` of a filter rounding
+    the curve by the tolerance, ``T^3 = 24 tol / J``, the acceleration step ``v^2 |d kappa_i|``
+    is a jerk within ``J_i`` up to ``v = sqrt(J_i T / |d kappa_i|)`` (the least over the axes).
+    Where it passes faster, the planner's own rounding of the joint costs little, and a blend
+    taking its share of the tolerance costs more (measured on reference_xz: 2 % slower).
+    Without limits every joint is worth it."""
     end, start = a.piece_curve(-1), b.piece_curve(0)
     _, t0, k0, _ = end.evaluate(np.array([end.length]), left=True)
     _, t1, k1, _ = start.evaluate(np.array([0.0]))
-    t0, t1 = t0[0] / np.linalg.norm(t0[0]), t1[0] / np.linalg.norm(t1[0])
-    return (float(np.linalg.norm(t1 - t0)) > JOINT_MIN_TURN_RAD
-            or float(np.linalg.norm(k1[0] - k0[0])) > JOINT_MIN_JUMP_PER_M)
+    turn = _turn(t0[0] / np.linalg.norm(t0[0]), t1[0] / np.linalg.norm(t1[0]))
+    jump = np.abs(k1[0] - k0[0])
+    if turn > BLEND_MIN_TURN_RAD or blending.limits is None:
+        return turn > JOINT_MIN_TURN_RAD or float(np.linalg.norm(jump)) > JOINT_MIN_JUMP_PER_M
+    if not float(np.linalg.norm(jump)) > JOINT_MIN_JUMP_PER_M:
+        return False
+    lim = blending.limits
+    jmax = lim.jmax_m_s3[lim.present]
+    t = math.cbrt(24.0 * blending.tol_m / float(np.min(jmax)))
+    with np.errstate(divide="ignore"):
+        v = float(np.sqrt(np.min(jmax * t / jump[lim.present])))
+    feed = min(blending.feed(path, a.seg_ids[-1]), blending.feed(path, b.seg_ids[0]))
+    return v < JOINT_BLEND_SPEED_SHARE * feed
 
 
 def _merge(a: _CurveBuilder, b: _CurveBuilder, blend: Blend | None) -> None:
@@ -1129,7 +1153,8 @@ def _chain_blocks(path: Path, chain: list[int], turns: list[float], fit_tol_m: f
                 keep = blend is not None or turn <= CORNER_ANGLE_RAD
             else:  # a fit's split (blended or an exact stop) or a joint (blended or kept)
                 blend = (_blend(cur, part, path, blending)
-                         if _blendable(path, cur.seg_ids[-1], blending) and _jointed(cur, part)
+                         if _blendable(path, cur.seg_ids[-1], blending)
+                         and _costly_joint(cur, part, path, blending)
                          else None)
                 keep = blend is not None or not stop
             if keep:
