@@ -1154,7 +1154,7 @@ def _chain_blocks(path: Path, chain: list[int], turns: list[float], fit_tol_m: f
             else:  # a fit's split (blended or an exact stop) or a joint (blended or kept)
                 blend = (_blend(cur, part, path, blending)
                          if _blendable(path, cur.seg_ids[-1], blending)
-                         and _costly_joint(cur, part, path, blending)
+                         and (stop or _costly_joint(cur, part, path, blending))
                          else None)
                 keep = blend is not None or not stop
             if keep:
