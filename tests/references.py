@@ -273,6 +273,39 @@ def regen(kind: str) -> None:
     print(f"wrote {path(kind)} ({path(kind).stat().st_size} bytes, {len(arrays)} arrays)")
 
 
+#: ucp710's values as parsed (``model_dump(mode="json", exclude_none=True)``), stored when its
+#: digest was 22ad1a24...: what a table made for ucp710 was made for. Some are derived by the
+#: model (``kv_n_s_m``), so they are compared with :data:`VALUES_REL`, never by a hash.
+UCP710_VALUES = FOLDER / "ucp710_values.json"
+#: Relative tolerance of a stored machine value: a derived float's last bits, nothing more.
+VALUES_REL = 1e-12
+
+
+def ucp710_values() -> dict:
+    """The stored values of ucp710 (:data:`UCP710_VALUES`)."""
+    return json.loads(UCP710_VALUES.read_text())
+
+
+def value_differences(got, want, where: str = "") -> list[str]:
+    """Where two JSON-like trees differ: keys, types, strings exactly, numbers beyond
+    :data:`VALUES_REL` of the stored one. Empty when they agree."""
+    if isinstance(want, dict) and isinstance(got, dict):
+        out = [f"{where}/{k}: missing or extra" for k in sorted(set(got) ^ set(want))]
+        for k in sorted(set(got) & set(want)):
+            out += value_differences(got[k], want[k], f"{where}/{k}")
+        return out
+    if isinstance(want, list) and isinstance(got, list) and len(got) == len(want):
+        return [d for i, (g, w) in enumerate(zip(got, want))
+                for d in value_differences(g, w, f"{where}[{i}]")]
+    numbers = (int, float)
+    if (isinstance(want, numbers) and isinstance(got, numbers)
+            and not isinstance(want, bool) and not isinstance(got, bool)):
+        ok = abs(got - want) <= VALUES_REL * abs(want)
+    else:
+        ok = type(got) is type(want) and got == want
+    return [] if ok else [f"{where}: {got!r} != {want!r}"]
+
+
 def _differences(a: dict, b: dict) -> dict[str, float]:
     """Per array name (without its case): the largest absolute difference over the cases;
     ``inf`` where a non-float array (count, flag, index) differs or a shape does."""
