@@ -1038,9 +1038,12 @@ def _costly_joint(a: _CurveBuilder, b: _CurveBuilder, path: Path, blending: Blen
     _, t1, k1, _ = start.evaluate(np.array([0.0]))
     turn = _turn(t0[0] / np.linalg.norm(t0[0]), t1[0] / np.linalg.norm(t1[0]))
     jump = np.abs(k1[0] - k0[0])
-    if turn > BLEND_MIN_TURN_RAD or blending.limits is None:
-        return turn > JOINT_MIN_TURN_RAD or float(np.linalg.norm(jump)) > JOINT_MIN_JUMP_PER_M
-    if not float(np.linalg.norm(jump)) > JOINT_MIN_JUMP_PER_M:
+    jumps = float(np.linalg.norm(jump)) > JOINT_MIN_JUMP_PER_M
+    if turn > BLEND_MIN_TURN_RAD:
+        return True
+    if blending.limits is None:
+        return jumps or turn > JOINT_MIN_TURN_RAD
+    if not jumps:
         return False
     lim = blending.limits
     jmax = lim.jmax_m_s3[lim.present]
