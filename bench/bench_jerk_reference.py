@@ -40,6 +40,12 @@ two references is the reserve's price):
   ``sampled`` (the step must look, at the 1 ms sample period, like a jerk within the
   limits: ``|dr''| udot^2 <= J dt``, ``|dr'| udot <= min(A dt, J dt^2)``).
 
+A block of more than ``--max-nodes`` nodes is split into consecutive windows of at most that
+many nodes, each solved with the speed and acceleration at its boundaries free (at rest only at
+the block's real start and end): the sum of the windows' times is the optimum of a relaxation,
+a lower bound of the block's (so planned / jerk stays conservative); each window's 1 ms
+re-check covers its own samples, the worst over the windows is reported.
+
 IPOPT returns a local optimum: a feasible time, i.e. an UPPER estimate of the jerk-limited
 optimum along the same curves and stops (the true optimum lies between ``toppra`` and
 ``jerk``). It is an optimum along the exact curve: the planner may leave the curve by the
@@ -157,22 +163,49 @@ def solve_block(blk, segs, limits: AxisLimits, spacing_m: float, max_nodes: int,
                 max_iter: int, time_limit_s: float, joints: str = "free",
                 refine: int = 3) -> JerkResult:
     """Time-optimal jerk-limited rest-to-rest time along ``blk.curve`` (module docstring;
-    ``joints``: "free" or "sampled"); while the 1 ms re-check away from the joints exceeds
-    a limit by more than 1 %, up to ``refine`` times again with every interval halved (the
-    last solution IPOPT solved is returned, or the last failure if none)."""
+    ``joints``: "free" or "sampled"). A grid of more than ``max_nodes`` nodes is split into
+    consecutive windows of at most ``max_nodes`` nodes, each solved with its boundary speed
+    and acceleration free (at rest only at the block's ends): the sum is a lower bound of
+    the whole block's optimum (a relaxation); the re-check and status are the worst over the
+    windows, each window's re-check covering its own samples only."""
     c0 = time.process_time()
-    u = _grid(blk.curve, spacing_m, 8, max_nodes)
+    u = _grid(blk.curve, spacing_m, 8, 1 << 40)
+    if u.size <= max_nodes:
+        res = _solve_refined(blk, segs, limits, u, max_nodes, max_iter, time_limit_s, joints,
+                             refine, (True, True))
+    else:
+        cuts = np.linspace(0, u.size - 1, -(-(u.size - 1) // (max_nodes - 1)) + 1).astype(int)
+        parts = [_solve_refined(blk, segs, limits, u[a:b + 1], max_nodes, max_iter,
+                                time_limit_s, joints, refine, (a == 0, b == u.size - 1))
+                 for a, b in zip(cuts[:-1], cuts[1:])]
+        bad = [r.status for r in parts if not math.isfinite(r.time_s)]
+        res = JerkResult(float(sum(r.time_s for r in parts)),
+                         f"{len(parts)} windows" + (f", {bad[0]}" if bad else ""),
+                         tuple(float(np.nanmax([r.recheck[i] for r in parts]))
+                               if not all(math.isnan(r.recheck[i]) for r in parts) else math.nan
+                               for i in range(5)),
+                         sum(r.nodes for r in parts) - len(parts) + 1, 0.0,
+                         sum(r.joints for r in parts))
+    res.cpu_s = time.process_time() - c0
+    return res
+
+
+def _solve_refined(blk, segs, limits, u, max_nodes, max_iter, time_limit_s, joints, refine,
+                   rest) -> JerkResult:
+    """:func:`_solve_on_grid` on ``u``, again with every interval halved (``refine`` times at
+    most, while the grid stays within ``max_nodes``) while the 1 ms re-check away from the
+    joints exceeds a limit by more than 1 % (the last solved solution, or the last failure)."""
     res = None
     for _ in range(refine + 1):
-        new = _solve_on_grid(blk, segs, limits, u, max_iter, time_limit_s, joints)
+        new = _solve_on_grid(blk, segs, limits, u, max_iter, time_limit_s, joints, rest=rest)
         if not math.isfinite(new.time_s):  # IPOPT failed: once more from a slower guess
-            new = _solve_on_grid(blk, segs, limits, u, max_iter, time_limit_s, joints, 0.2)
+            new = _solve_on_grid(blk, segs, limits, u, max_iter, time_limit_s, joints, 0.2,
+                                 rest)
         if res is None or math.isfinite(new.time_s) or not math.isfinite(res.time_s):
             res = new
         if max(new.recheck[:4]) <= 1.01 or 2 * u.size > max_nodes:
             break
         u = np.sort(np.concatenate([u, (u[1:] + u[:-1]) / 2]))
-    res.cpu_s = time.process_time() - c0
     return res
 
 
@@ -189,9 +222,11 @@ def _joints(curve, u: np.ndarray, ax: np.ndarray) -> np.ndarray:
 
 
 def _solve_on_grid(blk, segs, limits: AxisLimits, u: np.ndarray, max_iter: int,
-                   time_limit_s: float, joints: str, guess: float = 0.7) -> JerkResult:
+                   time_limit_s: float, joints: str, guess: float = 0.7,
+                   rest: tuple = (True, True)) -> JerkResult:
     """:func:`solve_block` on the nodes ``u``, IPOPT started from a profile at ``guess``
-    times the nodes' speed ceilings."""
+    times the nodes' speed ceilings; at rest at the first / last node where ``rest`` says
+    so (elsewhere the speed and acceleration there are free)."""
     import casadi as ca
 
     curve = blk.curve
@@ -270,7 +305,7 @@ def _solve_on_grid(blk, segs, limits: AxisLimits, u: np.ndarray, max_iter: int,
                           np.full(n, 1e-4)])
     ubx = np.concatenate([np.full(n + 1, np.inf), np.full(n + 1, np.inf), np.full(n, np.inf),
                           np.full(n, 1e4)])
-    for k in (0, n):  # at rest at both ends
+    for k in [k for k, r in zip((0, n), rest) if r]:  # at rest at the ends asked
         ubx[k] = lbx[k] = 0.0
         ubx[n + 1 + k] = lbx[n + 1 + k] = 0.0
     a0 = np.concatenate([np.diff(v0) / h0, [0.0]])
@@ -288,23 +323,25 @@ def _solve_on_grid(blk, segs, limits: AxisLimits, u: np.ndarray, max_iter: int,
     vk, ak = xs[:n + 1] * vs, xs[n + 1:2 * n + 2] * as_
     jk, hk = xs[2 * n + 2:3 * n + 2] * js, xs[3 * n + 2:] * h0
     chk = recheck(curve, u, vk, ak, jk, hk, limits, lambda uu: _feed_at(blk, segs, uu),
-                  u[joint])
+                  u[joint], rest)
     ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
     return JerkResult(float(np.sum(hk)) if ok else math.nan, status, chk, n + 1, 0.0,
                       int(joint.sum()))
 
 
-def recheck(curve, u, v, a, j, h, limits: AxisLimits, feed_of, u_joints) -> tuple:
+def recheck(curve, u, v, a, j, h, limits: AxisLimits, feed_of, u_joints,
+            rest: tuple = (True, True)) -> tuple:
     """Worst v, a, j and speed ratios of the solution sampled at ``DT`` (finite differences
-    of the positions ``r(u(t))``, at rest before and after) where no difference spans one of
+    of the positions ``r(u(t))``, at rest before and after where ``rest`` says so, else
+    only the samples within ``u[0]..u[-1]``) where no difference spans one of
     the joints ``u_joints``, and the worst jerk ratio of the differences that do (nan if
     none)."""
     tk = np.concatenate([[0.0], np.cumsum(h)])
-    t = np.arange(0.0, tk[-1] + DT, DT)
+    t = np.arange(0.0, tk[-1] + DT * rest[1], DT)  # a free end: no sample held past it
     k = np.clip(np.searchsorted(tk, t, side="right") - 1, 0, len(h) - 1)
     tau = np.minimum(t - tk[k], h[k])
-    us = np.clip(u[k] + v[k] * tau + a[k] * tau**2 / 2 + j[k] * tau**3 / 6, 0.0, curve.length)
-    us = np.concatenate([[0.0] * 3, us, [curve.length] * 3])
+    us = np.clip(u[k] + v[k] * tau + a[k] * tau**2 / 2 + j[k] * tau**3 / 6, u[0], u[-1])
+    us = np.concatenate([[u[0]] * (3 * rest[0]), us, [u[-1]] * (3 * rest[1])])
     p = curve.evaluate(us, order=2)[0]
     ax = limits.present
     # samples before each joint: a difference over samples i..i+m spans it if they differ
