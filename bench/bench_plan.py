@@ -375,8 +375,7 @@ def main(argv: list[str] | None = None) -> int:
               "limits; * toppra's time stands in for the curved blocks planned within "
               f"{1 + args.threshold:g} of it: the ratio is then an upper bound; a block of more "
               f"than --max-nodes {args.max_nodes} nodes is solved in windows with free speed and "
-              "acceleration between them: their sum is a lower bound of its optimum, so the "
-              "ratio stays conservative; reserve = "
+              "acceleration between them (a relaxation: the ratio leans conservative); reserve = "
               "jerk_s / jfull_s, what the shares cost)")
         print()
         print("blocks where planned / jerk at the shares is largest:")
