@@ -70,8 +70,9 @@ _SCREEN, _SCREEN_ROUNDS = 0.5, 6
 #: Rows are left out once a round changed the time by less than this; with a broken row, the
 #: rows of this many cells on either side are put back.
 _SCREEN_CHANGE, _SCREEN_REACH = 0.02, 8
-#: Fractions of each cell, besides its ends, where the limits are imposed (between them the
-#: cubic's jerk overshot by up to 3.5 % on 1.2 mm blocks sampled at 1 ms with three points).
+#: Fractions of each cell, besides its ends, where the limits are imposed (the middle alone
+#: before; the quarter points came with the jerk tangent's fix in :func:`_program`, their own
+#: share of its effect not measured apart).
 _INNER = (0.25, 0.5, 0.75)
 #: Least share of its chord (the line between its end values) ``x`` keeps at those fractions.
 _DIP_SHARE = 0.25
@@ -118,8 +119,8 @@ def grid(curve, spacing_m: float = GRID_M, rest_m: float = REST_M) -> np.ndarray
     ``spacing_m`` apart, at least :data:`PIECE_CELLS` cells per piece, halving towards both
     ends down to ``rest_m`` (at most a sixteenth of the curve, and within the first and last
     piece: a rest cell is pure tangential jerk, its constraint taken at its inner node only,
-    so a corner inside it went unchecked: 18x the jerk limit sampled on a 1.2 mm block ending
-    in a 2 um move)."""
+    so a piece inside it went unchecked: 18x the jerk limit sampled on a 1.2 mm block ending
+    in a 4 um move, blended)."""
     L = curve.length
     u0 = curve.u0
     base = [u0]
