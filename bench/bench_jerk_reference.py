@@ -182,9 +182,7 @@ def solve_block(blk, segs, limits: AxisLimits, spacing_m: float, max_nodes: int,
         bad = [r.status for r in parts if not math.isfinite(r.time_s)]
         res = JerkResult(float(sum(r.time_s for r in parts)),
                          f"{len(parts)} windows" + (f", {bad[0]}" if bad else ""),
-                         tuple(float(np.nanmax([r.recheck[i] for r in parts]))
-                               if not all(math.isnan(r.recheck[i]) for r in parts) else math.nan
-                               for i in range(5)),
+                         tuple(np.fmax.reduce(np.array([r.recheck for r in parts]), axis=0)),
                          sum(r.nodes for r in parts) - len(parts) + 1, 0.0,
                          sum(r.joints for r in parts))
     res.cpu_s = time.process_time() - c0

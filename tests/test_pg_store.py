@@ -134,7 +134,7 @@ def test_two_servers_share_the_queue_and_survive_kill_9(db_url, tmp_path):
         # each job ran to the end once: one result, one attempt, except the one whose server
         # died under it (two: the first never wrote), which b finished. Which job that is is
         # read from the attempts: under load the job seen running may end between that look
-        # and the kill (seen twice in CI: a was then between jobs, none ran twice), and after
+        # and the kill (seen in CI: a was then between jobs, none ran twice), and after
         # the kill b requeues a dead server's job at once (it is no longer "running")
         rerun = [i for i, j in jobs.items() if j.attempts == 2]
         assert all(j.attempts in (1, 2) for j in jobs.values()) and len(rerun) <= 1, jobs
