@@ -134,11 +134,16 @@ _ROUNDS = 60
 #: Most check-and-slow-down rounds of a block planned along its exact curve.
 _PROFILE_ROUNDS = 20
 #: A profile's check-and-slow-down rounds end (the filter plans the block) once it is this much
-#: slower than its first solve: each round caps every node, so it only loses from there
-#: (line-contouring-xz: 4.2 -> 17.4 CPU s in rounds that all lost to the filter).
+#: slower than its first solve (line-contouring-xz: 4.2 -> 17.4 CPU s in rounds that all lost
+#: to the filter while each round capped every node at its last profile; now only the failed
+#: samples' nodes are capped).
 _PROFILE_GIVE_UP = 1.1
-#: Most grid nodes of a block planned along its exact curve (longer ones: the filter).
-_PROFILE_NODES = 4000
+#: Most grid nodes of a block planned along its exact curve (longer ones: the filter). The
+#: 100k micro-segment program's one fitted block of 5.47 m has 33 341 (a spline's knots are
+#: nodes): planned along its curve 121.279 -> 110.723 s, 3.4 s more CPU, 0.75 GB at the peak.
+_PROFILE_NODES = 40_000
+#: A block with joints (long runs of lines) above this many nodes gets a coarser grid of 0.8 of it.
+_JOINTED_NODES = 4000
 #: Most speed-profile grid nodes of one block (a longer block gets a coarser grid).
 _MAX_NODES = 1_000_000
 #: Most turns of one arc (a helix of hand-built paths; G-code arcs turn once at most).
@@ -889,11 +894,14 @@ def _plan_profile(fb: _Feed, u: np.ndarray):
         if m == 1 and np.any(dist > fb.tol_m):  # off the curve: slower would not help
             return None
         # sample k differences samples k - 3 .. k, each a mean of m + m2: cap x on the nodes
+        # behind the failed samples alone (capping every node at the last profile froze its
+        # slow-downs elsewhere: line-contouring-xz 20.963 s, 20.623 s this way)
         lo = np.clip(bad - 3 - (m + m2) // 2, 0, len(us) - 1)
         hi = np.clip(bad + (m + m2) // 2, 0, len(us) - 1)
         scale = np.ones(u.size)
         _lower(u, us, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]) ** 2, scale)
-        cap = np.minimum(cap if cap is not None else np.inf, scale * prof.x)
+        cap = np.minimum(cap if cap is not None else np.inf,
+                         np.where(scale < 1.0, scale * prof.x, np.inf))
     return None
 
 
@@ -917,8 +925,8 @@ def _plan_feed(
     fb = _feed_block(block, path, limits, feeds, tol_m, dt, budget)
     joints = _joints(block.curve)
     u = profile.grid(block.curve)  # the profile along the exact curve competes
-    if u.size > _PROFILE_NODES and (joints[0].size or joints[2].size):  # long runs of lines
-        u = profile.grid(block.curve, spacing_m=profile.GRID_M * u.size / (0.8 * _PROFILE_NODES))
+    if u.size > _JOINTED_NODES and (joints[0].size or joints[2].size):  # long runs of lines
+        u = profile.grid(block.curve, spacing_m=profile.GRID_M * u.size / (0.8 * _JOINTED_NODES))
     exact = _plan_profile(fb, u) if u.size <= _PROFILE_NODES else None
     r = _reach(fb)
     best = None
