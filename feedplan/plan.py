@@ -134,9 +134,8 @@ _ROUNDS = 60
 #: Most check-and-slow-down rounds of a block planned along its exact curve.
 _PROFILE_ROUNDS = 20
 #: A profile's check-and-slow-down rounds end (the filter plans the block) once it is this much
-#: slower than its first solve (line-contouring-xz: 4.2 -> 17.4 CPU s in rounds that all lost
-#: to the filter while each round capped every node at its last profile; now only the failed
-#: samples' nodes are capped).
+#: slower than its first solve: each round caps every node, so it only loses from there
+#: (line-contouring-xz: 4.2 -> 17.4 CPU s in rounds that all lost to the filter).
 _PROFILE_GIVE_UP = 1.1
 #: Most grid nodes of a block planned along its exact curve (longer ones: the filter). The
 #: 100k micro-segment program's one fitted block of 5.47 m has 33 341 (a spline's knots are
@@ -894,14 +893,14 @@ def _plan_profile(fb: _Feed, u: np.ndarray):
         if m == 1 and np.any(dist > fb.tol_m):  # off the curve: slower would not help
             return None
         # sample k differences samples k - 3 .. k, each a mean of m + m2: cap x on the nodes
-        # behind the failed samples alone (capping every node at the last profile froze its
-        # slow-downs elsewhere: line-contouring-xz 20.963 s, 20.623 s this way)
         lo = np.clip(bad - 3 - (m + m2) // 2, 0, len(us) - 1)
         hi = np.clip(bad + (m + m2) // 2, 0, len(us) - 1)
         scale = np.ones(u.size)
         _lower(u, us, lo, hi, np.minimum(f_speed[bad], _STEP[rnd >= _GENTLE_ROUNDS]) ** 2, scale)
-        cap = np.minimum(cap if cap is not None else np.inf,
-                         np.where(scale < 1.0, scale * prof.x, np.inf))
+        # every node capped at the last profile (the failed samples' nodes alone: line-contouring-xz
+        # 20.963 -> 20.623 s, but its robust table then broke the jerk limit on 88 of 96 plants
+        # and short_xz's two-point law lost its certificate: too little reserve for the loop)
+        cap = np.minimum(cap if cap is not None else np.inf, scale * prof.x)
     return None
 
 

@@ -87,7 +87,7 @@ def test_rows_equal_an_independent_recomputation(setpoints):
 
 
 def test_limits_ok_includes_the_following_error_limit(setpoints):
-    gains = {"fixed": {"kp_m_min_per_mm": 3.0, "kf": 0.75}}  # within the limits
+    gains = {"fixed": {"kp_m_min_per_mm": 3.0, "kf": 0.8}}
     (free,) = compare(setpoints, MACHINE, ["fixed"], parameters=gains).rows
     lag_um = free.track_max_um["x"]
     assert free.limits_ok and lag_um > 0
@@ -159,7 +159,7 @@ def test_a_law_no_tuning_can_keep_in_the_limits_shows_its_untuned_figures(setpoi
 
 
 def test_a_diverged_run_scores_as_infeasible_and_fails_its_row(setpoints, monkeypatch):
-    sim = simulate(setpoints, MACHINE, 3.0, 0.75)  # within the limits
+    sim = simulate(setpoints, MACHINE, 3.0, 0.8)
     pos = sim.pos.copy()
     pos[len(pos) // 2, 0] = np.nan
     s = score(setpoints, MACHINE, pos, sim.u)

@@ -78,7 +78,7 @@ def test_command_ratios_match_numpy(short, machine):
 def test_verify_flags_a_gain_step_that_breaks_the_jerk_limit(short, machine):
     n = len(short)
     kp = np.full((n, 3), 3.0)
-    kf = np.full((n, 3), 0.75)  # within the limits: the command's jerk peaks 0.97x of its limit
+    kf = np.full((n, 3), 0.8)
     bounds = {"x": (1.0, 3.0), "z": (1.0, 3.0)}
     assert verify(short, machine, kp, kf, bounds).ok
     kp[n // 3:, 0] = 1.0  # an abrupt drop of X's Kp while X lags by ~0.1 mm
@@ -103,9 +103,9 @@ def _lag(setpoints, machine, kp, kf):
 
 def test_verify_checks_the_following_error_limit(short, machine):
     n = len(short)
-    kp, kf = np.full((n, 3), 3.0), np.full((n, 3), 0.75)
+    kp, kf = np.full((n, 3), 3.0), np.full((n, 3), 0.8)
     bounds = {"x": (1.0, 3.0), "z": (1.0, 3.0)}
-    lag = _lag(short, machine, 3.0, 0.75)
+    lag = _lag(short, machine, 3.0, 0.8)
     v = verify(short, _with_ferror(machine, x=lag[0] * 1.001, z=lag[2] * 1.001), kp, kf, bounds)
     assert v.ok and np.allclose(v.ferror_ratio[[0, 2]], 1 / 1.001, rtol=1e-12)
     assert np.isnan(v.ferror_ratio[1])  # no limit set (and no such axis)
