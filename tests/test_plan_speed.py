@@ -59,9 +59,36 @@ def test_micro_segments_within_limits_and_tolerance():
     text = ref.micro_program(n)
     path = read_toolpath(text, "gcode", source="micro")
     assert len(path.segments) == n
-    sp = ref.plan_program(f"micro_{n}")
-    machine = load_machine("ucp710")
-    lim = machine.planning_limits()
+    _assert_within(ref.plan_program(f"micro_{n}"), path)
+
+
+def test_a_long_fitted_block_is_planned_along_its_curve(monkeypatch):
+    """A fitted block of more grid nodes than the old limit (4 000) gets the exact-curve
+    profile: within the limits and the tolerance, and faster than the filter's plan of the
+    same block (that limit put back, in the same process)."""
+    import importlib
+
+    from feedplan import profile
+
+    planner = importlib.import_module("feedplan.plan")
+    path = read_toolpath(ref.micro_program(15000), "gcode", source="micro")
+    lim = load_machine("ucp710").planning_limits()
+    grids = []
+    grid = profile.grid
+    monkeypatch.setattr(profile, "grid", lambda curve, **kw: grids.append(grid(curve, **kw)) or grids[-1])
+    exact = planner.plan(path, lim)
+    assert 4000 < max(g.size for g in grids) <= planner._PROFILE_NODES  # the fitted block
+    _assert_within(exact, path)
+    monkeypatch.setattr(planner, "_PROFILE_NODES", 4000)
+    filtered = planner.plan(path, lim)
+    _assert_within(filtered, path)
+    assert exact.duration < 0.95 * filtered.duration
+
+
+def _assert_within(sp, path):
+    """Every sample within the planning limits (finite differences, from rest to rest), the
+    feed and the tolerance of the programmed polyline ``path``."""
+    lim = load_machine("ucp710").planning_limits()
     p = np.concatenate([np.repeat(sp.pos[:1], 3, axis=0), sp.pos, np.repeat(sp.pos[-1:], 3, axis=0)])
     v = np.diff(p, axis=0) / sp.dt
     a = np.diff(v, axis=0) / sp.dt
@@ -72,8 +99,26 @@ def test_micro_segments_within_limits_and_tolerance():
     assert speed.max() <= path.segments[0].feed_m_s * 1.005
     a_pts = np.array([s.start for s in path.segments])
     b_pts = np.array([s.end for s in path.segments])
-    assert np.all(_segment_distance(sp.pos, a_pts, b_pts) <= TOL_M)
+    assert np.all(_distance_within(sp.pos, a_pts, b_pts, TOL_M))
     assert np.array_equal(sp.pos[0], path.start) and np.array_equal(sp.pos[-1], b_pts[-1])
+
+
+def _distance_within(p, a, b, tol):
+    """Whether each point p (N, 3) is within ``tol`` of one of the segments a[i]-b[i]: exact
+    distances (:func:`_segment_distance`) to the short segments whose middle is within ``tol``
+    plus their largest half-length (a k-d tree finds them) and to every long one."""
+    from scipy.spatial import cKDTree
+
+    length = np.linalg.norm(b - a, axis=1)
+    short = length <= 1e-3
+    near = cKDTree(0.5 * (a[short] + b[short])).query_ball_point(
+        p, tol + 0.5 * length[short].max())
+    best = _segment_distance(p, a[~short], b[~short])
+    sa, sb = a[short], b[short]
+    for i, cand in enumerate(near):
+        if cand:
+            best[i] = min(best[i], _segment_distance(p[i:i + 1], sa[cand], sb[cand])[0])
+    return best <= tol
 
 
 @pytest.mark.parametrize("n, step", [(4, 1), (60, 1), (60, 7), (3000, 1), (3000, 10), (20000, 10)])
