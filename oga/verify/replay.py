@@ -121,12 +121,13 @@ class Verification:
         following-error limit where it sets one.
     stability_ok : bool
         Every Kp inside its allowed range and Kf inside the machine's Kf range.
-    pos : ndarray, shape (N, 3)
-        Actual positions of the replay, m.
-    u : ndarray, shape (N, 3)
-        Velocity commands of the replay, m/s.
-    ce : ndarray, shape (N,)
-        Contour error of the replay, m.
+    pos : ndarray, shape (N, 3), or None
+        Actual positions of the replay, m; None in a replay kept without its series
+        (:func:`verify_prepared`'s ``series=False``: a certificate's plants but its worst).
+    u : ndarray, shape (N, 3), or None
+        Velocity commands of the replay, m/s (None as ``pos``).
+    ce : ndarray, shape (N,), or None
+        Contour error of the replay, m (None as ``pos``).
     metrics : ContourMetrics
         Contour-error statistics over the feed samples, the largest following error over
         every sample.
@@ -145,9 +146,9 @@ class Verification:
     ok: bool
     limits_ok: bool
     stability_ok: bool
-    pos: np.ndarray
-    u: np.ndarray
-    ce: np.ndarray
+    pos: np.ndarray | None
+    u: np.ndarray | None
+    ce: np.ndarray | None
     metrics: ContourMetrics
     command_ratio: np.ndarray
     ferror_ratio: np.ndarray
@@ -236,8 +237,12 @@ def verify(
 
 
 def verify_prepared(setpoints: Setpoints, machine: Machine, gains: ReplayGains,
-                    kp_bounds: dict[str, tuple[float, float]]) -> Verification:
-    """:func:`verify` of a table prepared once (:class:`ReplayGains`) for many plants."""
+                    kp_bounds: dict[str, tuple[float, float]], series: bool = True
+                    ) -> Verification:
+    """:func:`verify` of a table prepared once (:class:`ReplayGains`) for many plants;
+    ``series=False`` keeps the checks and figures but not the series ``pos``, ``u``, ``ce``
+    (7 doubles a sample: lathe_pawn's robust search, 331 621 samples, peaked at 9.9 GB with
+    every certificate's plants keeping theirs, 0.72 GB without)."""
     plant = plant_of(machine)
     machine = plant.machine
     pos, u = simulate_si(setpoints, plant, gains.kp_si, gains.kf)
@@ -275,9 +280,9 @@ def verify_prepared(setpoints: Setpoints, machine: Machine, gains: ReplayGains,
         ok=limits_ok and stability_ok,
         limits_ok=limits_ok,
         stability_ok=stability_ok,
-        pos=pos,
-        u=u,
-        ce=ce,
+        pos=pos if series else None,
+        u=u if series else None,
+        ce=ce if series else None,
         metrics=metrics,
         command_ratio=ratio,
         ferror_ratio=ferror_ratio,

@@ -101,7 +101,8 @@ class BaselineResult:
     objective_plants : tuple of int
         Their indices in the set.
     replays : tuple of Verification
-        The gains replayed on every plant of the set (the set's order); empty when none.
+        The gains replayed on every plant of the set (the set's order; their checks and
+        figures, not their series: :func:`oga.verify.replay.verify_prepared`); empty when none.
     nominal : Verification or None
         The gains replayed on the nominal plant.
     critical : tuple of int
@@ -750,7 +751,7 @@ def robust_baseline(
         n = len(setpoints)
         gains = ReplayGains.of(setpoints, np.full((n, 3), x.kp), np.full((n, 3), x.kf))
         return thread_map(lambda i: verify_prepared(setpoints, all_plants[i], gains,
-                                                    all_bounds[i]),
+                                                    all_bounds[i], series=False),
                           range(len(all_plants)), threads)
 
     confirmations, x = 0, None
