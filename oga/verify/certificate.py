@@ -296,19 +296,22 @@ def certify(
         )
 
     replays = _batched(replay, len(scenarios), progress, threads)
-    # the series of the worst plant alone (the report draws it), replayed again: the same
-    # figures, bit for bit
+    if base is None:
+        base = ReplayGains.of(setpoints, baseline_kp_m_min_per_mm, baseline_kf)
+    _worst_with_series(setpoints, replays, scenarios, bounds, table, base)
+    return _verdict(replays, scenarios)
+
+
+def _worst_with_series(setpoints, replays, scenarios, bounds, table, base) -> None:
+    """The worst plant's two replays in ``replays`` (changed in place) with their series (the
+    report draws them), replayed again: the same figures, bit for bit."""
     w = int(np.argmax([p.ratio for p in replays]))
     plant, bnd, worst = scenarios.plants[w], bounds[w], replays[w]
     if worst.schedule.pos is None:
         worst = replace(worst, schedule=verify_prepared(setpoints, plant, table, bnd))
     if worst.baseline.pos is None:
-        worst = replace(worst, baseline=verify_prepared(
-            setpoints, plant,
-            base if base is not None
-            else ReplayGains.of(setpoints, baseline_kp_m_min_per_mm, baseline_kf), bnd))
+        worst = replace(worst, baseline=verify_prepared(setpoints, plant, base, bnd))
     replays[w] = worst
-    return _verdict(replays, scenarios)
 
 
 def _batched(replay, n, progress, threads) -> list:
