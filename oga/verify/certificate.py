@@ -296,20 +296,23 @@ def certify(
         )
 
     replays = _batched(replay, len(scenarios), progress, threads)
-    if base is None:
-        base = ReplayGains.of(setpoints, baseline_kp_m_min_per_mm, baseline_kf)
-    _worst_with_series(setpoints, replays, scenarios, bounds, table, base)
+    _worst_with_series(setpoints, replays, scenarios, bounds, table, base,
+                       (baseline_kp_m_min_per_mm, baseline_kf))
     return _verdict(replays, scenarios)
 
 
-def _worst_with_series(setpoints, replays, scenarios, bounds, table, base) -> None:
+def _worst_with_series(setpoints, replays, scenarios, bounds, table, base, base_gains) -> None:
     """The worst plant's two replays in ``replays`` (changed in place) with their series (the
-    report draws them), replayed again: the same figures, bit for bit."""
+    report draws them), replayed again: the same figures, bit for bit. ``base``: the
+    baseline's :class:`ReplayGains`, or None (prepared from ``base_gains`` (kp, kf) if
+    needed)."""
     w = int(np.argmax([p.ratio for p in replays]))
     plant, bnd, worst = scenarios.plants[w], bounds[w], replays[w]
     if worst.schedule.pos is None:
         worst = replace(worst, schedule=verify_prepared(setpoints, plant, table, bnd))
     if worst.baseline.pos is None:
+        if base is None:
+            base = ReplayGains.of(setpoints, *base_gains)
         worst = replace(worst, baseline=verify_prepared(setpoints, plant, base, bnd))
     replays[w] = worst
 
