@@ -211,6 +211,13 @@ def test_search_certifies_a_law_better_than_the_baseline(searched, short):
                     np.full((n, 3), base.kf), p.kp_bounds)
     assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[-1], rel=1e-12)
     assert law_v.ok
+    # the replays keep their series on the worst plant only (the report draws it; 96 plants'
+    # series at four overrides held cncjs_toolpath's law at 1.5 GB)
+    for c in res.certificate.cases.values():
+        worst = int(np.argmax(c.ratio))
+        for i, p in enumerate(c.plants):
+            assert (p.baseline.pos is None) == (p.schedule.pos is None) == (i != worst)
+    assert np.array_equal(cert.plants[-1].baseline.metrics.track_max_m, base_v.metrics.track_max_m)
     # what is certified is what is exported: the law is its own quantization
     q = quantized(res.law)
     for a in res.law.axes:

@@ -513,7 +513,7 @@ class _Context:
                    {a: (self.lo.min(), self.hi.max()) for a in moving})
             case.base_replays[key] = verify(case.sp, self.plants[key],
                                             np.full((n, 3), case.base.kp),
-                                            np.full((n, 3), case.base.kf), bnd)
+                                            np.full((n, 3), case.base.kf), bnd, series=False)
         return case.base_replays[key]
 
     def base_mse(self, case: _Case, key: int) -> float:
