@@ -551,3 +551,8 @@ LAW_ROWS = 400
 LAW_ROW_SHARE = 0.9
 #: Shares of the searched law's departure from the baseline tried when no round certifies.
 LAW_ALPHAS = (0.75, 0.5, 0.25)
+#: The law's cost adds ``LAW_WORST_WEIGHT * max(0, ratio - LAW_WORST_RATIO)^2`` per searched
+#: plant and case (:mod:`oga.law.search`): a weighted mean alone let one searched plant stay
+#: above its baseline (helix_r20 at 50 % feed: worst 1.09-1.60 with up to 8 plants searched).
+LAW_WORST_RATIO = 0.97
+LAW_WORST_WEIGHT = 10.0

@@ -211,10 +211,54 @@ def test_search_certifies_a_law_better_than_the_baseline(searched, short):
                     np.full((n, 3), base.kf), p.kp_bounds)
     assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[-1], rel=1e-12)
     assert law_v.ok
+    # the replays keep their series on the worst plant only (the report draws it; 96 plants'
+    # series at four overrides held cncjs_toolpath's law at 1.5 GB)
+    for c in res.certificate.cases.values():
+        worst = int(np.argmax(c.ratio))
+        for i, p in enumerate(c.plants):
+            assert (p.baseline.pos is None) == (p.schedule.pos is None) == (i != worst)
+    assert np.array_equal(cert.plants[-1].baseline.metrics.track_max_m, base_v.metrics.track_max_m)
     # what is certified is what is exported: the law is its own quantization
     q = quantized(res.law)
     for a in res.law.axes:
         assert np.array_equal(q.axes[a].kp_m_min_per_mm, res.law.axes[a].kp_m_min_per_mm)
+
+
+def test_the_search_cost_keeps_searched_plants_under_their_baseline(searched, short):
+    """The law search's exact cost is the weighted mean ratio over the searched plants plus
+    LAW_WORST_WEIGHT times each ratio's excess over LAW_WORST_RATIO squared, recomputed here
+    from fresh replays of the law and the baseline; its Gauss-Newton gradient matches central
+    differences of that cost (the worst-plant term dominates it here)."""
+    from oga import defaults
+    from oga.law.search import _context
+    res, scen = searched
+    _path, sps = short
+    ctx, theta0, base = _context([Program("short_xz", sps)], MACHINE, "lincurve", 3, scen,
+                                 res.baselines, 1)
+    keys = (-1, 0, 1)  # the nominal plant and two of the set
+    theta = np.clip(theta0 + ctx.layout.constant(0.6, -0.1), ctx.lo, ctx.hi)
+    b = base["short_xz"]
+    cost, excess = 0.0, []
+    for o, sp in sps.items():
+        kp, kf = law_gains(ctx.layout.law(theta, ctx.fixed_kp, ctx.fixed_kf), sp)
+        n = len(sp)
+        for key, w in zip(keys, (0.5, 0.25, 0.25)):
+            plant = scen.plants[key] if key >= 0 else MACHINE
+            mse = [float(np.mean(contour_error_of(sp, simulate(sp, plant, p, f).pos)[~sp.rapid]
+                                 ** 2)) for p, f in ((kp, kf), (np.full((n, 3), b.kp),
+                                                                np.full((n, 3), b.kf)))]
+            r = mse[0] / mse[1]
+            excess.append(r - defaults.LAW_WORST_RATIO)
+            cost += (w * r + defaults.LAW_WORST_WEIGHT * max(excess[-1], 0.0) ** 2) / len(sps)
+    assert max(excess) > 0.1  # the term is at work
+    assert ctx.evaluate(theta, keys, 1.0)[0] == pytest.approx(cost, rel=1e-9)
+    _h, g, _checks, _cost = ctx.linearise(theta, keys, 1.0)
+    for j in (ctx.layout.kp_cols[0].start + 1, ctx.layout.kf_cols[0].start + 1):  # x's Kp, Kf
+        step = np.zeros_like(theta)
+        step[j] = 1e-5
+        fd = (ctx.evaluate(theta + step, keys, 1.0)[0]
+              - ctx.evaluate(theta - step, keys, 1.0)[0]) / 2e-5
+        assert g[j] == pytest.approx(fd, rel=1e-2)
 
 
 def test_the_laws_baseline_is_the_robust_searchs(searched, short):

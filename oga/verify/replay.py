@@ -214,6 +214,7 @@ def verify(
     kp_m_min_per_mm: np.ndarray,
     kf: np.ndarray,
     kp_bounds: dict[str, tuple[float, float]],
+    series: bool = True,
 ) -> Verification:
     """Replay gains on the model from rest and check them.
 
@@ -227,13 +228,15 @@ def verify(
         The gains per sample and axis.
     kp_bounds : dict
         Allowed (lo, hi) Kp in (m/min)/mm per checked axis (the moving axes).
+    series : bool
+        False: the checks and figures without the series (:func:`verify_prepared`).
 
     Returns
     -------
     Verification
     """
     return verify_prepared(setpoints, machine, ReplayGains.of(setpoints, kp_m_min_per_mm, kf),
-                           kp_bounds)
+                           kp_bounds, series)
 
 
 def verify_prepared(setpoints: Setpoints, machine: Machine, gains: ReplayGains,
