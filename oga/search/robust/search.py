@@ -35,7 +35,9 @@
    breaking a check the baseline keeps, then the least worst ratio).
 4. **Shrink** (only when the kept schedule's certificate fails): ``K = Kb + alpha (Ks - Kb)``,
    the largest share ``alpha`` (one for Kp and Kf) whose certificate passes, by bisection
-   (:func:`_shrink`): it moves continuously with the machine.
+   (:func:`_shrink`): it moves continuously with the machine. Where no share of the kept
+   round's table passes, the other rounds' tables are shrunk in the rounds' order of
+   preference, each different table once, until a share of one passes (:func:`_shrunk_round`).
 5. The table exported is the schedule when its certificate passes (worst ratio <= 1, no
    plant where it alone breaks a check) and its nominal replay passes; else the baseline.
 
