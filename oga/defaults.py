@@ -425,14 +425,6 @@ ROBUST_P90_GOAL = 0.5
 #: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
 #: on each searched plant that its limits keep, whatever the reserve (oga.search.robust.multi).
 ROBUST_BASELINE_FLOOR = 0.85
-#: ... None: of the baseline's peak over the whole program (the default); a number: sample
-#: by sample, of the baseline's largest ratio within that many samples either side
-#: (oga.search.robust.multi._floor_lift). Measured on plasmatest (issue 33): with the
-#: program's peak, one peak held the jerk limit at 0.783 wherever the reserve was cut;
-#: sample by sample (25 samples, share 0.85) the reserve binds but the window search
-#: collapses (jerk 2.12x on the searched nominal plant at reserve 0.67); share 1, 100
-#: samples: no collapse, but the breaks stay where the baseline peaks (1.33x, every reserve).
-ROBUST_FLOOR_HALF_SAMPLES = None
 #: Robust baseline (:mod:`oga.search.robust.baseline`): the Monte Carlo plants whose geometric mean
 #: MSE(CE) it minimises (the first ones of the set), and those of them its grid is screened
 #: on; the refinement's steps at most, the step (in grid steps) below which it stops, and the

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath, read_toolpath
-from oga import defaults
 from oga.model.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
@@ -210,45 +209,6 @@ def test_a_layer_unsafe_from_several_threads_is_refused_clearly(monkeypatch):
     with pytest.raises(ThreadingLayerError, match="NUMBA_THREADING_LAYER='workqueue'"):
         with kernel_threads(2):
             pass
-
-
-def test_a_local_floor_lets_the_reserve_bind_away_from_the_baselines_peaks(short_xz,
-                                                                          monkeypatch):
-    # issue 33: the floor under the reserved limits (0.85 of the baseline's own ratio, which
-    # keeps the baseline's plan nearly feasible) was taken at the baseline's peak over the
-    # whole program: on plasmatest one peak at the start held the jerk limit at 0.783 on
-    # every sample whatever the reserve (0.67 ... 0.32 gave the same table). Taken locally
-    # (ROBUST_FLOOR_HALF_SAMPLES, not the default: the window search collapsed on plasmatest),
-    # replayed afresh, the table keeps the reserved jerk limit wherever the baseline's own
-    # jerk, within 25 samples, stays under it, and a smaller reserve changes the table
-    monkeypatch.setattr(defaults, "ROBUST_FLOOR_HALF_SAMPLES", 25)
-    monkeypatch.setattr(defaults, "ROBUST_BASELINE_FLOOR", 0.85)
-    m, sp = short_xz
-    nom = perturbed_machine(m, {}, 0, m.name)
-    n = len(sp)
-    bkp, bkf = _fixed(n, 1.6, 0.9)
-    kb = {a: (1.0, 2.5) for a in ("x", "z")}
-    base = verify(sp, nom, bkp, bkf, kb)
-    opt = options_from_dict(None)
-    jmax = np.array(m.axis_limits().jmax_m_s3)
-
-    def jerk_ratio(u):
-        return np.abs(np.diff(np.vstack([np.zeros((2, 3)), u]), 2, axis=0)) / sp.dt ** 2 / jmax
-
-    jb = jerk_ratio(base.u)
-    window = np.lib.stride_tricks.sliding_window_view(
-        np.pad(jb, ((25, 25), (0, 0)), mode="edge"), 51, axis=0).max(axis=2)
-    tables = {}
-    for reserve in (0.5, 0.4):
-        found = multi_search(sp, (nom,), (base,), opt, 1.6, 0.9, (1.0, 2.5), reserve)
-        tables[reserve] = found.kp
-        j = jerk_ratio(verify(sp, nom, found.kp, found.kf, kb).u)
-        away = (0.85 * window < reserve)[:, [0, 2]]
-        assert away.mean() > 0.5  # most samples: the reserve decides there
-        assert np.all(j[:, [0, 2]][away] <= reserve * (1 + 1e-9))
-        # near them, no more than the baseline's own jerk there
-        assert np.all(j[:, [0, 2]] <= np.maximum(reserve, window[:, [0, 2]]) * (1 + 1e-9))
-    assert np.abs(tables[0.5] - tables[0.4]).max() > 1e-3
 
 
 def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shrunk(monkeypatch):

@@ -448,10 +448,7 @@ class Plants(NamedTuple):
     """``S`` scenario plants of the same axes: ``params`` (S, 3, P) the packed kernel
     parameters (:func:`oga.model.simulate.axis_params`); ``vmax``, ``amax``, ``jmax``,
     ``ferror_max`` (S, 3) each plant's limits (``inf``: no following-error limit);
-    ``weights`` (S,) the cost's weight of each; ``lift`` (S, 3, 3, L) float32, the factor
-    (>= 1) by which the acceleration, jerk and following-error limits (third index 0, 1, 2)
-    of plant ``s``, axis ``a`` rise at program sample ``c < L`` (1 from ``L`` on; ``L = 0``:
-    none, the one-plant search), :func:`_lift`."""
+    ``weights`` (S,) the cost's weight of each."""
 
     params: np.ndarray
     vmax: np.ndarray
@@ -459,35 +456,6 @@ class Plants(NamedTuple):
     jmax: np.ndarray
     ferror_max: np.ndarray
     weights: np.ndarray
-    lift: np.ndarray
-
-
-@njit(cache=True, nogil=True)
-def _lift(plants, s, a, r, c):
-    """The factor of plant ``s``'s limit ``r`` (0 acceleration, 1 jerk, 2 following error)
-    on axis ``a`` at program sample ``c`` (:class:`Plants`)."""
-    if c >= plants.lift.shape[3]:
-        return 1.0
-    return float(plants.lift[s, a, r, c])
-
-
-@njit(cache=True, nogil=True)
-def _eq2_excess_lifted(u, u1, u2, s, a, k, n, plants, te, check):
-    """:func:`oga.model.kinematics.eq2_excess` of plant ``s``'s axis ``a`` over window samples
-    ``0 .. n - 1`` (program samples ``k ..``), its acceleration and jerk limits times their
-    :func:`_lift` at each sample."""
-    worst = 0.0
-    vmax, amax, jmax = plants.vmax[s, a], plants.amax[s, a], plants.jmax[s, a]
-    for i in range(n):
-        v = u[i]
-        if check[i]:
-            worst = max(worst, abs(v) / vmax - 1.0,
-                        abs(v - u1) / (amax * te * _lift(plants, s, a, 0, k + i)) - 1.0,
-                        abs(v - 2.0 * u1 + u2) / (jmax * te * te * _lift(plants, s, a, 1, k + i))
-                        - 1.0)
-        u2 = u1
-        u1 = v
-    return worst
 
 
 class Settings(NamedTuple):
@@ -947,7 +915,7 @@ def _eq2_rows(m, s, k, wk, prog, plants, te, work, u_hist):
                     nominal -= (1.0 if r == 1 else 2.0) * (u0[s, a, i - 1] if i >= 1 else u_hist[s, a, 0])
                 if r == 2:
                     nominal += u0[s, a, i - 2] if i >= 2 else u_hist[s, a, 1 - i]
-                scale = 1.0 / (lims[r] if r == 0 else lims[r] * _lift(plants, s, a, r - 1, k + i))
+                scale = 1.0 / lims[r]
                 reach = 0.0
                 for v in range(lo_v, hi_v):
                     cv = su[s, i, v]
@@ -971,10 +939,10 @@ def _ferror_rows(m, s, k, wk, prog, plants, work):
         lo_v, hi_v = work.lo[a], work.hi[a]
         if not prog.moving[a] or lo_v == hi_v or not np.isfinite(ferror_max[s, a]):
             continue
+        scale = 1.0 / ferror_max[s, a]
         for i in range(wk):
             if not prog.live[k + i]:
                 continue
-            scale = 1.0 / (ferror_max[s, a] * _lift(plants, s, a, 2, k + i))
             nominal = (prog.pdT[a, k + i] - p0[s, a, i]) * scale
             reach = 0.0
             for v in range(lo_v, hi_v):
@@ -995,23 +963,6 @@ def _constraints(k, wk, widen, prog, plants, gains, cfg, work, carry):
     for s in range(plants.params.shape[0]):  # following error |pd - p0 - S d| <= margin * limit
         m = _ferror_rows(m, s, k, wk, prog, plants, work)
     return m
-
-
-@njit(cache=True, nogil=True)
-def _eq2_excesses(u, s, a, k, spans, plants, te, u_hist, fk, worsts):
-    """``worsts`` (over the window, this commit and the next, this commit) raised by plant
-    ``s``'s axis ``a``'s eq. 2 excess of the commands ``u`` over ``spans`` samples each: the
-    exact :func:`oga.model.kinematics.eq2_excess` where the plants carry no :func:`_lift`."""
-    out = [0.0, 0.0, 0.0]
-    for j in range(3):
-        if plants.lift.shape[3] == 0:
-            ex = eq2_excess(u, u_hist[s, a, 0], u_hist[s, a, 1], plants.vmax[s, a],
-                            plants.amax[s, a], plants.jmax[s, a], te, spans[j], fk)
-        else:
-            ex = _eq2_excess_lifted(u, u_hist[s, a, 0], u_hist[s, a, 1], s, a, k, spans[j],
-                                    plants, te, fk)
-        out[j] = max(worsts[j], ex)
-    return out[0], out[1], out[2]
 
 
 @njit(cache=True, nogil=True)
@@ -1045,15 +996,18 @@ def _trial_excess(k, wk, scale, prog, plants, cfg, work, carry):
             elif _same_plan(work.trial_points, carry.points, a):  # the step leaves the axis as is
                 work.trial[s, a, :wk] = work.p0[s, a, :wk]
                 tmp_u = work.u0[s, a]
-            worst, worst_n, worst_c = _eq2_excesses(tmp_u, s, a, k, (wk, n_next, n_commit),
-                                                    plants, te, u_hist, fk,
-                                                    (worst, worst_n, worst_c))
+            lim = (plants.vmax[s, a], plants.amax[s, a], plants.jmax[s, a])
+            worst = max(worst, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0], lim[1],
+                                          lim[2], te, wk, fk))
+            worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0],
+                                              lim[1], lim[2], te, n_next, fk))
+            worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0],
+                                              lim[1], lim[2], te, n_commit, fk))
             fmax = plants.ferror_max[s, a]
             if np.isfinite(fmax):  # the following-error limit, as an excess
                 pos = work.p0[s, a] if scale == 0.0 else work.trial[s, a]
                 for i in range(wk):
-                    ex = abs(prog.pdT[a, k + i] - pos[i]) / (
-                        fmax * _lift(plants, s, a, 2, k + i)) - 1.0
+                    ex = abs(prog.pdT[a, k + i] - pos[i]) / fmax - 1.0
                     if fk[i] and ex > 0.0:
                         worst = max(worst, ex)
                         if i < n_next:
@@ -1288,7 +1242,7 @@ def one_plant(params, vmax, amax, jmax, ferror_max) -> Plants:
     lims = np.empty((4, 1, 3))
     lims[0, 0], lims[1, 0], lims[2, 0], lims[3, 0] = vmax, amax, jmax, ferror_max
     return Plants(params.reshape((1,) + params.shape), lims[0], lims[1], lims[2], lims[3],
-                  np.ones(1), np.ones((1, 3, 3, 0), dtype=np.float32))
+                  np.ones(1))
 
 
 def carry_of(states, kp, kf, cfg: Settings, n) -> Carry:

@@ -63,14 +63,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.model.machine import Machine
-from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
 from oga.model.plant import plant_of
-from oga.model.response import simulate_si
 from oga.model.simulate import rest_state
 from oga.options import OptimizeOptions
 from oga.parallel import kernel_threads
@@ -127,7 +124,8 @@ def multi_search(
     plants : tuple of Machine
         The active plants; ``plants[0]`` is the nominal one (its limits are kept on all).
     baselines : tuple of Verification
-        The fixed baseline's replay on each plant: its MSE(CE) normalises the plant's cost.
+        The fixed baseline's replay on each plant: its MSE(CE) normalises the plant's cost,
+        and its peaks floor the plant's limits (below).
     options : OptimizeOptions
         Full-mode options (window, knot, lam, anchor, adjusted axes and gains).
     base_kp, base_kf : float
@@ -137,9 +135,7 @@ def multi_search(
     reserve : float
         Share of the acceleration, jerk and following-error limits the search may use on
         each plant, but never less than :data:`oga.defaults.ROBUST_BASELINE_FLOOR` of the
-        baseline's own largest ratio on that plant within
-        :data:`oga.defaults.ROBUST_FLOOR_HALF_SAMPLES` samples (:func:`_floor_lift`; until
-        issue 33 of its peak over the whole program) (the baseline's plan, where every window starts, must stay
+        baseline's own peak there (the baseline's plan, where every window starts, must stay
         nearly feasible: further below, the line search ranks every step by its excess, not
         its cost, and the search collapses; measured on freeform_xz, nominal plant and the
         corner friction-lo mass-lo kv-hi tn-lo dead-hi, no floor: reserve 0.78: ratios
@@ -159,13 +155,7 @@ def multi_search(
     cfg = settings_of(options, setpoints.dt, hold_in_rapids=True)
     prog = program_of(setpoints, is_moving, cfg)
     params, states = _packed_plants(plants, prog.pd[0])
-    if defaults.ROBUST_FLOOR_HALF_SAMPLES is None:  # the floor at the baseline's peak
-        packed = Plants(params, *_peak_floored_limits(plants[0], baselines, reserve),
-                        _weights(baselines), np.ones((len(plants), 3, 3, 0), dtype=np.float32))
-    else:
-        limits = _plant_limits(plants[0], len(plants), reserve)
-        packed = Plants(params, *limits, _weights(baselines),
-                        _floor_lift(setpoints, plants, (base_kp, base_kf), limits, reserve))
+    packed = Plants(params, *_plant_limits(plants[0], baselines, reserve), _weights(baselines))
     gains = _gains(options, plants[0], (moving_names, is_moving), (base_kp, base_kf), kp_bounds)
     n = len(setpoints)
     carry = carry_of(states, gains.kp_base, gains.kf_base, cfg, n)
@@ -208,10 +198,10 @@ def _packed_plants(plants, p0):
     return params, states
 
 
-def _peak_floored_limits(nominal, baselines, reserve):
+def _plant_limits(nominal, baselines, reserve):
     """The nominal machine's limits per plant, ``(vmax, amax, jmax, ferror_max)`` each (S, 3):
-    limit x max(share, a share of the baseline's peak ratio there over the whole program)
-    (``multi_search``'s ``reserve``; :data:`oga.defaults.ROBUST_FLOOR_HALF_SAMPLES` None)."""
+    limit x max(share, a share of the baseline's peak ratio there) (``multi_search``'s
+    ``reserve``)."""
     lim = nominal.axis_limits()
     limits = np.stack([np.asarray(lim.vmax_m_s, dtype=np.float64),
                        np.asarray(lim.amax_m_s2, dtype=np.float64),
@@ -222,51 +212,6 @@ def _peak_floored_limits(nominal, baselines, reserve):
         limits * np.maximum(share, floor * np.vstack([b.command_ratio.T,
                                                       np.nan_to_num(b.ferror_ratio)]))
         for b in baselines], axis=1))
-
-
-def _plant_limits(nominal, n_s, reserve):
-    """The nominal machine's limits for each of ``n_s`` plants, ``(vmax, amax, jmax,
-    ferror_max)`` each (S, 3): the velocity limit, the others times ``reserve``
-    (``multi_search``'s; raised near the baseline's peaks by :func:`_floor_lift`)."""
-    lim = nominal.axis_limits()
-    limits = np.stack([np.asarray(lim.vmax_m_s, dtype=np.float64),
-                       np.asarray(lim.amax_m_s2, dtype=np.float64),
-                       np.asarray(lim.jmax_m_s3, dtype=np.float64), nominal.ferror_limits()])
-    share = np.array([1.0, reserve, reserve, reserve])[:, None]
-    return tuple(np.ascontiguousarray(np.repeat((limits * share)[None], n_s, axis=0)[:, r])
-                 for r in range(4))
-
-
-def _floor_lift(setpoints, plants, base, limits, reserve):
-    """The :class:`oga.search.window.Plants` ``lift`` (S, 3, 3, N): on each plant, where the
-    fixed baseline's own acceleration, jerk or following error comes near its reserved limit
-    (``limits``, :func:`_plant_limits`), the limit rises to :data:`oga.defaults.ROBUST_BASELINE_FLOOR`
-    of the baseline's largest ratio within :data:`oga.defaults.ROBUST_FLOOR_HALF_SAMPLES`
-    samples (the baseline's plan, where every window starts, stays nearly feasible).
-
-    Why sample by sample: with the floor taken at the baseline's peak over the whole program,
-    one peak (plasmatest: x's jerk 0.921 at the program's start on the nominal plant) held the
-    searched plants' jerk limit at 0.783 everywhere, whatever the reserve: the rounds cut it
-    1 -> 0.67 -> 0.56 -> 0.46 -> 0.32 and searched the same table four times, while in the cut
-    at 45.1 s (baseline 0.44 there) the table reached 0.74 on the nominal plant and 1.071 on
-    the unsearched mc-0020."""
-    n = len(setpoints)
-    te = setpoints.dt
-    kp_si = np.full((n, 3), float(base[0]) * KP_SI_PER_M_MIN_PER_MM)
-    kf = np.full((n, 3), float(base[1]))
-    lift = np.ones((len(plants), 3, 3, n), dtype=np.float32)
-    floor = defaults.ROBUST_BASELINE_FLOOR
-    size = 2 * int(defaults.ROBUST_FLOOR_HALF_SAMPLES) + 1
-    for s, machine in enumerate(plants):
-        pos, u = simulate_si(setpoints, plant_of(machine), kp_si, kf)
-        du = np.diff(u, axis=0, prepend=0.0)  # at rest before sample 0
-        d2u = np.diff(du, axis=0, prepend=0.0)
-        for r, (x, lim) in enumerate(((du, limits[1][s] * te), (d2u, limits[2][s] * te * te),
-                                      (setpoints.pos - pos, limits[3][s]))):
-            ratio = np.abs(x) / lim  # (N, 3) the baseline's ratio to the reserved limit
-            env = maximum_filter1d(np.nan_to_num(ratio), size, axis=0, mode="nearest")
-            lift[s, :, r] = np.maximum(1.0, floor * env.T)
-    return lift
 
 
 def _weights(baselines):
