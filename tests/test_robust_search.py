@@ -209,3 +209,39 @@ def test_a_layer_unsafe_from_several_threads_is_refused_clearly(monkeypatch):
     with pytest.raises(ThreadingLayerError, match="NUMBA_THREADING_LAYER='workqueue'"):
         with kernel_threads(2):
             pass
+
+
+def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shrunk(monkeypatch):
+    # issue 33: plasmatest's kept round (fewest failing plants) broke the jerk limit at every
+    # share, round 1's table passes shrunk. The kept round first; then the others in the
+    # rounds' order of preference, each different table once; none passing: the kept one's
+    import oga.search.robust.search as search
+    from types import SimpleNamespace as NS
+
+    def round_(value, key):
+        table = NS(kp=np.full((4, 3), value), kf=np.full((4, 3), 0.9))
+        return NS(found=table, key=key, complete=lambda ctx: None)
+
+    kept, twin, bold, mild = (round_(1.5, (True, 3, 2.0)), round_(1.5, (True, 3, 2.0)),
+                              round_(1.9, (True, 9, 5.0)), round_(1.7, (True, 5, 3.0)))
+    passes = {1.7: 0.25}  # the share of each table that passes (none for the others)
+    shrunk = []
+
+    def shrink(sp, machine, schedule, *rest):
+        value = float(schedule.kp_m_min_per_mm[0, 0])
+        shrunk.append(value)
+        share = passes.get(value, 0.0)
+        return (share, share), NS(status="ok" if share else "failed", value=value)
+
+    monkeypatch.setattr(search, "_certified_on_all", lambda ctx, r: NS(status="failed"))
+    monkeypatch.setattr(search, "_shrink", shrink)
+    ctx = NS(setpoints=None, machine=None, bkp=None, bkf=None, full=None, full_bounds=None,
+             base=NS(replays=None), threads=1)
+    done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
+    assert done is mild and alpha == (0.25, 0.25) and cert.status == "ok"
+    assert shrunk == [1.5, 1.7]  # the twin of the kept table is not shrunk again
+    passes.clear()
+    shrunk.clear()
+    done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
+    assert done is kept and alpha == (0.0, 0.0) and cert.value == 1.5
+    assert shrunk == [1.5, 1.7, 1.9]
