@@ -244,7 +244,7 @@ def test_the_search_cost_keeps_searched_plants_under_their_baseline(searched, sh
         n = len(sp)
         for key, w in zip(keys, (0.5, 0.25, 0.25)):
             plant = scen.plants[key] if key >= 0 else MACHINE
-            mse = [float(np.mean(contour_error_of(sp, simulate(sp, plant, p, f).pos)[~sp.rapid]
+            mse = [float(np.mean(contour_error_of(sp, simulate(sp, plant, p, f).pos)[sp.counted]
                                  ** 2)) for p, f in ((kp, kf), (np.full((n, 3), b.kp),
                                                                 np.full((n, 3), b.kf)))]
             r = mse[0] / mse[1]

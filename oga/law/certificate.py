@@ -26,7 +26,7 @@ from oga import defaults
 from oga.verify.certificate import Certificate, certify
 from oga.search.robust.plants import ScenarioSet
 from oga.law.law import Law, law_gains
-from oga.verify.replay import verify
+from oga.verify.replay import ReplayGains, verify_prepared
 
 __all__ = ["LawCertificate", "certify_law"]
 
@@ -113,10 +113,11 @@ def _certify_on(law, cases, machine, scenarios, keep) -> LawCertificate:
     for prog, o, sp, base, base_replays, bounds in cases:
         n = len(sp)
         bkp, bkf = np.full((n, 3), base.kp), np.full((n, 3), base.kf)
-        for i in keep:
-            if i not in base_replays:
-                base_replays[i] = verify(sp, scenarios.plants[i], bkp, bkf, bounds[i],
-                                         series=False)  # certify replays its worst plant's
+        missing = [i for i in keep if i not in base_replays]
+        gains = ReplayGains.of(sp, bkp, bkf) if missing else None  # once, not per plant
+        for i in missing:  # without series: certify replays its worst plant's
+            base_replays[i] = verify_prepared(sp, scenarios.plants[i], gains, bounds[i],
+                                              series=False)
         kp, kf = law_gains(law, sp)
         cert = certify(sp, machine, kp, kf, bkp, bkf, sub, tuple(bounds[i] for i in keep),
                        tuple(base_replays[i] for i in keep))
