@@ -409,6 +409,9 @@ ROBUST_SUBSET = 8
 #: Robust search: the Monte Carlo plants (the set's first) its rounds search and judge on,
 #: with the corners; the kept table is certified on the whole set.
 ROBUST_SEARCH_PLANTS = 64
+#: Robust search: the anchors (:data:`ANCHOR`'s unit) searched again, in turn, where no share of
+#: any round's table at the default anchor passes its certificate (and no anchor was given).
+ROBUST_ANCHOR_RETRY = (3000.0,)
 #: Robust search: the worst ratio a round aims for (with ROBUST_MEDIAN_GOAL, ROBUST_P90_GOAL).
 ROBUST_WORST_GOAL = 0.9
 

@@ -341,7 +341,7 @@ def _robust(setpoints, machine, options, progress, t0) -> OptimizeResult:
     if progress is not None:
         progress(1.0)
     return OptimizeResult(
-        status=optimized.status, setpoints=setpoints, machine=machine, options=options,
+        status=optimized.status, setpoints=setpoints, machine=machine, options=res.options,
         schedule=schedule, baseline_kp=dict(res.baseline_kp), baseline_kf=dict(res.baseline_kf),
         baseline=baseline, optimized=optimized, searched_schedule=searched_schedule,
         searched=searched, kept_baseline=kept_baseline, adjusted=res.adjusted,

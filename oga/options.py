@@ -64,7 +64,9 @@ class OptimizeOptions(BaseModel):
         the paper's cost. On straight moves the contour error does not see the
         axes' lag, so without it the gains drift there unchecked, and the jerk
         limit then keeps them from coming back in time for the next curve.
-        None: the mode's default (:data:`oga.defaults.ANCHOR`).
+        None: the mode's default (:data:`oga.defaults.ANCHOR`); the robust search then
+        tries :data:`oga.defaults.ROBUST_ANCHOR_RETRY` where no table passes at the default
+        (its result's options name the anchor kept).
     nominal : bool
         True: search the machine's nominal model only (bit-identical to the search before
         the robust one). False (:data:`oga.defaults.NOMINAL`): where the machine has an

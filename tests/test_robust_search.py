@@ -3,6 +3,7 @@ multi-scenario search does what a search on several plants should."""
 
 from __future__ import annotations
 
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numba
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath, read_toolpath
+from oga import defaults
 from oga.model.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
@@ -245,3 +247,70 @@ def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shr
     done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
     assert done is kept and alpha == (0.0, 0.0) and cert.value == 1.5
     assert shrunk == [1.5, 1.7, 1.9]
+
+
+def test_where_no_table_passes_at_the_default_anchor_the_search_runs_again_at_a_stronger_one(
+        monkeypatch):
+    # issue 33: 51MeanderAve keeps its baseline at the default anchor (30), certifies at 3000
+    # (median 0.261). Programs that certify at the default are searched once, as before; an
+    # anchor the user gives is never changed; the options of the anchor kept are returned
+    import oga.search.robust.search as search
+    from types import SimpleNamespace as NS
+
+    passes_at = set()
+    searched = []
+
+    def rounds(ctx, report):
+        searched.append(ctx.options.anchor_value)
+        return NS(anchor=ctx.options.anchor_value), 2, []
+
+    def shrunk(ctx, kept, tried):
+        ok = ctx.options.anchor_value in passes_at
+        return kept, (1.0, 1.0), NS(status="ok" if ok else "failed")
+
+    monkeypatch.setattr(search, "_rounds", rounds)
+    monkeypatch.setattr(search, "_shrunk_round", shrunk)
+    ctx = search._Context(**{**{f.name: None for f in fields(search._Context)},
+                             "options": options_from_dict({})})
+    default, retry = defaults.ANCHOR["full"], defaults.ROBUST_ANCHOR_RETRY[0]
+
+    passes_at.update({default, retry})  # certified at the default: searched once
+    got, kept, n, _, cert = search._searched(ctx, lambda f: None)
+    assert searched == [default] and got is ctx and n == 2 and cert.status == "ok"
+
+    passes_at.discard(default)  # not at the default: again at the stronger anchor, kept
+    searched.clear()
+    got, kept, n, _, cert = search._searched(ctx, lambda f: None)
+    assert searched == [default, retry] and cert.status == "ok" and n == 4
+    assert got.options.anchor == retry and kept.anchor == retry
+    assert got.options.model_dump(exclude={"anchor"}) == ctx.options.model_dump(exclude={"anchor"})
+
+    passes_at.clear()  # nowhere: the default's result
+    searched.clear()
+    got, kept, n, _, cert = search._searched(ctx, lambda f: None)
+    assert searched == [default, *defaults.ROBUST_ANCHOR_RETRY] and got is ctx
+    assert kept.anchor == default and cert.status == "failed"
+
+    given = replace(ctx, options=options_from_dict({"anchor": 50.0}))  # the user's: kept
+    searched.clear()
+    got, kept, n, _, cert = search._searched(given, lambda f: None)
+    assert searched == [50.0] and got is given and cert.status == "failed"
+
+
+def test_zigzag_xz_is_certified_at_the_stronger_anchor_where_the_default_keeps_its_baseline():
+    # a real program where no share of any round's table passes at the default anchor: the
+    # default search's table is the one searched at the stronger anchor, to the bit
+    m = load_machine("ucp710")
+    sp = plan_toolpath(load_toolpath(DATA / "zigzag_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
+    default = defaults.ANCHOR["full"]
+    weak = robust_optimize(sp, m, {"anchor": default}, threads=1)
+    assert weak.status == "failed" and weak.result.kept_baseline  # the user's anchor is kept
+    assert weak.result.options.anchor == default
+    strong = robust_optimize(sp, m, {"anchor": defaults.ROBUST_ANCHOR_RETRY[0]}, threads=1)
+    got = robust_optimize(sp, m, {}, threads=1)
+    assert got.status == strong.status == "ok" and got.certificate.worst <= 1.0
+    assert got.result.options.anchor == defaults.ROBUST_ANCHOR_RETRY[0]
+    assert got.rounds == weak.rounds + strong.rounds
+    np.testing.assert_array_equal(got.schedule.kp_m_min_per_mm, strong.schedule.kp_m_min_per_mm)
+    np.testing.assert_array_equal(got.schedule.kf, strong.schedule.kf)
+    assert not np.array_equal(got.schedule.kf, weak.schedule.kf)

@@ -8,7 +8,8 @@ import os
 import tempfile
 from pathlib import Path as FilePath
 
-from oga.defaults import GCODE_READER, GCODE_READERS, NP, ROBUST_MC_PLANTS, TOL_M
+from oga.defaults import (ANCHOR, GCODE_READER, GCODE_READERS, NP, ROBUST_ANCHOR_RETRY,
+                          ROBUST_MC_PLANTS, TOL_M)
 from oga.errors import InputError, OgaError, OptionError
 
 __all__ = [
@@ -80,7 +81,9 @@ def add_search_args(p: argparse.ArgumentParser) -> None:
                         "(default np/10, at least 10)")
     p.add_argument("--lam", type=float, default=None, metavar="L", help="increment weight")
     p.add_argument("--anchor", type=float, default=None, metavar="MU",
-                   help="weight pulling the gains back to the baseline (0: the paper's cost)")
+                   help="weight pulling the gains back to the baseline (0: the paper's cost; "
+                        f"default {ANCHOR['full']:g}, and where the robust search certifies no "
+                        f"table there, {', then '.join(f'{a:g}' for a in ROBUST_ANCHOR_RETRY)})")
     p.add_argument("--nominal", action="store_true", default=None,
                    help="search the machine's nominal model only (default: where the machine "
                         "has an uncertainty set, as ucp710 has, the robust search and its "

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         from oga.report.optimize import render_report
 
         write_text(args.report, render_report(job))
-    _print_result(job, summary, machine)
+    _print_result(job, summary, machine, options)
     if res.status != "ok":
         print("verification FAILED, no table written: " + "; ".join(res.optimized.violations),
               file=sys.stderr)
@@ -148,10 +148,12 @@ def _run_job(args: argparse.Namespace, machine, options, read_options: dict):
         raise flag_message(err) from None
 
 
-def _print_result(job, summary: dict, machine) -> None:
+def _print_result(job, summary: dict, machine, requested) -> None:
     """What ``oga optimize`` prints: the setpoints read, warnings, baseline and optimised
-    contour errors, following errors, the certificate or search, the model's note."""
+    contour errors, following errors, the certificate or search (and the anchor, where the
+    robust search raised it from the ``requested`` options' default), the model's note."""
     from feedplan.setpoints import AXES
+    from oga import defaults
 
     res = job.result
     if job.recorded is not None:
@@ -179,6 +181,10 @@ def _print_result(job, summary: dict, machine) -> None:
     if res.robust:
         for line in certificate_lines(summary["certificate"]):
             print(line)
+        if requested.anchor is None and res.options.anchor is not None:
+            print(f"anchor: {res.options.anchor:g} (at the default "
+                  f"{defaults.ANCHOR[res.options.mode]:g} no share of any round's table "
+                  "passed its certificate)")
     else:
         print(f"search: {res.search_kind()}")
     if summary["model"]["note"]:
