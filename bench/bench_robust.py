@@ -56,8 +56,7 @@ from pathlib import Path
 
 if __name__ == "__main__":  # not in a process that imports it (bench_perturb, bench_law)
     for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
-        os.environ.setdefault(_var, "1")  # the threads are the robust search's own (numba's
-        # prange loops too: the window search's, on --threads, oga.parallel.kernel_threads)
+        os.environ.setdefault(_var, "1")  # the threads are the robust search's own
 
 import numpy as np  # noqa: E402
 

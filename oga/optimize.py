@@ -281,12 +281,10 @@ def _window_search(setpoints, plant, options, gains, checks):
     """``(advance(k0, k1), chunk, carry, (STAT_FALLBACK, STAT_WINDOWS))`` of the full mode's
     windowed search (:func:`oga.search.window.window_search`) on ``plant``: ``(params,
     states)`` (3, P), (3, Z)."""
-    from oga.parallel import kernel_threads, resolve_threads
     from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, carry_of, chunk_of, one_plant,
                                    program_of, settings_of, window_search)
 
     params, states = plant
-    threads = resolve_threads(options.threads)  # the job's threads (the service's: 1)
     limits, is_moving, ferror_max = checks
     cfg = settings_of(options, setpoints.dt)
     prog = program_of(setpoints, is_moving, cfg)
@@ -294,8 +292,7 @@ def _window_search(setpoints, plant, options, gains, checks):
     carry = carry_of(states[None], gains.kp_base, gains.kf_base, cfg, len(setpoints))
 
     def advance(k0, k1):
-        with kernel_threads(threads):
-            window_search(k0, k1, prog, plants, gains, cfg, carry)
+        window_search(k0, k1, prog, plants, gains, cfg, carry)
 
     # every call ends after a whole number of commits
     return advance, chunk_of(cfg, _CHUNK), carry, (STAT_FALLBACK, STAT_WINDOWS)

@@ -78,8 +78,8 @@ class OptimizeOptions(BaseModel):
         certificate's confidence bound (:mod:`oga.verify.certificate`) and cost time.
     threads : int or None
         Threads for the independent work of a search (the certificate's replays, the set's
-        stable ranges, the baseline's candidates, the window search's simulations of every
-        plant and axis); None: the cores this process may
+        stable ranges, the baseline's candidates; the window search runs on one: its windows
+        follow each other); None: the cores this process may
         use (the service and ``oga batch`` run each job on one unless set). The result does
         not depend on it, to the last bit.
     feed_mm_per_min : float or None

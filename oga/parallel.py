@@ -10,42 +10,21 @@ The default count (:func:`available_cores`) is the cores this process may run on
 service and the Dask workers pass 1 per job unless told otherwise (they run jobs side by
 side).
 
-The window search's simulations run in numba ``prange`` loops (:func:`kernel_threads`), also
-from several of these threads at once: numba's default ``workqueue`` layer is not safe for
-that (it aborts), so this module, imported before any parallel kernel runs, selects the
-``threadsafe`` layer (OpenMP, ``libgomp.so.1``: Debian's ``libgomp1``; or TBB) unless
-``NUMBA_THREADING_LAYER`` names one; without either, :func:`kernel_threads` raises
-:class:`ThreadingLayerError` saying what to install.
+The window search runs on one thread (its windows follow each other, and each window's work
+is too small for parallel loops: :func:`oga.search.window._each_run`); a job's threads are
+its independent items'.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from typing import TypeVar
 
-import numba
+from oga.errors import OptionError
 
-from oga.errors import OgaError, OptionError
-
-__all__ = ["available_cores", "resolve_threads", "thread_map", "kernel_threads",
-           "ThreadingLayerError"]
-
-#: Numba's layers that are safe to enter from several threads at once.
-SAFE_LAYERS = ("threadsafe", "omp", "tbb", "safe")
-os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")  # kept by numba's config reloads
-numba.config.THREADING_LAYER = os.environ["NUMBA_THREADING_LAYER"]
-# OpenMP's idle threads sleep instead of spinning (read when numba loads the layer): the
-# window search enters thousands of short parallel loops, and spinning threads on a busy
-# host took the cores from the work (short_xz, 2 plants, load 6.7 on 2 cores: 3.6 s on 2
-# threads spinning, 0.38 s sleeping, 0.46-0.59 s on 1)
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
-class ThreadingLayerError(OgaError, RuntimeError):
-    """Numba has no thread-safe threading layer (OpenMP or TBB) on this machine."""
+__all__ = ["available_cores", "resolve_threads", "thread_map"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -101,26 +80,3 @@ def thread_map(fn: Callable[[T], R], items: Iterable[T], threads: int = 1,
             if done is not None:
                 done(len(out))
         return out
-
-
-@contextmanager
-def kernel_threads(threads: int) -> Iterator[None]:
-    """Run the compiled kernels' parallel loops (numba ``prange``) of the calling thread on
-    ``threads`` threads (at most numba's pool, ``NUMBA_NUM_THREADS``) inside the block; the
-    count before is restored after it. Numba keeps the count per calling thread, so jobs on
-    other threads are not affected."""
-    if numba.config.THREADING_LAYER not in SAFE_LAYERS:
-        raise ThreadingLayerError(
-            f"NUMBA_THREADING_LAYER={numba.config.THREADING_LAYER!r} is not safe from several "
-            f"threads at once: use one of {', '.join(SAFE_LAYERS)} (or leave it unset)")
-    try:
-        before = numba.get_num_threads()  # loads the layer on first use
-    except ValueError as e:  # numba: "No threading layer could be loaded"
-        raise ThreadingLayerError(
-            "numba found no thread-safe threading layer: install OpenMP's runtime (Debian, "
-            "Ubuntu: apt-get install libgomp1) or TBB (pip install tbb)") from e
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import fields, replace
 from pathlib import Path
 
-import numba
 import numpy as np
 import pytest
 
@@ -17,7 +16,7 @@ from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
 from oga.verify.certificate import certify, plant_bounds
 from oga.search.robust.multi import multi_search
-from oga.parallel import ThreadingLayerError, kernel_threads, thread_map
+from oga.parallel import thread_map
 from oga.search.robust.plants import perturbed_machine, scenario_set
 from oga.search.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
 from oga.model.stability import stable_range
@@ -102,29 +101,25 @@ def test_a_second_plant_in_the_search_serves_that_plant(short_xz):
     assert on_late[1].limits_ok and verify(sp, nom, both.kp, both.kf, kb).limits_ok
 
 
-def test_the_window_search_gives_the_same_bits_on_one_and_two_threads(short_xz):
-    # each window's simulations and costs (two plants x two axes) run on the threads given,
-    # each into its own slices, summed in the plants' order: the same table on any count
+def test_the_window_search_gives_the_same_bits_from_several_threads_at_once(short_xz):
+    # the certificate's replays and the service's jobs run the compiled kernels from several
+    # Python threads at once (nogil): each search keeps its own state, the same table
     m, sp = short_xz
     plants = (perturbed_machine(m, {}, 0, m.name), perturbed_machine(m, {}, 1))
     bkp, bkf = _fixed(len(sp), 1.3, 0.9)
     base = tuple(verify(sp, p, bkp, bkf, {a: (1.0, 2.5) for a in ("x", "z")}) for p in plants)
     opt = options_from_dict(None)
-    with kernel_threads(2):
-        assert numba.get_num_threads() == min(2, numba.config.NUMBA_NUM_THREADS)
-    def search(t):
-        return multi_search(sp, plants, base, opt, 1.3, 0.9, (1.0, 2.5), 0.9, threads=t)
 
-    found = [search(1), search(2)]
-    # two Python threads (the certificate's, the service's jobs) entering the kernels'
-    # parallel loops at once: numba's workqueue layer would abort here; the thread-safe one
-    # oga.parallel selects runs both, each on its own count of threads
-    found += thread_map(search, [2, 1], threads=2)
-    assert numba.threading_layer() in ("omp", "tbb")
-    for other in found[1:]:
-        assert other.windows == found[0].windows
-        np.testing.assert_array_equal(other.kp, found[0].kp)
-        np.testing.assert_array_equal(other.kf, found[0].kf)
+    def search(reserve):
+        return multi_search(sp, plants, base, opt, 1.3, 0.9, (1.0, 2.5), reserve)
+
+    alone = [search(0.9), search(0.8)]
+    together = thread_map(search, [0.9, 0.8, 0.9, 0.8], threads=4)
+    assert not np.array_equal(alone[0].kf, alone[1].kf)  # two different searches
+    for i, other in enumerate(together):
+        assert other.windows == alone[i % 2].windows
+        np.testing.assert_array_equal(other.kp, alone[i % 2].kp)
+        np.testing.assert_array_equal(other.kf, alone[i % 2].kf)
 
 
 def test_a_screen_that_fails_means_the_whole_set_fails(short_xz):
@@ -203,14 +198,6 @@ def test_the_robust_search_holds_its_gains_inside_a_rapid():
     for plant in scenario_set(m).plants:
         if verify(sp, plant, bkp, bkf, kb).limits_ok:
             assert verify(sp, plant, r.schedule.kp_m_min_per_mm, r.schedule.kf, kb).limits_ok
-
-
-def test_a_layer_unsafe_from_several_threads_is_refused_clearly(monkeypatch):
-    # numba's workqueue layer aborts when two threads enter a parallel loop at once
-    monkeypatch.setattr(numba.config, "THREADING_LAYER", "workqueue")
-    with pytest.raises(ThreadingLayerError, match="NUMBA_THREADING_LAYER='workqueue'"):
-        with kernel_threads(2):
-            pass
 
 
 def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shrunk(monkeypatch):

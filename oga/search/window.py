@@ -82,10 +82,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from oga import defaults
-from oga import parallel as _parallel  # noqa: F401 (selects numba's thread-safe layer first)
 from oga.model.contour import ce2_at, contour_offset, path_index
 from oga.model.kinematics import eq2_excess
 from oga.model.machine import KP_SI_PER_M_MIN_PER_MM
@@ -601,15 +600,20 @@ def _predict_one(k, wk, a, s, sp_v, plants, work, states):
                 (work.p0[s, a], work.u0[s, a], work.sp[s, :, lo_v:hi_v], work.su[s, :, lo_v:hi_v]))
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
 def _each_run(k, wk, prog, plants, work, states, n_run, nominal):
-    """The simulations of one pass, every plant's of the axes ``work.runs[:n_run]``, on the
-    caller's numba threads (``numba.set_num_threads``): ``nominal`` the predictions and
-    derivatives of :func:`_predict`, else the line-search step's (:func:`_trial_excess`). Each
-    writes its own plant's and axis's slices only: the same bits on any number of threads."""
+    """The simulations of one pass, every plant's of the axes ``work.runs[:n_run]``:
+    ``nominal`` the predictions and derivatives of :func:`_predict`, else the line-search
+    step's (:func:`_trial_excess`).
+
+    One thread: a window's work (a few plants and axes of 200 samples) is too small for
+    numba's parallel loops, whose launches cost more than they saved (ucp710, the nominal
+    search on 2 threads against 1: 1.2-1.8x the wall time on the six benchmark programs; the
+    robust search's window phase 1.1-2.0x), and the serial kernel is as fast as the parallel
+    one on one thread or faster (helix_r20 0.31 -> 0.25 s, cncjs_toolpath 2.38 -> 2.28 s)."""
     n_s = states.shape[0]
-    pdT, vdT = prog.pdT, prog.vdT  # numba's parallel loops take arrays, not the program's tree
-    for item in prange(n_run * n_s):
+    pdT, vdT = prog.pdT, prog.vdT
+    for item in range(n_run * n_s):
         a = work.runs[item // n_s]
         s = item % n_s
         if nominal:
@@ -619,14 +623,11 @@ def _each_run(k, wk, prog, plants, work, states, n_run, nominal):
                       work.tmp_u[s, a])
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
 def _each_cost(k, wk, pd, tree, win_lo, win_hi, feed, trial, cost_s):
     """Every plant's window cost of the line-search step's ``trial`` (S, 3, wmax) into
-    ``cost_s`` (S,) (threads as :func:`_each_run`; the caller sums them in the plants' order).
-    The arrays come as arguments: numba's parallel loop dropped the stores into
-    ``work.cost_s[s]``, an array taken from a NamedTuple inside the loop (the caller read
-    ``np.empty``'s garbage, the search took other steps even on one thread)."""
-    for s in prange(trial.shape[0]):
+    ``cost_s`` (S,) (the caller sums them in the plants' order)."""
+    for s in range(trial.shape[0]):
         cost_s[s] = _window_cost(pd, tree, win_lo, win_hi, k, wk, trial[s], feed)
 
 

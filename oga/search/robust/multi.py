@@ -70,7 +70,6 @@ from oga.model.machine import Machine
 from oga.model.plant import plant_of
 from oga.model.simulate import rest_state
 from oga.options import OptimizeOptions
-from oga.parallel import kernel_threads
 from oga.search.paper import Gains
 from oga.search.result import hold_baseline
 from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, Plants, carry_of, chunk_of,
@@ -113,7 +112,6 @@ def multi_search(
     base_kf: float,
     kp_bounds: tuple[float, float],
     reserve: float,
-    threads: int = 1,
 ) -> MultiSearch:
     """Search one schedule on ``plants`` at once (module doc).
 
@@ -141,9 +139,6 @@ def multi_search(
         corner friction-lo mass-lo kv-hi tn-lo dead-hi, no floor: reserve 0.78: ratios
         0.227 / 0.437 / 0.725 and 2 schedule-only breaks, 0.72 (0.88 of the baseline's jerk
         peak on x): 0.228 / 0.440 / 0.721 and none, 0.66 (0.80 of it): 1.68 / 3.38 / 6.29).
-    threads : int
-        Threads of each window's simulations and costs (every plant's, every adjusted
-        axis's; :func:`oga.parallel.kernel_threads`): the same result on any number.
 
     Returns
     -------
@@ -160,9 +155,8 @@ def multi_search(
     n = len(setpoints)
     carry = carry_of(states, gains.kp_base, gains.kf_base, cfg, n)
     chunk = chunk_of(cfg, _CHUNK)
-    with kernel_threads(threads):
-        for k0 in range(0, n, chunk):
-            window_search(k0, min(k0 + chunk, n), prog, packed, gains, cfg, carry)
+    for k0 in range(0, n, chunk):
+        window_search(k0, min(k0 + chunk, n), prog, packed, gains, cfg, carry)
     hold_baseline(setpoints, carry.kp_out, carry.kf_out, gains.kp_base, gains.kf_base)
     return MultiSearch(kp=carry.kp_out, kf=carry.kf_out,
                        fallbacks=int(carry.stats[STAT_FALLBACK]),

@@ -415,8 +415,7 @@ def _search(ctx: _Context, active, reserve):
     return multi_search(ctx.setpoints,
                         (ctx.nominal,) + tuple(ctx.scenarios.plants[i] for i in active),
                         (ctx.base.nominal,) + tuple(ctx.base_replays[i] for i in active),
-                        ctx.options, ctx.base.kp, ctx.base.kf, ctx.kp_range, reserve,
-                        threads=ctx.threads)
+                        ctx.options, ctx.base.kp, ctx.base.kf, ctx.kp_range, reserve)
 
 
 def _judged(ctx: _Context, found, active, reserve, last, report, span) -> _Round:
