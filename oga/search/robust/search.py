@@ -38,6 +38,8 @@
    (:func:`_shrink`): it moves continuously with the machine. Where no share of the kept
    round's table passes, the other rounds' tables are shrunk in the rounds' order of
    preference, each different table once, until a share of one passes (:func:`_shrunk_round`).
+   Where none does and no anchor was given, steps 3 and 4 run again at each of
+   :data:`oga.defaults.ROBUST_ANCHOR_RETRY` (:func:`_searched`).
 5. The table exported is the schedule when its certificate passes (worst ratio <= 1, no
    plant where it alone breaks a check) and its nominal replay passes; else the baseline.
 
@@ -296,8 +298,8 @@ def _searched(ctx: _Context, report) -> tuple:
     plants gain holds on the others; on most programs it costs median ratio (ucp710 at
     anchor 3000 against 30: helix_r20 0.502 against 0.331, circle_r50_f3000 0.530 against
     0.363), but where the default's tables fail on every share it can certify one:
-    51MeanderAve's default keeps its baseline (worst 2.982 on the searched corner's
-    neighbour), at 3000 median 0.261, p90 0.359, worst 0.436. Not monotone in between (300:
+    51MeanderAve's default keeps its baseline (worst 2.982), at 3000 median 0.261, p90 0.359,
+    worst 0.436. Not monotone in between (300:
     worst 1.154, baseline kept), so one strong anchor, not a bisection."""
     kept, rounds, tried = _rounds(ctx, report)
     report(PROGRESS_ROUNDS)
