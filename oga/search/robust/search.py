@@ -299,8 +299,8 @@ def _searched(ctx: _Context, report) -> tuple:
     anchor 3000 against 30: helix_r20 0.502 against 0.331, circle_r50_f3000 0.530 against
     0.363), but where the default's tables fail on every share it can certify one:
     51MeanderAve's default keeps its baseline (worst 2.982), at 3000 median 0.261, p90 0.359,
-    worst 0.436. Not monotone in between (300:
-    worst 1.154, baseline kept), so one strong anchor, not a bisection."""
+    worst 0.436. Not monotone in between (300: worst 1.154, baseline kept), so one strong
+    anchor, not a bisection."""
     kept, rounds, tried = _rounds(ctx, report)
     report(PROGRESS_ROUNDS)
     kept, alpha, cert = _shrunk_round(ctx, kept, tried)
