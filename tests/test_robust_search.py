@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from feedplan.read import load_toolpath, read_toolpath
+from feedplan.setpoints import AXES
 from oga import defaults
 from oga.model.machine import load_machine
 from oga.options import options_from_dict
@@ -301,3 +302,12 @@ def test_zigzag_xz_is_certified_at_the_stronger_anchor_where_the_default_keeps_i
     np.testing.assert_array_equal(got.schedule.kp_m_min_per_mm, strong.schedule.kp_m_min_per_mm)
     np.testing.assert_array_equal(got.schedule.kf, strong.schedule.kf)
     assert not np.array_equal(got.schedule.kf, weak.schedule.kf)
+    # on plants the search never saw (another seed, no corners), every sample checked: no
+    # check broken that the baseline keeps, and not worse than the baseline on any
+    n = len(sp)
+    bkp = np.tile([got.result.baseline_kp[a] for a in AXES], (n, 1))
+    bkf = np.tile([got.result.baseline_kf[a] for a in AXES], (n, 1))
+    other = certify(sp, m, got.schedule.kp_m_min_per_mm, got.schedule.kf, bkp, bkf,
+                    scenario_set(m, n=16, seed=99, corners=False))
+    assert other.status == "ok" and other.worst < 1.0, other.reasons
+    assert not any(p.schedule_only_break for p in other.plants)

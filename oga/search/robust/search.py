@@ -301,20 +301,19 @@ def _searched(ctx: _Context, report) -> tuple:
     51MeanderAve's default keeps its baseline (worst 2.982), at 3000 median 0.261, p90 0.359,
     worst 0.436. Not monotone in between (300: worst 1.154, baseline kept), so one strong
     anchor, not a bisection."""
-    kept, rounds, tried = _rounds(ctx, report)
-    report(PROGRESS_ROUNDS)
-    kept, alpha, cert = _shrunk_round(ctx, kept, tried)
-    if cert.status == "ok" or ctx.options.anchor is not None:
-        return ctx, kept, rounds, alpha, cert
-    for anchor in defaults.ROBUST_ANCHOR_RETRY:
-        again = replace(ctx, options=ctx.options.model_copy(update={"anchor": anchor}))
-        found, n, tried = _rounds(again, report)
-        found, share, proof = _shrunk_round(again, found, tried)
+    retries = defaults.ROBUST_ANCHOR_RETRY if ctx.options.anchor is None else ()
+    rounds, first = 0, None
+    for run in [ctx] + [replace(ctx, options=ctx.options.model_copy(update={"anchor": a}))
+                        for a in retries]:
+        kept, n, tried = _rounds(run, report)
+        report(PROGRESS_ROUNDS)
+        kept, alpha, cert = _shrunk_round(run, kept, tried)
         rounds += n
-        if proof.status == "ok":
-            _log.debug("anchor %g: certified where the default's tables were not", anchor)
-            return again, found, rounds, share, proof
-    return ctx, kept, rounds, alpha, cert
+        if cert.status == "ok":
+            return run, kept, rounds, alpha, cert
+        first = first or (run, kept, alpha, cert)
+    run, kept, alpha, cert = first
+    return run, kept, rounds, alpha, cert
 
 
 def _shrunk_round(ctx: _Context, kept: _Round, tried) -> tuple:
