@@ -355,3 +355,64 @@ def test_api_law_job(tmp_path):
         summary = client.get(f"/v1/jobs/{job}/summary").json()
         assert summary["law"]["kind"] == "pl" and summary["certificate"]["cases"]
         assert client.get(f"/v1/jobs/{job}/table").status_code == 409
+
+
+def test_one_law_for_two_programs_is_judged_against_their_joint_baseline(short):
+    """A law for several programs is certified against the one fixed setting that keeps every
+    plant's checks on all of them (oga.law.baseline), recomputed here: the joint baseline
+    called directly, and a certificate's ratio on each program from fresh replays of the law
+    and those gains. Per-program baselines (different gains) are refused, naming why."""
+    from oga.search.robust.baseline import joint_baseline
+
+    scen = scenario_set(MACHINE, n=8)
+    circle = plan_override(load_toolpath(DATA / "circle_r50_f3000.ngc"), MACHINE, 1.0, 2e-5)
+    programs = [Program("short_xz", {1.0: short[1][1.0]}), Program("circle", {1.0: circle})]
+    res = search_law(programs, MACHINE, "pl", 2, scenarios=scen, threads=2)
+    direct = joint_baseline({p.name: p.setpoints[1.0] for p in programs}, MACHINE, scen,
+                            threads=1)
+    assert [(b.kp, b.kf, b.mse_m2) for b in res.baselines.values()] == [
+        (b.kp, b.kf, b.mse_m2) for b in direct]
+    kp_b, kf_b = direct[0].kp, direct[0].kf
+    for p in programs:
+        sp = p.setpoints[1.0]
+        cert = res.certificate.cases[(p.name, 1.0)]
+        kp, kf = law_gains(res.law, sp)
+        q = int(np.argmax(cert.ratio))
+        bounds = cert.plants[q].kp_bounds
+        law_v = verify(sp, scen.plants[q], kp, kf, bounds)
+        base_v = verify(sp, scen.plants[q], np.full((len(sp), 3), kp_b),
+                        np.full((len(sp), 3), kf_b), bounds)
+        assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[q],
+                                                                              rel=1e-12)
+        assert base_v.ok
+    own = {p.name: robust_baseline(p.setpoints[1.0], MACHINE, scen, threads=1) for p in programs}
+    assert len({(b.kp, b.kf) for b in own.values()}) == 2
+    with pytest.raises(OptionError, match="joint baseline"):
+        search_law(programs, MACHINE, "pl", 2, scenarios=scen, baselines=own, threads=1)
+    with pytest.raises(OptionError, match="for all or none"):
+        search_law(programs, MACHINE, "pl", 2, scenarios=scen,
+                   baselines={"short_xz": own["short_xz"]}, threads=1)
+
+
+def test_a_search_that_stays_at_the_baseline_is_no_law_found(short, monkeypatch):
+    """Where a round's search takes no step (the law is the baseline's constant), that is not a
+    certified law: the result is ``failed``, exports the baseline and says why, its
+    certificate the baseline's own (ratio 1 on every plant, replayed)."""
+    import oga.law.search as law_search
+
+    monkeypatch.setattr(law_search._Context, "search",
+                        lambda self, theta0, keys, reserve: (theta0.copy(), 0))
+    scen = scenario_set(MACHINE, n=8)
+    res = search_law([Program("short_xz", {1.0: short[1][1.0]})], MACHINE, "pl", 2,
+                     scenarios=scen, threads=1)
+    assert res.status == "failed" and res.rounds == 1 and res.alpha == 0.0
+    assert "stayed at the baseline" in res.reason
+    base = res.baselines["short_xz"]
+    for ax in res.law.axes.values():  # a constant law (the baseline's, at the resolution)
+        assert np.ptp(ax.kp_m_min_per_mm) == 0.0 and np.ptp(ax.kf) == 0.0
+    kp, kf = law_gains(res.law, short[1][1.0])
+    moving = list(short[1][1.0].moving_axes)
+    assert np.allclose(kp[:, moving], base.kp, atol=0.01) and np.allclose(kf[:, moving], base.kf,
+                                                                          atol=0.01)
+    cert = res.certificate.cases[("short_xz", 1.0)]
+    assert cert.worst == pytest.approx(1.0, abs=0.02) and not cert.breaks("schedule-only")

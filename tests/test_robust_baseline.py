@@ -90,6 +90,59 @@ def test_the_baseline_is_the_best_equal_fixed_gains_that_keep_every_plant(ucp710
             assert _geo([near[i].metrics.mse_m2 for i in obj]) > geo * (1 - 1e-3), (dkp, dkf)
 
 
+def test_the_joint_baseline_keeps_every_plant_on_every_program_and_is_best_over_them():
+    """The joint baseline of two programs (short_xz moves x and z, circle_r50_f3000 x and y):
+    the one pair of equal fixed gains that keeps every check on every plant for both (fresh
+    replays), of least geometric-mean MSE over both programs' objective plants: no pair next
+    to it, and neither program's own baseline where it keeps the other's checks, does better
+    by 0.1 %."""
+    from oga.model.stability import stable_ends
+    from oga.search.robust.baseline import joint_baseline
+
+    m = load_machine("ucp710")
+    scen = scenario_set(m, n=16)
+    sps = {name: plan_toolpath(load_toolpath(DATA / f"{name}.ngc"), m, feed_m_s=None,
+                               tol_m=2e-5) for name in ("short_xz", "circle_r50_f3000")}
+    found = joint_baseline(sps, m, scen, threads=2)
+    assert len(found) == 2 and all(r.ok for r in found)
+    kp, kf = found[0].kp, found[0].kf
+    assert (found[1].kp, found[1].kf) == (kp, kf)
+    obj = list(found[0].objective_plants)
+    assert obj == list(range(16))
+
+    def runs(kp, kf):  # every plant, then the machine itself, of both programs, afresh
+        out = {}
+        for name, sp in sps.items():
+            moving = tuple(AXES[i] for i in sp.moving_axes)
+            bounds = plant_bounds(scen, moving) + (
+                {a: tuple(float(k) for k in stable_ends(m, a)) for a in moving},)
+            out[name] = [verify(sp, p, *_fixed(len(sp), kp, kf), b)
+                         for p, b in zip(tuple(scen.plants) + (m,), bounds)]
+        return out
+
+    def geo(out):
+        return _geo([out[name][i].metrics.mse_m2 for name in sps for i in obj])
+
+    fresh = runs(kp, kf)
+    assert all(v.ok for vs in fresh.values() for v in vs)
+    for r, name in zip(found, sps):  # each result holds its own program's replays
+        assert [v.metrics.mse_m2 for v in r.replays] == pytest.approx(
+            [v.metrics.mse_m2 for v in fresh[name][:-1]], rel=1e-12)
+        assert r.mse_m2 == pytest.approx(_geo([fresh[name][i].metrics.mse_m2 for i in obj]),
+                                         rel=1e-12)
+    best = geo(fresh)
+    own = [robust_baseline(sp, m, scen, threads=2) for sp in sps.values()]
+    assert all(r.ok for r in own) and (own[0].kp, own[0].kf) != (own[1].kp, own[1].kf)
+    kept = 0
+    for pair in [(r.kp, r.kf) for r in own] + [(kp + dkp, kf + dkf) for dkp, dkf in (
+            (0.01, 0.0), (-0.01, 0.0), (0.0, 0.005), (0.0, -0.005), (0.01, -0.005))]:
+        other = runs(*pair)
+        if all(v.ok for vs in other.values() for v in vs):
+            kept += 1
+            assert geo(other) > best * (1 - 1e-3), pair
+    assert kept >= 2  # the comparison is made
+
+
 def test_no_baseline_names_the_closest_gains_their_break_and_a_remedy_that_works():
     def wide(mass, kv):  # ucp710 with mass and Kv far more uncertain on every axis
         d = load_machine("ucp710").model_dump(mode="json", exclude_none=True)
@@ -205,7 +258,7 @@ def test_memoised_tangent_replays_are_the_fresh_ones(ucp710):
 
     m, scen = ucp710
     sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
-    packed = _Packed(sp, tuple(scen.plants[:2]))
+    packed = _Packed((sp,), tuple(scen.plants[:2]))
     with_ce = packed.tangent(1, 1.7, 0.85, True)
     without = packed.tangent(1, 1.7, 0.85, False)  # served by the memo
     fresh = packed._tangent(1, 1.7, 0.85, False)
@@ -227,7 +280,7 @@ def test_the_break_check_is_any_fresh_replay_breaking_in_any_order(ucp710):
     m, scen = ucp710
     sp = plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
     plants = tuple(scen.plants[:3]) + tuple(scen.plants[-3:])  # Monte Carlo, then corners
-    packed = _Packed(sp, plants)
+    packed = _Packed((sp,), plants)
     search = _Search(packed, (0, 1), (0, 1, 2), (0.5, 2.0), (0.0, 1.0), 1)
     search.critical = [3, 4, 5]
     near = search.point(1.0, 0.5, search.objective)

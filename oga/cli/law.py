@@ -121,6 +121,10 @@ def run(args: argparse.Namespace) -> int:
         write_json(args.summary, {"programs": [p for p, _ in paths], "machine": machine.name,
                                   "overrides": list(overrides), "files": sorted(files),
                                   **res.summary()})
+    b = next(iter(res.baselines.values()))
+    print(f"baseline: Kp {b.kp:.4g} (m/min)/mm, Kf {b.kf:.4g}" + (
+        " (joint: the one fixed setting that keeps every plant's limits on all the programs)"
+        if len(res.baselines) > 1 else ""))
     for (prog, o), c in res.certificate.cases.items():
         print(f"{prog} at {o * 100:g} % feed: MSE ratio to the baseline median {c.median:.3f}, "
               f"p90 {c.p90:.3f}, worst {c.worst:.3f}; law-only breaks "

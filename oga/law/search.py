@@ -51,6 +51,7 @@ search over full replays took 1-37 s per law on the short programs and 395 s on 
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -61,7 +62,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.model.contour import contour_error_of, path_index
 from oga.errors import OptionError
-from oga.law.baseline import common_kp_range, program_baseline
+from oga.law.baseline import common_kp_range, joint_program_baseline, program_baseline
 from oga.law.certificate import LawCertificate, certify_law
 from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
 from oga.law.law import (AxisLaw, Law, basis, check_kind, curve_basis, law_gains, quantized,
@@ -77,6 +78,8 @@ from oga.model.response import simulate
 from oga.verify.replay import command_ratios, ferror_ratios, verify
 
 __all__ = ["Program", "LawResult", "search_law"]
+
+_log = logging.getLogger(__name__)
 
 #: Share of the allowed limits the linearised rows may use (the exact check uses 1): at a
 #: peak already at its limit (the baseline's own, in a rapid), the linear model's error
@@ -115,9 +118,11 @@ class LawResult:
     law : Law
         The law to export (rounded to its controller's resolution).
     certificate : LawCertificate
-        The exported law's certificate (the searched law's when the baseline is kept).
+        The exported law's certificate (the searched law's when the baseline is kept; the
+        baseline's own where no round's search moved off it).
     baselines : dict of str to BaselineResult
-        Each program's robust baseline (:func:`oga.law.baseline.program_baseline`).
+        The baseline the law is judged against, by program (module :mod:`oga.law.baseline`:
+        its own for one program, the joint one for several).
     rounds : int
     reserve : float
         The kept round's limit reserve.
@@ -289,7 +294,9 @@ def search_law(
     scenarios : ScenarioSet, optional
         Default :func:`oga.search.robust.plants.scenario_set` of ``machine``.
     baselines : dict of str to BaselineResult, optional
-        Each program's robust baseline when already found.
+        The programs' robust baseline when already found, by program (several programs:
+        their joint one, :func:`oga.law.baseline.joint_program_baseline`, the same gains
+        for every program).
     threads : int, optional
         Threads of the baselines' search (default: the available cores; the result does
         not depend on it).
@@ -361,8 +368,12 @@ def _chosen(run: _Rounds, ctx: "_Context", theta0):
         _m, _r, alpha, law, cert, reserve, active = min(run.certified, key=lambda t: t[0])
         return "ok", "", alpha, law, cert, reserve, active
     law = quantized(ctx.layout.law(theta0, ctx.fixed_kp, ctx.fixed_kf))
-    return ("failed", "; ".join(run.first_failed.reasons), 0.0, law, run.first_failed,
-            run.reserve, tuple(run.active))
+    reasons = list(run.first_failed.reasons)
+    if run.stalled:
+        reasons.append(f"round {run.rounds}'s search stayed at the baseline (no step lowered "
+                       "the cost within the limits on the searched plants)")
+    return ("failed", "; ".join(reasons), 0.0, law, run.first_failed, run.reserve,
+            tuple(run.active))
 
 
 def _nominal_ratios(ctx: "_Context", law: Law) -> dict[tuple[str, float], float]:
@@ -394,21 +405,38 @@ def _check_programs(programs: list[Program]) -> tuple[float, ...]:
 
 
 def _baselines(programs, machine, scenarios, baselines: dict, threads):
-    """``(baselines, bounds_of, moving_all)``: each program's robust baseline (those not in
-    ``baselines`` searched), its plants' bounds, and the axes any program moves."""
-    bounds_of: dict[str, tuple] = {}
-    moving_all: set[int] = set()
+    """``(baselines, bounds_of, moving_all)``: the programs' robust baseline (one program: its
+    own; several: their joint one, :func:`oga.law.baseline.joint_program_baseline`), searched
+    unless given in ``baselines``, each program's plants' bounds, and the axes any program
+    moves."""
+    moving_of = {}
     for p in programs:
-        sp1 = p.setpoints[1.0]
-        moving = tuple(sp1.moving_axes)
+        moving = tuple(AXES[i] for i in p.setpoints[1.0].moving_axes)
         if not moving:
             raise OptionError(f"{p.name}: no axis moves; nothing to adapt")
-        names = tuple(AXES[i] for i in moving)
-        bounds_of[p.name] = plant_bounds(scenarios, names, threads)
-        if p.name not in baselines:
-            baselines[p.name] = program_baseline(p.name, sp1, machine, scenarios,
-                                                 bounds_of[p.name], threads=threads)
-        moving_all.update(moving)
+        moving_of[p.name] = moving
+    union = tuple(a for a in AXES if any(a in m for m in moving_of.values()))
+    bounds = plant_bounds(scenarios, union, threads)
+    bounds_of = {name: tuple({a: b[a] for a in m} for b in bounds)
+                 for name, m in moving_of.items()}
+    missing = [p for p in programs if p.name not in baselines]
+    if len(programs) == 1 and missing:
+        p = programs[0]
+        baselines[p.name] = program_baseline(p.name, p.setpoints[1.0], machine, scenarios,
+                                             bounds_of[p.name], threads=threads)
+    elif missing:
+        if len(missing) < len(programs):
+            raise OptionError(f"baselines: given for some programs, not for "
+                              f"{', '.join(p.name for p in missing)} (one law for several "
+                              "programs is judged against their joint baseline: give it for "
+                              "all or none)")
+        baselines.update(joint_program_baseline({p.name: p.setpoints[1.0] for p in programs},
+                                                machine, scenarios, bounds, threads=threads))
+    if len({(baselines[p.name].kp, baselines[p.name].kf) for p in programs}) > 1:
+        raise OptionError("baselines: one law for several programs is judged against their "
+                          "joint baseline (the same fixed gains on every program: "
+                          "oga.law.baseline.joint_program_baseline); these differ")
+    moving_all = {AXES.index(a) for a in union}
     return baselines, bounds_of, moving_all
 
 
@@ -454,6 +482,7 @@ class _Rounds:
     certified: list = field(default_factory=list)  # (mean median, round, alpha, law, cert,
     #                                                reserve, active)
     first_failed: object = None
+    stalled: bool = False  # a round's search stayed at the baseline (the rounds ended)
 
 
 def _search_rounds(run: _Rounds, ctx: "_Context", theta0, machine, scenarios, report) -> None:
@@ -466,6 +495,7 @@ def _search_rounds(run: _Rounds, ctx: "_Context", theta0, machine, scenarios, re
     layout, fixed_kp, fixed_kf = ctx.layout, ctx.fixed_kp, ctx.fixed_kf
     info = [(c.program, c.override, c.sp, c.base, c.base_replays, ctx.bounds_of[c.program])
             for c in ctx.cases]
+    base = quantized(layout.law(theta0, fixed_kp, fixed_kf))
     for rounds in range(1, defaults.LAW_ROUNDS + 1):
         run.rounds = rounds
         t0 = time.process_time()
@@ -473,18 +503,31 @@ def _search_rounds(run: _Rounds, ctx: "_Context", theta0, machine, scenarios, re
         run.iterations += its
         t1 = time.process_time()
         run.search_s += t1 - t0
-        cert = None
+        cert, moved = None, False
         for a in (1.0, *defaults.LAW_ALPHAS):  # the round's law, else its shrinks
             law = quantized(layout.law(theta0 + a * (theta - theta0), fixed_kp, fixed_kf))
+            if _same_law(law, base):  # the baseline itself is no law found (nor its shrinks)
+                break
             c = certify_law(law, info, machine, scenarios)
-            cert = cert or c
+            cert, moved = cert or c, True
+            _log.debug("round %d, reserve %.4f, active %s, alpha %g: %s; %s", rounds,
+                       run.reserve, run.active, a, c.status, "; ".join(
+                           f"{p} {o:g} median {x.median:.4f} worst {x.worst:.4f} only "
+                           f"{len(x.breaks('schedule-only'))}"
+                           for (p, o), x in c.cases.items()))
             if c.status == "ok":
                 run.certified.append((float(np.mean([x.median for x in c.cases.values()])),
                                       rounds, a, law, c, run.reserve, tuple(run.active)))
                 break
         run.certify_s += time.process_time() - t1
-        run.first_failed = run.first_failed or (cert if cert.status != "ok" else None)
         report(0.1 + 0.8 * rounds / defaults.LAW_ROUNDS)
+        if not moved:  # the search stayed at the baseline: more rounds start from there too
+            _log.debug("round %d: the law stayed at the baseline", rounds)
+            run.stalled = True
+            if run.first_failed is None and not run.certified:  # the exported law's figures
+                run.first_failed = certify_law(base, info, machine, scenarios)
+            break
+        run.first_failed = run.first_failed or (cert if cert.status != "ok" else None)
         if cert.status == "ok":  # the round's own law certified: more plants only cost
             break
         only = cert.schedule_only_excess()
@@ -494,6 +537,13 @@ def _search_rounds(run: _Rounds, ctx: "_Context", theta0, machine, scenarios, re
         new = next((i for i in worst if i not in run.active), None)
         if new is not None:
             run.active = (run.active + [new])[-(defaults.ROBUST_ACTIVE - 1):]
+
+
+def _same_law(a: Law, b: Law) -> bool:
+    """Whether two laws give the same gains (the same support values on every axis)."""
+    return a.axes.keys() == b.axes.keys() and all(
+        np.array_equal(a.axes[k].kp_m_min_per_mm, b.axes[k].kp_m_min_per_mm)
+        and np.array_equal(a.axes[k].kf, b.axes[k].kf) for k in a.axes)
 
 
 class _Context:

@@ -70,7 +70,7 @@ from oga.model.tangent import run_tangent
 from oga.model.stability import decimal_grid
 from oga.verify.replay import ReplayGains, Verification, verify_prepared
 
-__all__ = ["BaselineResult", "robust_baseline"]
+__all__ = ["BaselineResult", "robust_baseline", "joint_baseline"]
 
 #: Samples simulated between two limit checks of a candidate (speed only: a refused or
 #: abandoned candidate wastes the rest of its last chunk).
@@ -173,19 +173,29 @@ class _Plant(NamedTuple):
 
 
 class _Packed:
-    """The setpoints and plants as the compiled replays take them."""
+    """The setpoints and plants as the compiled replays take them: one entry per plant and
+    program, plant-major (entry ``q * G + g``: plant ``q``, program ``g`` of ``G``)."""
 
-    def __init__(self, setpoints: Setpoints, plants: tuple[Machine, ...], threads: int = 1):
-        cols = np.array(setpoints.moving_axes, dtype=np.int64)
-        moving = [AXES[c] for c in cols]
-        pos = np.ascontiguousarray(setpoints.pos, dtype=np.float64)
-        vel = np.ascontiguousarray(setpoints.vel, dtype=np.float64)
-        self.path = _Path(cols, pos, vel, np.ascontiguousarray(pos.T),
-                          np.ascontiguousarray(vel.T), np.ascontiguousarray(setpoints.counted),
-                          float(setpoints.dt), *path_index(pos, defaults.CE_WINDOW_SAMPLES))
-        self.cols = cols
+    def __init__(self, setpoints: tuple[Setpoints, ...], plants: tuple[Machine, ...],
+                 threads: int = 1):
+        self.n_programs = len(setpoints)
+        self.paths, self.cols = [], []
+        for sp in setpoints:
+            cols = np.array(sp.moving_axes, dtype=np.int64)
+            pos = np.ascontiguousarray(sp.pos, dtype=np.float64)
+            vel = np.ascontiguousarray(sp.vel, dtype=np.float64)
+            self.paths.append(_Path(cols, pos, vel, np.ascontiguousarray(pos.T),
+                                    np.ascontiguousarray(vel.T),
+                                    np.ascontiguousarray(sp.counted), float(sp.dt),
+                                    *path_index(pos, defaults.CE_WINDOW_SAMPLES)))
+            self.cols.append(cols)
+        # the limits' rows of every entry over the axes any program moves (zero elsewhere)
+        self.axes = np.array(sorted({int(c) for cols in self.cols for c in cols}),
+                             dtype=np.int64)
 
-        def pack(plant):
+        def pack(entry):
+            plant, cols = plants[entry // self.n_programs], self.cols[entry % self.n_programs]
+            moving = [AXES[c] for c in cols]
             prm = np.zeros((3, axis_params(plant, moving[0]).size))
             for c, a in zip(cols, moving):
                 prm[c] = axis_params(plant, a)
@@ -196,19 +206,25 @@ class _Packed:
                               [lim.vmax_m_s, lim.amax_m_s2, lim.jmax_m_s3,
                                plant.ferror_limits()])[cols]))
 
-        self.plants = thread_map(pack, plants, threads)
+        self.plants = thread_map(pack, range(len(plants) * self.n_programs), threads)
         self._tangents: dict[tuple[int, float, float], tuple] = {}
 
+    def entries(self, plants) -> tuple[int, ...]:
+        """The entries of ``plants`` (indices in the plant list), every program of each."""
+        g = self.n_programs
+        return tuple(q * g + k for q in plants for k in range(g))
+
     def replay(self, q: int, kp: float, kf: float, bound: float, with_ce: bool):
-        """:func:`_replay` of plant ``q``: ``(outcome, sum)``."""
-        peaks = np.zeros((self.cols.size, 4))
-        return _replay(self.plants[q], self.path, kp * KP_SI_PER_M_MIN_PER_MM, kf, bound,
+        """:func:`_replay` of entry ``q``: ``(outcome, sum)``."""
+        path = self.paths[q % self.n_programs]
+        peaks = np.zeros((path.cols.size, 4))
+        return _replay(self.plants[q], path, kp * KP_SI_PER_M_MIN_PER_MM, kf, bound,
                        with_ce, peaks)
 
     def tangent(self, q: int, kp: float, kf: float, with_ce: bool):
-        """:func:`_tangent_replay` of plant ``q``: ``(holds, ratios (A, 4), slopes (A, 4, 2),
+        """:func:`_tangent_replay` of entry ``q``: ``(holds, ratios (A, 4), slopes (A, 4, 2),
         model (6,) or None without ``with_ce``)``, the ratios and slopes over the limits (0
-        where none is set).
+        where none is set), A the axes any program moves.
 
         Memoised by ``(q, kp, kf)``: the search asks again for points it has replayed (the
         refinement's last point on the objective plants, a point whose critical plants grew),
@@ -223,15 +239,28 @@ class _Packed:
         return out
 
     def _tangent(self, q: int, kp: float, kf: float, with_ce: bool):
-        peaks, slopes, model = np.zeros((self.cols.size, 4)), np.zeros((self.cols.size, 4, 2)), \
-            np.zeros(6)
-        _tangent_replay(self.plants[q].params, self.path, kp * KP_SI_PER_M_MIN_PER_MM, kf,
+        path = self.paths[q % self.n_programs]
+        n_a = path.cols.size
+        peaks, slopes, model = np.zeros((n_a, 4)), np.zeros((n_a, 4, 2)), np.zeros(6)
+        _tangent_replay(self.plants[q].params, path, kp * KP_SI_PER_M_MIN_PER_MM, kf,
                         with_ce, peaks, slopes, model)
         lim = self.plants[q].limits
-        holds = all(_holds(*peaks[a], lim[a]) for a in range(self.cols.size))
+        holds = all(_holds(*peaks[a], lim[a]) for a in range(n_a))
         finite = np.isfinite(lim)
         scale = np.where(finite, 1.0 / np.where(finite, lim, 1.0), 0.0)
-        return holds, peaks * scale, slopes * scale[:, :, None], model if with_ce else None
+        ratios, slopes = peaks * scale, slopes * scale[:, :, None]
+        if n_a < self.axes.size:  # another program moves more axes: rows of zeros there
+            rows = np.searchsorted(self.axes, path.cols)
+            ratios = _padded(ratios, rows, self.axes.size)
+            slopes = _padded(slopes, rows, self.axes.size)
+        return holds, ratios, slopes, model if with_ce else None
+
+
+def _padded(x: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """``x`` (A, ...) placed at ``rows`` of an array of ``n`` rows of zeros."""
+    out = np.zeros((n,) + x.shape[1:])
+    out[rows] = x
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -737,22 +766,63 @@ def robust_baseline(
         ``status "none"`` with a message naming the gains tried last, the plants they
         break and a remedy, when none keep every plant's checks.
     """
+    return _baseline({"": setpoints}, machine, plants, bounds, kp_range, threads, progress)[0]
+
+
+def joint_baseline(
+    programs: dict[str, Setpoints],
+    machine: Machine,
+    plants: ScenarioSet,
+    bounds: tuple[dict[str, tuple[float, float]], ...] | None = None,
+    kp_range: tuple[float, float] | None = None,
+    *,
+    threads: int | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> tuple[BaselineResult, ...]:
+    """The robust baseline of several programs together: the equal fixed gains of least
+    geometric-mean MSE(CE) over every program's objective plants among those that keep every
+    plant's checks on every program (the one fixed setting of a machine that runs them all).
+
+    Parameters
+    ----------
+    programs : dict of str to Setpoints
+        Each program's planned motion by name (the same sample period).
+    machine, plants, bounds, kp_range, threads, progress
+        As :func:`robust_baseline` (``bounds`` over every axis any program moves).
+
+    Returns
+    -------
+    tuple of BaselineResult
+        One per program, in ``programs``' order: the same gains, each with its program's
+        replays and aggregate (``status "none"`` on every one when none keep the checks).
+    """
+    if not programs:
+        raise OptionError("programs: a joint baseline needs at least one program")
+    if len({sp.dt for sp in programs.values()}) > 1:
+        raise OptionError("programs: every program needs the same sample period")
+    return _baseline(dict(programs), machine, plants, bounds, kp_range, threads, progress)
+
+
+def _baseline(programs, machine, plants, bounds, kp_range, threads, progress):
+    """:func:`joint_baseline` (one program: :func:`robust_baseline`'s search)."""
     threads = resolve_threads(threads)
     report = progress or (lambda f: None)
-    search, all_plants, all_bounds = _prepare(setpoints, machine, plants, bounds, kp_range,
-                                              threads)
+    setpoints = tuple(programs.values())
+    search, all_plants, bounds_of = _prepare(programs, machine, plants, bounds, kp_range,
+                                             threads)
     g = machine.gains
     kp_lo, kp_hi = search.kp_box
     grids = (decimal_grid(kp_lo, kp_hi, 2 * g.kp_step_m_min_per_mm),
              decimal_grid(*g.kf_range, 2 * g.kf_step))
     steps = (g.kp_step_m_min_per_mm, g.kf_step)
+    n_g = len(setpoints)
 
     def confirm(x: _Point) -> list[Verification]:
-        n = len(setpoints)
-        gains = ReplayGains.of(setpoints, np.full((n, 3), x.kp), np.full((n, 3), x.kf))
-        return thread_map(lambda i: verify_prepared(setpoints, all_plants[i], gains,
-                                                    all_bounds[i], series=False),
-                          range(len(all_plants)), threads)
+        gains = [ReplayGains.of(sp, np.full((len(sp), 3), x.kp), np.full((len(sp), 3), x.kf))
+                 for sp in setpoints]
+        return thread_map(lambda e: verify_prepared(setpoints[e % n_g], all_plants[e // n_g],
+                                                    gains[e % n_g], bounds_of[e], series=False),
+                          range(len(all_plants) * n_g), threads)
 
     confirmations, x = 0, None
     while True:
@@ -760,7 +830,7 @@ def robust_baseline(
         if x is None or not x.holds:  # (again) from the grid's best
             x = _from_grid(search, grids, steps, plants, confirmations == 0)
             if isinstance(x, tuple):  # none on the grid: the closest, named
-                return _none(plants, search.objective, (x[0], confirm(x[0])), search, *x[1:])
+                return _none(plants, tuple(programs), (x[0], confirm(x[0])), search, *x[1:])
         x = search.refine(x, steps, search.objective)
         if not x.holds:
             continue
@@ -770,7 +840,7 @@ def robust_baseline(
         if not broke:
             break
         if confirmations == defaults.ROBUST_BASELINE_CONFIRMATIONS:
-            return _none(plants, search.objective, (x, replays), search,
+            return _none(plants, tuple(programs), (x, replays), search,
                          f"no equal fixed gains found keep the limits on every plant of the "
                          f"uncertainty set in {confirmations} tries", "the last tried")
         search.critical += [i for i in broke if i not in search.critical]
@@ -779,15 +849,18 @@ def robust_baseline(
     return _found(plants, search, x, replays, confirmations)
 
 
-def _prepare(setpoints, machine, plants, bounds, kp_range, threads):
-    """The :class:`_Search` of :func:`robust_baseline` (its Kp box the range stable on every
+def _prepare(programs, machine, plants, bounds, kp_range, threads):
+    """The :class:`_Search` of :func:`_baseline` (its Kp box the range stable on every
     plant and the nominal one), the plants replayed (the set's, then the nominal one) and
-    their stable ranges."""
+    each entry's stable ranges (its program's moving axes)."""
     from oga.verify.certificate import plant_bounds
 
-    moving = tuple(AXES[i] for i in setpoints.moving_axes)
-    if not moving:
-        raise OptionError("toolpath: no axis moves; nothing to optimise")
+    moving_of = {name: tuple(AXES[i] for i in sp.moving_axes) for name, sp in programs.items()}
+    for name, moving in moving_of.items():
+        if not moving:
+            raise OptionError(f"{name + ': ' if name else ''}toolpath: no axis moves; "
+                              "nothing to optimise")
+    moving = tuple(a for a in AXES if any(a in m for m in moving_of.values()))
     nominal = perturbed_machine(machine, {}, 0, machine.name)
     if bounds is None:
         bounds = plant_bounds(plants, moving, threads=threads)
@@ -795,11 +868,11 @@ def _prepare(setpoints, machine, plants, bounds, kp_range, threads):
     if kp_range is None:
         kp_range = (max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving),
                     min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving))
-    all_plants = tuple(plants.plants) + (nominal,)  # packed index len(set): the nominal one
-    packed = _Packed(setpoints, all_plants, threads)
-    objective = tuple(range(min(defaults.ROBUST_BASELINE_PLANTS, plants.n_monte_carlo)
-                            or len(plants)))
-    screen = objective[:defaults.ROBUST_BASELINE_GRID_PLANTS]
+    all_plants = tuple(plants.plants) + (nominal,)  # plant index len(set): the nominal one
+    packed = _Packed(tuple(programs.values()), all_plants, threads)
+    objective = packed.entries(range(min(defaults.ROBUST_BASELINE_PLANTS, plants.n_monte_carlo)
+                                     or len(plants)))
+    screen = objective[:defaults.ROBUST_BASELINE_GRID_PLANTS * len(programs)]
     kp_lo, kp_hi = kp_range
     search = _Search(packed, screen, objective, (kp_lo, kp_hi), tuple(machine.gains.kf_range),
                      threads)
@@ -807,7 +880,9 @@ def _prepare(setpoints, machine, plants, bounds, kp_range, threads):
         raise OptionError(f"baseline: no Kp is stable on every plant of the uncertainty set "
                           f"(common range {kp_lo}..{kp_hi} (m/min)/mm): narrow its "
                           "[axes.*.uncertainty], or search the nominal model only (--nominal)")
-    return search, all_plants, bounds + (nominal_bounds,)
+    bounds_of = [{a: b[a] for a in m} for b in bounds + (nominal_bounds,)
+                 for m in moving_of.values()]  # entry order: plant-major
+    return search, all_plants, bounds_of
 
 
 def _from_grid(search, grids, steps, plants, first):
@@ -825,22 +900,27 @@ def _from_grid(search, grids, steps, plants, first):
         return (search.refine(x, steps, screen), "no equal fixed gains keep the limits on every "
                 "plant of the uncertainty set", "the closest to keeping them")
     if first:  # the corners near a limit there: critical from the start
-        search.seed(best, range(plants.n_monte_carlo, len(search.packed.plants)))
+        search.seed(best, search.packed.entries(range(plants.n_monte_carlo, len(plants) + 1)))
     x = search.refine(search.point(best.kp, best.kf, screen), steps, screen)
     return search.point(x.kp, x.kf, search.objective)
 
 
-def _found(plants, search, x, replays, confirmations) -> BaselineResult:
-    """The result of a search whose point ``x`` was confirmed by ``replays`` (every plant of
-    the set, then the nominal one)."""
-    objective = search.objective
-    mse = np.array([replays[i].metrics.mse_m2 for i in objective])
-    return BaselineResult(
-        status="ok", kp=x.kp, kf=x.kf, mse_m2=float(np.exp(np.mean(np.log(mse)))),
-        objective_plants=objective, replays=tuple(replays[:len(plants)]),
-        nominal=replays[len(plants)],
-        critical=tuple(-1 if q == len(plants) else q for q in search.critical),
-        candidates=len(search.known), confirmations=confirmations)
+def _found(plants, search, x, replays, confirmations) -> tuple[BaselineResult, ...]:
+    """The results of a search whose point ``x`` was confirmed by ``replays`` (every entry:
+    the set's plants, then the nominal one, every program of each), one per program."""
+    n_g, n = search.packed.n_programs, len(plants)
+    objective = tuple(e // n_g for e in search.objective[::n_g])
+    out = []
+    for k in range(n_g):
+        mine = replays[k::n_g]
+        mse = np.array([mine[i].metrics.mse_m2 for i in objective])
+        out.append(BaselineResult(
+            status="ok", kp=x.kp, kf=x.kf, mse_m2=float(np.exp(np.mean(np.log(mse)))),
+            objective_plants=objective, replays=tuple(mine[:n]), nominal=mine[n],
+            critical=tuple(-1 if e // n_g == n else e // n_g for e in search.critical
+                           if e % n_g == k),
+            candidates=len(search.known), confirmations=confirmations))
+    return tuple(out)
 
 
 def _alone(machine: Machine, plant: Machine) -> ScenarioSet:
@@ -850,25 +930,29 @@ def _alone(machine: Machine, plant: Machine) -> ScenarioSet:
                        n_corners=0)
 
 
-def _none(plants, objective, last, search, why, which) -> BaselineResult:
-    """The result when no gains keep every plant's checks, its message naming the gains
-    ``last`` (a point and its replays on every plant; ``which`` says what they are), on how
-    many plants they break a check, the worst break, and the remedies."""
+def _none(plants, names, last, search, why, which) -> tuple[BaselineResult, ...]:
+    """The results (one per program of ``names``) when no gains keep every plant's checks,
+    the message naming the gains ``last`` (a point and its replays on every entry; ``which``
+    says what they are), on how many plants they break a check, the worst break, and the
+    remedies."""
     x, replays = last
-    labels = tuple(plants.labels) + ("nominal",)
+    n_g = len(names)
+    labels = [lab + (f" ({name})" if n_g > 1 else "")
+              for lab in tuple(plants.labels) + ("nominal",) for name in names]
     broke = [i for i, v in enumerate(replays) if not v.ok] or list(range(len(replays)))
     worst = max(broke, key=lambda i: _excess(replays[i]))
     v = replays[worst]
     what = v.violations[0] if v.violations else "no check broken"
+    runs = "plants" if n_g == 1 else f"runs ({len(replays) // n_g} plants x {n_g} programs)"
     why += (f" ({which}, Kp {x.kp:.4g} Kf {x.kf:.4g}, break them on "
-            f"{sum(not v.ok for v in replays)} of {len(replays)} plants; on "
+            f"{sum(not v.ok for v in replays)} of {len(replays)} {runs}; on "
             f"{labels[worst]!r}: {what})")
     why += (". The motion leaves the loop too little room on these plants: plan it with "
             "smaller [planner] accel_fraction and jerk_fraction in the machine file, narrow its "
             "[axes.*.uncertainty], or search the nominal model only (--nominal, no certificate)")
-    return BaselineResult(status="none", kp=math.nan, kf=math.nan, mse_m2=math.nan,
-                          objective_plants=objective, candidates=len(search.known),
-                          message="baseline: " + why)
+    return (BaselineResult(status="none", kp=math.nan, kf=math.nan, mse_m2=math.nan,
+                           objective_plants=tuple(e // n_g for e in search.objective[::n_g]),
+                           candidates=len(search.known), message="baseline: " + why),) * n_g
 
 
 def _excess_of(x: _Point) -> float:
