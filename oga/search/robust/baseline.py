@@ -42,6 +42,13 @@ the nonlinear model on a plant):
    limit or more at the grid's best are critical from the start. The confirmation's replays are
    returned: every certificate reuses them.
 
+**Several programs** (:func:`joint_baseline`, the one fixed setting of a machine that runs
+them all: what one gain law for several programs is judged against): the same search over
+every pair of plant and program, the aggregate the geometric mean over every program's
+objective plants, the constraints every program's on every plant (on short_xz and
+circle_r50_f3000, 16 Monte Carlo plants: Kp 1.378 / Kf 0.913, between circle's own 1.369 /
+0.917, which its jerk limit holds down, and short_xz's 1.944 / 0.866).
+
 The replays of one step are independent and run on ``threads`` threads; the choices depend
 only on their figures, combined in a fixed order, so the result is the same bits for any
 thread count.
