@@ -2,7 +2,8 @@
 was made for and at every feed override.
 
 For each program and override the law's gains at every sample (:func:`oga.law.law.law_gains`
-on that plan) and the program's robust baseline are replayed from rest on every plant of the
+on that plan) and the baseline (:mod:`oga.law.baseline`: the program's robust one, or the
+programs' joint one for a law of several) are replayed from rest on every plant of the
 machine's set, with the same replay and checks as a table's certificate
 (:func:`oga.verify.certificate.certify`: paper eq. 2 on every sample, the following-error
 limit, Kp inside each plant's own stable range): per case the MSE(CE) ratio's median, 90th

@@ -3,7 +3,7 @@ feed override, on several plants of the machine's set at once.
 
 A **case** is one program planned at one feed override (:mod:`oga.law.override`). The
 cost of a law is the weighted mean, over the cases and the searched plants, of the
-replay's MSE(CE) over the program's robust baseline's MSE on that plant and case (the
+replay's MSE(CE) over the baseline's (:mod:`oga.law.baseline`) on that plant and case (the
 certificate's ratio; the nominal plant weighs :data:`oga.defaults.ROBUST_NOMINAL_WEIGHT`,
 the others share the rest, every case alike), plus, on every searched plant and case whose
 ratio is above :data:`oga.defaults.LAW_WORST_RATIO`, :data:`oga.defaults.LAW_WORST_WEIGHT`
