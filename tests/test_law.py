@@ -385,6 +385,8 @@ def test_one_law_for_two_programs_is_judged_against_their_joint_baseline(short):
         assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[q],
                                                                               rel=1e-12)
         assert base_v.ok
+    hal = law_files(res, "ucp710", len(scen))["oga_law.hal"]  # the export names the gains
+    assert f"joint baseline of short_xz, circle: Kp {kp_b:g} (m/min)/mm, Kf {kf_b:g}" in hal
     own = {p.name: robust_baseline(p.setpoints[1.0], MACHINE, scen, threads=1) for p in programs}
     assert len({(b.kp, b.kf) for b in own.values()}) == 2
     with pytest.raises(OptionError, match="joint baseline"):
