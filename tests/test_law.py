@@ -355,6 +355,16 @@ def test_api_law_job(tmp_path):
         summary = client.get(f"/v1/jobs/{job}/summary").json()
         assert summary["law"]["kind"] == "pl" and summary["certificate"]["cases"]
         assert client.get(f"/v1/jobs/{job}/table").status_code == 409
+        # two programs: one law, judged against their joint baseline (the same gains on both)
+        circle = (DATA / "circle_r50_f3000.ngc").read_text()
+        two = {**body, "programs": body["programs"] + [
+            {"format": "gcode", "content": circle, "name": "circle"}]}
+        job = client.post("/v1/law", json=two).json()["id"]
+        assert run_claimed(app.state.store, app.state.store.claim(owner)) == "succeeded"
+        summary = client.get(f"/v1/jobs/{job}/summary").json()
+        bases = summary["baselines"]
+        assert len(bases) == 2 and len({(b["kp_m_min_per_mm"], b["kf"]) for b in bases.values()}) == 1
+        assert {c["program"] for c in summary["certificate"]["cases"]} == set(bases)
 
 
 def test_one_law_for_two_programs_is_judged_against_their_joint_baseline(short):
