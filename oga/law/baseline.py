@@ -73,10 +73,7 @@ def joint_program_baseline(setpoints: dict[str, Setpoints], machine: Machine,
     OptionError
         No equal fixed gains keep the limits on every plant for every program.
     """
-    axes = tuple(a for a in AXES if any(AXES.index(a) in sp.moving_axes
-                                        for sp in setpoints.values()))
-    found = joint_baseline(setpoints, machine, scenarios, tuple(bounds),
-                           common_kp_range(machine, scenarios, bounds, axes), threads=threads)
+    found = joint_baseline(setpoints, machine, scenarios, tuple(bounds), threads=threads)
     if not found[0].ok:
         raise OptionError(f"{', '.join(setpoints)} together: {found[0].message} (one law for "
                           "several programs is judged against the one fixed setting that keeps "

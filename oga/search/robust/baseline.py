@@ -186,22 +186,21 @@ class _Packed:
     def __init__(self, setpoints: tuple[Setpoints, ...], plants: tuple[Machine, ...],
                  threads: int = 1):
         self.n_programs = len(setpoints)
-        self.paths, self.cols = [], []
+        self.paths = []
         for sp in setpoints:
-            cols = np.array(sp.moving_axes, dtype=np.int64)
             pos = np.ascontiguousarray(sp.pos, dtype=np.float64)
             vel = np.ascontiguousarray(sp.vel, dtype=np.float64)
-            self.paths.append(_Path(cols, pos, vel, np.ascontiguousarray(pos.T),
-                                    np.ascontiguousarray(vel.T),
+            self.paths.append(_Path(np.array(sp.moving_axes, dtype=np.int64), pos, vel,
+                                    np.ascontiguousarray(pos.T), np.ascontiguousarray(vel.T),
                                     np.ascontiguousarray(sp.counted), float(sp.dt),
                                     *path_index(pos, defaults.CE_WINDOW_SAMPLES)))
-            self.cols.append(cols)
         # the limits' rows of every entry over the axes any program moves (zero elsewhere)
-        self.axes = np.array(sorted({int(c) for cols in self.cols for c in cols}),
+        self.axes = np.array(sorted({int(c) for path in self.paths for c in path.cols}),
                              dtype=np.int64)
 
         def pack(entry):
-            plant, cols = plants[entry // self.n_programs], self.cols[entry % self.n_programs]
+            plant = plants[entry // self.n_programs]
+            cols = self.paths[entry % self.n_programs].cols
             moving = [AXES[c] for c in cols]
             prm = np.zeros((3, axis_params(plant, moving[0]).size))
             for c, a in zip(cols, moving):
@@ -773,7 +772,8 @@ def robust_baseline(
         ``status "none"`` with a message naming the gains tried last, the plants they
         break and a remedy, when none keep every plant's checks.
     """
-    return _baseline({"": setpoints}, machine, plants, bounds, kp_range, threads, progress)[0]
+    return joint_baseline({"": setpoints}, machine, plants, bounds, kp_range, threads=threads,
+                          progress=progress)[0]
 
 
 def joint_baseline(
@@ -807,11 +807,6 @@ def joint_baseline(
         raise OptionError("programs: a joint baseline needs at least one program")
     if len({sp.dt for sp in programs.values()}) > 1:
         raise OptionError("programs: every program needs the same sample period")
-    return _baseline(dict(programs), machine, plants, bounds, kp_range, threads, progress)
-
-
-def _baseline(programs, machine, plants, bounds, kp_range, threads, progress):
-    """:func:`joint_baseline` (one program: :func:`robust_baseline`'s search)."""
     threads = resolve_threads(threads)
     report = progress or (lambda f: None)
     setpoints = tuple(programs.values())
@@ -857,7 +852,7 @@ def _baseline(programs, machine, plants, bounds, kp_range, threads, progress):
 
 
 def _prepare(programs, machine, plants, bounds, kp_range, threads):
-    """The :class:`_Search` of :func:`_baseline` (its Kp box the range stable on every
+    """The :class:`_Search` of :func:`joint_baseline` (its Kp box the range stable on every
     plant and the nominal one), the plants replayed (the set's, then the nominal one) and
     each entry's stable ranges (its program's moving axes)."""
     from oga.verify.certificate import plant_bounds
