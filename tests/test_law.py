@@ -33,6 +33,7 @@ from oga.errors import OptionError
 from oga.search.robust.baseline import robust_baseline
 from oga.search.robust.plants import scenario_set
 from oga.model.response import simulate
+from oga.verify.certificate import plant_bounds
 from oga.verify.replay import verify
 
 DATA = Path(__file__).parent / "data"
@@ -378,6 +379,7 @@ def test_one_law_for_two_programs_is_judged_against_their_joint_baseline(short):
     circle = plan_override(load_toolpath(DATA / "circle_r50_f3000.ngc"), MACHINE, 1.0, 2e-5)
     programs = [Program("short_xz", {1.0: short[1][1.0]}), Program("circle", {1.0: circle})]
     res = search_law(programs, MACHINE, "pl", 2, scenarios=scen, threads=2)
+    assert res.status == "ok" and res.alpha > 0.0  # a law, not the baseline's constant
     direct = joint_baseline({p.name: p.setpoints[1.0] for p in programs}, MACHINE, scen,
                             threads=1)
     assert [(b.kp, b.kf, b.mse_m2) for b in res.baselines.values()] == [
@@ -395,6 +397,18 @@ def test_one_law_for_two_programs_is_judged_against_their_joint_baseline(short):
         assert law_v.metrics.mse_m2 / base_v.metrics.mse_m2 == pytest.approx(cert.ratio[q],
                                                                               rel=1e-12)
         assert base_v.ok
+    # on plants the search never saw (another seed, no corners), every sample replayed: the
+    # law breaks no check the joint baseline keeps, on either program
+    unseen = scenario_set(MACHINE, n=8, seed=99, corners=False)
+    for p in programs:
+        sp = p.setpoints[1.0]
+        kp, kf = law_gains(res.law, sp)
+        moving = tuple(AXES[i] for i in sp.moving_axes)
+        for plant, bounds in zip(unseen.plants, plant_bounds(unseen, moving)):
+            base_v = verify(sp, plant, np.full((len(sp), 3), kp_b), np.full((len(sp), 3), kf_b),
+                            bounds, series=False)
+            law_v = verify(sp, plant, kp, kf, bounds, series=False)
+            assert base_v.ok and law_v.ok, (p.name, law_v.violations)
     hal = law_files(res, "ucp710", len(scen))["oga_law.hal"]  # the export names the gains
     assert f"joint baseline of short_xz, circle: Kp {kp_b:g} (m/min)/mm, Kf {kf_b:g}" in hal
     own = {p.name: robust_baseline(p.setpoints[1.0], MACHINE, scen, threads=1) for p in programs}
