@@ -74,7 +74,8 @@ def test_best_fixed_gains_equal_the_per_axis_tables(machine, name):
     assert not full.feasible[memo.status == 1].any()
     assert full.feasible[memo.status == 3].all()
     assert (memo.status == 3).any()
-    assert (memo.status == 1).any() or machine is MIXED  # its Kp range is narrower
+    # it learnt a break where the tables have one (MIXED: its Kp range is narrower)
+    assert (memo.status == 1).any() == (not full.feasible.all()) or machine is MIXED
 
 
 @pytest.mark.parametrize("machine, name", [(DEAD_HI, "short_xz.ngc"),
