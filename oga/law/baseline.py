@@ -21,23 +21,11 @@ from __future__ import annotations
 from feedplan.setpoints import AXES, Setpoints
 from oga.errors import OptionError
 from oga.model.machine import Machine
-from oga.search.robust.baseline import BaselineResult, joint_baseline, robust_baseline
-from oga.verify.certificate import plant_bounds
-from oga.search.robust.plants import ScenarioSet, perturbed_machine
+from oga.search.robust.baseline import (BaselineResult, common_kp_range, joint_baseline,
+                                        robust_baseline)
+from oga.search.robust.plants import ScenarioSet
 
-__all__ = ["program_baseline", "joint_program_baseline", "common_kp_range"]
-
-
-def common_kp_range(machine: Machine, scenarios: ScenarioSet, bounds, axes) -> tuple[float, float]:
-    """The Kp range stable on every plant of ``scenarios`` (``bounds``: their
-    :func:`oga.verify.certificate.plant_bounds`) and on the nominal plant, over ``axes``,
-    (m/min)/mm (as the robust search takes it)."""
-    nominal = perturbed_machine(machine, {}, 0, machine.name)
-    nb = plant_bounds(ScenarioSet(status="nominal-only", nominal=machine, plants=(nominal,),
-                                  labels=("nominal",), draws=(({}, 0),), seed=0,
-                                  n_monte_carlo=0, n_corners=0), axes)[0]
-    every = tuple(bounds) + (nb,)
-    return (max(b[a][0] for b in every for a in axes), min(b[a][1] for b in every for a in axes))
+__all__ = ["program_baseline", "joint_program_baseline"]
 
 
 def program_baseline(name: str, setpoints: Setpoints, machine: Machine, scenarios: ScenarioSet,
@@ -53,7 +41,7 @@ def program_baseline(name: str, setpoints: Setpoints, machine: Machine, scenario
     """
     moving = tuple(AXES[i] for i in setpoints.moving_axes)
     base = robust_baseline(setpoints, machine, scenarios, tuple(bounds),
-                           common_kp_range(machine, scenarios, bounds, moving), threads=threads)
+                           common_kp_range(machine, bounds, moving), threads=threads)
     if not base.ok:
         raise OptionError(f"{name}: {base.message} (a law is certified on the set: "
                           "oga law has no nominal mode)")

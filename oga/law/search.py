@@ -62,7 +62,7 @@ from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.model.contour import contour_error_of, path_index
 from oga.errors import OptionError
-from oga.law.baseline import common_kp_range, joint_program_baseline, program_baseline
+from oga.law.baseline import joint_program_baseline, program_baseline
 from oga.law.certificate import LawCertificate, certify_law
 from oga.law.gradient import axis_tangent, ce_offsets, gauss_newton
 from oga.law.law import (AxisLaw, Law, basis, check_kind, curve_basis, law_gains, quantized,
@@ -71,7 +71,7 @@ from oga.model.machine import Machine
 from oga.model.metrics import track_max
 from oga.search.window import _qp_active_set
 from oga.parallel import resolve_threads
-from oga.search.robust.baseline import BaselineResult
+from oga.search.robust.baseline import BaselineResult, common_kp_range
 from oga.verify.certificate import plant_bounds
 from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_set
 from oga.model.response import simulate
@@ -387,7 +387,7 @@ def _nominal_ratios(ctx: "_Context", law: Law) -> dict[tuple[str, float], float]
 
 def _common_range(programs, machine, scenarios, bounds_of) -> tuple[float, float]:
     """The Kp range (lo, hi) common to every program's plants."""
-    ranges = [common_kp_range(machine, scenarios, bounds_of[p.name],
+    ranges = [common_kp_range(machine, bounds_of[p.name],
                               tuple(AXES[i] for i in p.setpoints[1.0].moving_axes))
               for p in programs]
     return max(r[0] for r in ranges), min(r[1] for r in ranges)

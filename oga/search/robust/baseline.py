@@ -77,7 +77,7 @@ from oga.model.tangent import run_tangent
 from oga.model.stability import decimal_grid
 from oga.verify.replay import ReplayGains, Verification, verify_prepared
 
-__all__ = ["BaselineResult", "robust_baseline", "joint_baseline"]
+__all__ = ["BaselineResult", "robust_baseline", "joint_baseline", "common_kp_range"]
 
 #: Samples simulated between two limit checks of a candidate (speed only: a refused or
 #: abandoned candidate wastes the rest of its last chunk).
@@ -868,8 +868,7 @@ def _prepare(programs, machine, plants, bounds, kp_range, threads):
         bounds = plant_bounds(plants, moving, threads=threads)
     nominal_bounds = plant_bounds(_alone(machine, nominal), moving)[0]
     if kp_range is None:
-        kp_range = (max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving),
-                    min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving))
+        kp_range = common_kp_range(machine, bounds, moving, nominal_bounds)
     all_plants = tuple(plants.plants) + (nominal,)  # plant index len(set): the nominal one
     packed = _Packed(tuple(programs.values()), all_plants, threads)
     objective = packed.entries(range(min(defaults.ROBUST_BASELINE_PLANTS, plants.n_monte_carlo)
@@ -923,6 +922,21 @@ def _found(plants, search, x, replays, confirmations) -> tuple[BaselineResult, .
                            if e % n_g == k),
             candidates=len(search.known), confirmations=confirmations))
     return tuple(out)
+
+
+def common_kp_range(machine: Machine, bounds, moving, nominal_bounds=None
+                    ) -> tuple[float, float]:
+    """The Kp range (lo, hi), (m/min)/mm, stable on every plant (their ``bounds``:
+    :func:`oga.verify.certificate.plant_bounds` over the axes ``moving``) and on the nominal
+    one (``nominal_bounds``, computed when not given)."""
+    if nominal_bounds is None:
+        from oga.verify.certificate import plant_bounds
+
+        nominal = perturbed_machine(machine, {}, 0, machine.name)
+        nominal_bounds = plant_bounds(_alone(machine, nominal), moving)[0]
+    every = tuple(bounds) + (nominal_bounds,)
+    return (max(b[a][0] for b in every for a in moving),
+            min(b[a][1] for b in every for a in moving))
 
 
 def _alone(machine: Machine, plant: Machine) -> ScenarioSet:

@@ -63,7 +63,7 @@ from oga.model.machine import Machine
 from oga.search.result import GainSchedule, OptimizeResult
 from oga.options import OptimizeOptions, options_from_dict
 from oga.parallel import resolve_threads
-from oga.search.robust.baseline import BaselineResult, robust_baseline
+from oga.search.robust.baseline import BaselineResult, common_kp_range, robust_baseline
 from oga.verify.certificate import Certificate, certify, plant_bounds
 from oga.search.robust.multi import multi_search
 from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_set
@@ -176,7 +176,7 @@ def robust_optimize(
     report = _Progress(progress)
     threads = resolve_threads(options.threads if threads is None else threads)
     bounds = plant_bounds(scenarios, moving, threads)
-    kp_lo, kp_hi = _common_kp_range(machine, bounds, moving)
+    kp_lo, kp_hi = common_kp_range(machine, bounds, moving)
     report(PROGRESS_BOUNDS)
     base = robust_baseline(setpoints, machine, scenarios, bounds, (kp_lo, kp_hi), threads=threads,
                            progress=report.between(PROGRESS_BOUNDS, PROGRESS_BASELINE))
@@ -194,16 +194,6 @@ def robust_optimize(
                         reserve=kept.reserve, kp_max=kp_hi, rounds=rounds, alpha=alpha,
                         baseline=base,
                         active=tuple(ctx.scenarios.labels[i] for i in kept.active))
-
-
-def _common_kp_range(machine, bounds, moving) -> tuple[float, float]:
-    """The Kp range stable on every plant (their ``bounds``) and the nominal one."""
-    nominal = perturbed_machine(machine, {}, 0, machine.name)
-    nominal_bounds = plant_bounds(ScenarioSet(
-        status="nominal-only", nominal=machine, plants=(nominal,), labels=("nominal",),
-        draws=(({}, 0),), seed=0, n_monte_carlo=0, n_corners=0), moving)[0]
-    return (max(b[a][0] for b in bounds + (nominal_bounds,) for a in moving),
-            min(b[a][1] for b in bounds + (nominal_bounds,) for a in moving))
 
 
 @dataclass(frozen=True, eq=False)
