@@ -428,6 +428,15 @@ ROBUST_P90_GOAL = 0.5
 #: Multi-scenario search: the least share of the baseline's own peak (eq. 2, following error)
 #: on each searched plant that its limits keep, whatever the reserve (oga.search.robust.multi).
 ROBUST_BASELINE_FLOOR = 0.85
+#: Multi-scenario search: each searched plant's acceleration and jerk limits are at least its
+#: baseline's own command at every sample, the largest within this many samples either side.
+ROBUST_FLOOR_SAMPLES = 3
+#: Robust search's repair (oga.search.robust.repair): the baseline held this long either side of
+#: a sample where the table alone breaks a limit, s; the raised-cosine ramp back to the table,
+#: s; the certificates it tries (each doubling both where the breaks stay in the faded stretch).
+ROBUST_REPAIR_HOLD_S = 0.05
+ROBUST_REPAIR_RAMP_S = 0.2
+ROBUST_REPAIR_STEPS = 6
 #: Robust baseline (:mod:`oga.search.robust.baseline`): the Monte Carlo plants whose geometric mean
 #: MSE(CE) it minimises (the first ones of the set), and those of them its grid is screened
 #: on; the refinement's steps at most, the step (in grid steps) below which it stops, and the

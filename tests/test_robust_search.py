@@ -16,7 +16,7 @@ from oga.model.machine import load_machine
 from oga.options import options_from_dict
 from oga.pipeline import plan_toolpath
 from oga.verify.certificate import certify, plant_bounds
-from oga.search.robust.multi import multi_search
+from oga.search.robust.multi import MultiSearch, multi_search
 from oga.parallel import thread_map
 from oga.search.robust.plants import perturbed_machine, scenario_set
 from oga.search.robust.search import PROGRESS_ROUNDS, _Context, _screen, _screened, robust_optimize
@@ -204,12 +204,14 @@ def test_the_robust_search_holds_its_gains_inside_a_rapid():
 def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shrunk(monkeypatch):
     # issue 33: plasmatest's kept round (fewest failing plants) broke the jerk limit at every
     # share, round 1's table passes shrunk. The kept round first; then the others in the
-    # rounds' order of preference, each different table once; none passing: the kept one's
+    # rounds' order of preference, each different table once; none passing: the kept one's.
+    # Before any shrink, every different table's local repair (where none passes)
     import oga.search.robust.search as search
     from types import SimpleNamespace as NS
 
     def round_(value, key):
-        table = NS(kp=np.full((4, 3), value), kf=np.full((4, 3), 0.9))
+        table = MultiSearch(kp=np.full((4, 3), value), kf=np.full((4, 3), 0.9), fallbacks=0,
+                            windows=0, time_s=0.0)
         return NS(found=table, key=key, complete=lambda ctx: None)
 
     kept, twin, bold, mild = (round_(1.5, (True, 3, 2.0)), round_(1.5, (True, 3, 2.0)),
@@ -223,8 +225,20 @@ def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shr
         share = passes.get(value, 0.0)
         return (share, share), NS(status="ok" if share else "failed", value=value)
 
+    repairs = {}  # the tables whose repair passes, and its certificate's worst ratio
+    tried = []
+
+    def repaired(sp, machine, table, *rest):
+        value = float(table[0][0, 0])
+        tried.append(value)
+        if value not in repairs:
+            return None
+        return table[0] - 0.01, table[1], NS(status="ok", worst=repairs[value], median=0.2,
+                                              p90=0.3)
+
     monkeypatch.setattr(search, "_certified_on_all", lambda ctx, r: NS(status="failed"))
     monkeypatch.setattr(search, "_shrink", shrink)
+    monkeypatch.setattr(search, "repaired", repaired)
     ctx = NS(setpoints=None, machine=None, bkp=None, bkf=None, full=None, full_bounds=None,
              base=NS(replays=None), threads=1)
     done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
@@ -235,6 +249,14 @@ def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shr
     done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
     assert done is kept and alpha == (0.0, 0.0) and cert.value == 1.5
     assert shrunk == [1.5, 1.7, 1.9]
+    assert tried == [1.5, 1.7, 1.9] * 2  # every different table's repair tried first
+    # a repair that passes wins over any shrink: the best of them (least worst ratio), its
+    # table the repaired one
+    repairs.update({1.9: 0.8, 1.7: 0.6})
+    shrunk.clear()
+    done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
+    assert done is mild and alpha == (1.0, 1.0) and cert.worst == 0.6 and not shrunk
+    assert done.found.kp[0, 0] == pytest.approx(1.69)
 
 
 def test_where_no_table_passes_at_the_default_anchor_the_search_runs_again_at_a_stronger_one(

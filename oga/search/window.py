@@ -447,7 +447,9 @@ class Plants(NamedTuple):
     """``S`` scenario plants of the same axes: ``params`` (S, 3, P) the packed kernel
     parameters (:func:`oga.model.simulate.axis_params`); ``vmax``, ``amax``, ``jmax``,
     ``ferror_max`` (S, 3) each plant's limits (``inf``: no following-error limit);
-    ``weights`` (S,) the cost's weight of each."""
+    ``weights`` (S,) the cost's weight of each; ``floor`` (S, 3, 2, M) per program sample
+    the least acceleration and jerk limit (m/s^2, m/s^3) each plant keeps at that sample,
+    whatever ``amax``, ``jmax`` (the robust search's baseline there; M = 0: none)."""
 
     params: np.ndarray
     vmax: np.ndarray
@@ -455,6 +457,7 @@ class Plants(NamedTuple):
     jmax: np.ndarray
     ferror_max: np.ndarray
     weights: np.ndarray
+    floor: np.ndarray
 
 
 class Settings(NamedTuple):
@@ -896,6 +899,37 @@ def _bound_rows(widen, gains, cfg, work, points):
 
 
 @njit(cache=True, nogil=True)
+def _limit_at(plants, s, a, r, k):
+    """Plant ``s``'s eq. 2 limit ``r`` (0 velocity, 1 acceleration, 2 jerk; SI) of axis ``a``
+    at program sample ``k``: its ``vmax``, ``amax``, ``jmax``, raised to its floor there."""
+    if r == 0:
+        return plants.vmax[s, a]
+    lim = plants.amax[s, a] if r == 1 else plants.jmax[s, a]
+    if k < plants.floor.shape[3]:
+        lim = max(lim, plants.floor[s, a, r - 1, k])
+    return lim
+
+
+@njit(cache=True, nogil=True)
+def _excess_at(u, hist, plants, s, a, k, te, n, check):
+    """:func:`oga.model.kinematics.eq2_excess` of plant ``s``'s axis ``a`` over the window at
+    ``k`` (commands ``u``, the two before it ``hist``), at its limits per sample
+    (:func:`_limit_at`) where it has a floor."""
+    if plants.floor.shape[3] == 0:
+        return eq2_excess(u, hist[0], hist[1], plants.vmax[s, a], plants.amax[s, a],
+                          plants.jmax[s, a], te, n, check)
+    worst, u1, u2 = 0.0, hist[0], hist[1]
+    for i in range(n):
+        if check[i]:
+            worst = max(worst, abs(u[i]) / plants.vmax[s, a] - 1.0,
+                        abs(u[i] - u1) / (_limit_at(plants, s, a, 1, k + i) * te) - 1.0,
+                        abs(u[i] - 2.0 * u1 + u2) / (_limit_at(plants, s, a, 2, k + i) * te * te)
+                        - 1.0)
+        u2, u1 = u1, u[i]
+    return worst
+
+
+@njit(cache=True, nogil=True)
 def _eq2_rows(m, s, k, wk, prog, plants, te, work, u_hist):
     """Linearised eq. 2 rows (v, a, j at every live window sample) of plant ``s`` (its limits
     ``plants.vmax[s]`` ...), from row ``m`` (kept where the trust region can reach a bound);
@@ -905,18 +939,19 @@ def _eq2_rows(m, s, k, wk, prog, plants, te, work, u_hist):
         lo_v, hi_v = work.lo[a], work.hi[a]
         if not prog.moving[a] or lo_v == hi_v:
             continue
-        lims = (_LIN_MARGIN * plants.vmax[s, a], _LIN_MARGIN * plants.amax[s, a] * te,
-                _LIN_MARGIN * plants.jmax[s, a] * te * te)
         for r in range(3):
             for i in range(wk):
                 if not prog.live[k + i]:  # eq. 2 on every sample of the program
                     continue
+                lim = _LIN_MARGIN * _limit_at(plants, s, a, r, k + i)
+                for _ in range(r):  # the rows compare |du| with A Te, |d2u| with J Te^2
+                    lim *= te
                 nominal = u0[s, a, i]
                 if r >= 1:
                     nominal -= (1.0 if r == 1 else 2.0) * (u0[s, a, i - 1] if i >= 1 else u_hist[s, a, 0])
                 if r == 2:
                     nominal += u0[s, a, i - 2] if i >= 2 else u_hist[s, a, 1 - i]
-                scale = 1.0 / lims[r]
+                scale = 1.0 / lim
                 reach = 0.0
                 for v in range(lo_v, hi_v):
                     cv = su[s, i, v]
@@ -997,13 +1032,10 @@ def _trial_excess(k, wk, scale, prog, plants, cfg, work, carry):
             elif _same_plan(work.trial_points, carry.points, a):  # the step leaves the axis as is
                 work.trial[s, a, :wk] = work.p0[s, a, :wk]
                 tmp_u = work.u0[s, a]
-            lim = (plants.vmax[s, a], plants.amax[s, a], plants.jmax[s, a])
-            worst = max(worst, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0], lim[1],
-                                          lim[2], te, wk, fk))
-            worst_n = max(worst_n, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0],
-                                              lim[1], lim[2], te, n_next, fk))
-            worst_c = max(worst_c, eq2_excess(tmp_u, u_hist[s, a, 0], u_hist[s, a, 1], lim[0],
-                                              lim[1], lim[2], te, n_commit, fk))
+            hist = (u_hist[s, a, 0], u_hist[s, a, 1])
+            worst = max(worst, _excess_at(tmp_u, hist, plants, s, a, k, te, wk, fk))
+            worst_n = max(worst_n, _excess_at(tmp_u, hist, plants, s, a, k, te, n_next, fk))
+            worst_c = max(worst_c, _excess_at(tmp_u, hist, plants, s, a, k, te, n_commit, fk))
             fmax = plants.ferror_max[s, a]
             if np.isfinite(fmax):  # the following-error limit, as an excess
                 pos = work.p0[s, a] if scale == 0.0 else work.trial[s, a]
@@ -1243,7 +1275,7 @@ def one_plant(params, vmax, amax, jmax, ferror_max) -> Plants:
     lims = np.empty((4, 1, 3))
     lims[0, 0], lims[1, 0], lims[2, 0], lims[3, 0] = vmax, amax, jmax, ferror_max
     return Plants(params.reshape((1,) + params.shape), lims[0], lims[1], lims[2], lims[3],
-                  np.ones(1))
+                  np.ones(1), np.zeros((1, 3, 2, 0)))
 
 
 def carry_of(states, kp, kf, cfg: Settings, n) -> Carry:

@@ -17,7 +17,10 @@ plan is linearised on every plant around its own prediction, and
 - eq. 2 and the following-error limit hold on every plant of the set (linearised rows per
   plant, the largest exact excess in the line search), the acceleration, jerk and
   following-error limits times a ``reserve`` (<= 1) that covers the plants outside the
-  set; the Kp bounds are the range stable on every plant of the whole scenario set.
+  set, but at every sample at least the plant's baseline's own acceleration and jerk
+  command there (:func:`_baseline_floor`: the baseline's plan, where every window starts,
+  stays feasible); the Kp bounds are the range stable on every plant of the whole scenario
+  set.
 - a window whose samples are all a rapid's commits the plan as it is, no step searched
   (``hold_in_rapids`` of :func:`oga.search.window.window_search`): no contour error counts there,
   and in a long rapid at a low Kf the following error is 15-25 mm, so a gain change at
@@ -63,18 +66,20 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
 from oga.model.machine import Machine
 from oga.model.plant import plant_of
+from oga.model.response import simulate_si
 from oga.model.simulate import rest_state
 from oga.options import OptimizeOptions
 from oga.search.paper import Gains
 from oga.search.result import hold_baseline
 from oga.search.window import (STAT_FALLBACK, STAT_WINDOWS, Plants, carry_of, chunk_of,
                                program_of, settings_of, window_search)
-from oga.verify.replay import Verification
+from oga.verify.replay import ReplayGains, Verification
 
 __all__ = ["MultiSearch", "multi_search"]
 
@@ -150,7 +155,8 @@ def multi_search(
     cfg = settings_of(options, setpoints.dt, hold_in_rapids=True)
     prog = program_of(setpoints, is_moving, cfg)
     params, states = _packed_plants(plants, prog.pd[0])
-    packed = Plants(params, *_plant_limits(plants[0], baselines, reserve), _weights(baselines))
+    packed = Plants(params, *_plant_limits(plants[0], baselines, reserve), _weights(baselines),
+                    _baseline_floor(setpoints, plants, base_kp, base_kf, prog.live.size))
     gains = _gains(options, plants[0], (moving_names, is_moving), (base_kp, base_kf), kp_bounds)
     n = len(setpoints)
     carry = carry_of(states, gains.kp_base, gains.kf_base, cfg, n)
@@ -206,6 +212,31 @@ def _plant_limits(nominal, baselines, reserve):
         limits * np.maximum(share, floor * np.vstack([b.command_ratio.T,
                                                       np.nan_to_num(b.ferror_ratio)]))
         for b in baselines], axis=1))
+
+
+def _baseline_floor(setpoints, plants, base_kp, base_kf, m):
+    """Per sample, each plant's acceleration and jerk limit raised to its baseline's own
+    command there (the largest within :data:`oga.defaults.ROBUST_FLOOR_SAMPLES`), (S, 3, 2,
+    ``m``), m/s^2 and m/s^3, zero past the program's end (:class:`oga.search.window.Plants`).
+
+    Why: below the baseline's own command the baseline's plan, where every window starts, is
+    infeasible, and the windows escape by cutting Kf. cncjs_toolpath (ucp710, the nominal
+    plant and a fast corner, reserve 0.6): ratios 0.575 / 0.763 on them with the floor,
+    0.620 / 1.207 without; its robust table's median 0.538 -> 0.363. Not every program
+    gains (the searched plants may now use the baseline's own peaks): short_segments 0.376
+    -> 0.535 (docs/explanation/certificate.md)."""
+    n = len(setpoints)
+    gains = ReplayGains.of(setpoints, np.full((n, 3), base_kp), np.full((n, 3), base_kf))
+    floor = np.zeros((len(plants), 3, 2, m))
+    size = 2 * defaults.ROBUST_FLOOR_SAMPLES + 1
+    for s, machine in enumerate(plants):
+        _, u = simulate_si(setpoints, plant_of(machine), gains.kp_si, gains.kf)
+        du = np.diff(u, axis=0, prepend=np.zeros((1, 3)))  # the axis starts at rest
+        d2u = np.diff(du, axis=0, prepend=np.zeros((1, 3)))
+        for r, d in enumerate((du, d2u)):
+            peak = maximum_filter1d(np.abs(d).T, size, axis=1)
+            floor[s, :, r, :n] = peak / setpoints.dt ** (r + 1)
+    return floor
 
 
 def _weights(baselines):

@@ -19,7 +19,9 @@
    collapses too the plant leaves for good), the acceleration, jerk and following-error
    limits times a reserve (1 at first), cut after a round whose schedule breaks a limit on
    a plant where the baseline keeps it (by the largest such excess, and a margin doubling
-   per cut; floored on each searched plant near the baseline's own peak there). Each schedule is certified on those plants
+   per cut; floored on each searched plant near the baseline's own peak there, and sample
+   by sample at its own command, :func:`oga.search.robust.multi.multi_search`). Each schedule
+   is certified on those plants
    (:func:`oga.verify.certificate.certify`), the first round's on a screen first (the
    corners and typical plants: where it fails there, as the nominal plant's schedule
    does, the whole set's certificate would fail too, :class:`_Round`; the exported
@@ -33,7 +35,10 @@
    the margin, :func:`_stalls_best`); else the best round is kept
    (goals met first, then the fewest plants where it fails: worse than the baseline or
    breaking a check the baseline keeps, then the least worst ratio).
-4. **Shrink** (only when the kept schedule's certificate fails): ``K = Kb + alpha (Ks - Kb)``,
+4. **Repair, shrink** (only when the kept schedule's certificate fails): every round's table
+   that fails by breaks alone (no plant worse than the baseline) faded back to the baseline
+   around the samples where it breaks (:mod:`oga.search.robust.repair`), the best repair that
+   passes kept (:func:`_repaired_round`); where none passes, ``K = Kb + alpha (Ks - Kb)``,
    the largest share ``alpha`` (one for Kp and Kf) whose certificate passes, by bisection
    (:func:`_shrink`): it moves continuously with the machine. Where no share of the kept
    round's table passes, the other rounds' tables are shrunk in the rounds' order of
@@ -66,6 +71,7 @@ from oga.parallel import resolve_threads
 from oga.search.robust.baseline import BaselineResult, common_kp_range, robust_baseline
 from oga.verify.certificate import Certificate, certify, plant_bounds
 from oga.search.robust.multi import multi_search
+from oga.search.robust.repair import repaired
 from oga.search.robust.plants import ScenarioSet, perturbed_machine, scenario_set
 from oga.verify.replay import verify
 
@@ -307,33 +313,64 @@ def _searched(ctx: _Context, report) -> tuple:
 
 
 def _shrunk_round(ctx: _Context, kept: _Round, tried) -> tuple:
-    """The kept round's table, shrunk (:func:`_shrink`) where its certificate fails; where no
-    share of it passes, the other rounds' tables in the rounds' order of preference (each
-    different table once), until a share of one passes. Returns ``(round, alpha,
-    certificate)``: the kept round, ``(0, 0)`` and its certificate where none passes.
+    """The kept round's table where its certificate passes; else every round's table
+    repaired (:func:`_repaired_round`), the best that passes; else the kept round's table
+    shrunk (:func:`_shrink`), where no share of it passes the other rounds' tables in the
+    rounds' order of preference (each different table once), until a share of one passes.
+    Returns ``(round, alpha, certificate)``: the kept round, ``(0, 0)`` and its certificate
+    where none passes.
 
-    Why: the rounds prefer a table that fails on fewer plants, not one that shrinks better.
-    On plasmatest (ucp710) rounds 2-5 searched one table (the limit floor held their
-    reserve, :func:`oga.search.robust.multi.multi_search`) that broke the jerk limit on 15
-    plants at every share; round 1's (nominal plant alone; 40 plants failing on its screen)
-    passes at share 0.211: median 0.725, worst 0.847."""
-    first, seen = None, []
+    Why the other rounds: the rounds prefer a table that fails on fewer plants, not one that
+    shrinks or repairs better. On plasmatest (ucp710) rounds 2-5 searched one table (the
+    limit floor held their reserve, :func:`oga.search.robust.multi.multi_search`) that broke
+    the jerk limit on 15 plants at every share; round 1's (nominal plant alone; 40 plants
+    failing on its screen) passes at share 0.211: median 0.725, worst 0.847."""
+    rounds = []
     for done in [kept] + sorted((r for r in tried if r is not kept), key=lambda r: r.key):
-        if _same_table(done, seen):
-            continue
-        seen.append(done)
+        if not _same_table(done, rounds):
+            rounds.append(done)
+    kept.complete(ctx)
+    certs = [_certified_on_all(ctx, kept)]
+    if certs[0].status == "ok":
+        return kept, (1.0, 1.0), certs[0]
+    for done in rounds[1:]:
         done.complete(ctx)
-        cert = _certified_on_all(ctx, done)
-        alpha = (1.0, 1.0)
-        if cert.status != "ok":
-            alpha, cert = _shrink(ctx.setpoints, ctx.machine,
-                                  GainSchedule(kp_m_min_per_mm=done.found.kp, kf=done.found.kf),
-                                  ctx.bkp, ctx.bkf, ctx.full, ctx.full_bounds, cert,
-                                  ctx.base.replays, ctx.threads)
+        certs.append(_certified_on_all(ctx, done))
+    fixed = _repaired_round(ctx, rounds, certs)
+    if fixed is not None:
+        return fixed
+    first = None
+    for done, cert in zip(rounds, certs):
+        alpha, cert = _shrink(ctx.setpoints, ctx.machine,
+                              GainSchedule(kp_m_min_per_mm=done.found.kp, kf=done.found.kf),
+                              ctx.bkp, ctx.bkf, ctx.full, ctx.full_bounds, cert,
+                              ctx.base.replays, ctx.threads)
         first = first or (done, alpha, cert)
         if cert.status == "ok":
             return done, alpha, cert
     return first
+
+
+def _repaired_round(ctx: _Context, rounds, certs):
+    """Every round's table (``rounds``, their certificates ``certs`` on the whole set)
+    repaired where it breaks a limit (:func:`oga.search.robust.repair.repaired`); the one of
+    least key (goals missed, worst ratio) that passes, as ``(round, (1, 1), certificate)``,
+    its ``found`` the repaired table; None where none passes."""
+    best = None
+    for done, cert in zip(rounds, certs):
+        fix = repaired(ctx.setpoints, ctx.machine, (done.found.kp, done.found.kf),
+                       (ctx.bkp, ctx.bkf), ctx.full, ctx.full_bounds, cert, ctx.base.replays,
+                       ctx.threads)
+        if fix is None:
+            continue
+        key = (not _meets_goals(fix[2]), fix[2].worst)
+        if best is None or key < best[0]:
+            best = (key, done, fix)
+    if best is None:
+        return None
+    _, done, (kp, kf, cert) = best
+    done.found = replace(done.found, kp=kp, kf=kf)
+    return done, (1.0, 1.0), cert
 
 
 def _same_table(done: _Round, seen) -> bool:
