@@ -23,3 +23,11 @@ def machine():
 def short(machine):
     """A short XZ contour (line, concave and convex arc, line) planned for ucp710."""
     return plan(load_toolpath(DATA / "short_xz.ngc"), machine.planning_limits())
+
+
+@pytest.fixture(scope="module")
+def short_xz(machine):
+    """ucp710 and short_xz planned for it at a 20 um tolerance (the robust search's tests)."""
+    from oga.pipeline import plan_toolpath
+    return machine, plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), machine, feed_m_s=None,
+                                  tol_m=2e-5)

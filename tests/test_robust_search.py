@@ -26,12 +26,6 @@ from oga.verify.replay import verify
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.fixture(scope="module")
-def short_xz():
-    m = load_machine("ucp710")
-    return m, plan_toolpath(load_toolpath(DATA / "short_xz.ngc"), m, feed_m_s=None, tol_m=2e-5)
-
-
 def _fixed(n, kp, kf):
     return np.full((n, 3), kp), np.full((n, 3), kf)
 
