@@ -410,8 +410,9 @@ def test_jacobian_is_the_derivative_of_the_simulation(ucp, excite_short, seed, f
     of the residual, at the true plant of a draw; the positions of that pass are the
     simulator's to the bit. Draw 3 sticks at its reversals (Coulomb 400 N on 263 kg): there
     the simulation chatters about v = 0 and the derivative is the sticking axis's, so only
-    finite and within 25 % (measured 20.9 % since the simulation starts on the command:
-    ``start_position``); elsewhere within 1e-3. With the force channel the residual also
+    finite and within 30 % (measured 20.9 % since the simulation starts on the command:
+    ``start_position``, 25.5 % on the excitation as the profile plans it since its jerk share,
+    2026-11-29); elsewhere within 1e-3. With the force channel the residual also
     holds the weighted force and ``x`` its scale (an eighth column)."""
     from oga.identify.fit import _Model, _x0
     from oga.identify.sensitivity import positions_and_sensitivities
@@ -433,7 +434,7 @@ def test_jacobian_is_the_derivative_of_the_simulation(ucp, excite_short, seed, f
     jac = model.jacobian(x, dead, 1)
     assert jac.shape == ((2 if force else 1) * (n - 1), x.size) and np.all(np.isfinite(jac))
     for j, err in enumerate(_central_difference_errors(model, jac, x, dead, 1)):
-        assert err < (0.25 if seed == 3 else 1e-3), (j, err)
+        assert err < (0.3 if seed == 3 else 1e-3), (j, err)
 
 
 def test_friction_and_velocity_loop_from_the_force(ucp, excite_x):

@@ -47,7 +47,7 @@ def test_a_short_line_keeps_the_jerk_inside_its_cells(length_mm):
     curve, prof = _solve(f"G21 G90 G94\nG0 X0 Y0 Z0\nG1 X{length_mm} F12000\nM2\n")
     assert prof.status == "optimal" and np.isfinite(prof.duration)
     # every 0.1 ms: the differences average the jerk over 0.3 ms, a cell lasts 5-30 ms
-    assert _ratio(curve, prof, 1e-4, 3) <= profile.LIMIT_SHARE * (1 + 1e-3)
+    assert _ratio(curve, prof, 1e-4, 3) <= profile.JERK_SHARE * (1 + 1e-3)
 
 
 def test_a_piece_just_before_the_stop_keeps_the_acceleration():

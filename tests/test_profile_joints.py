@@ -105,7 +105,8 @@ def test_line_arc_line_joint_bound_time_and_every_sample():
     # against the constructed motion through the joints at v_j
     v_j = math.sqrt(x_joint)
     s = profile.LIMIT_SHARE
-    v_x, a_x, j_x = LIMITS.vmax_m_s[0], s * LIMITS.amax_m_s2[0], s * LIMITS.jmax_m_s3[0]
+    v_x, a_x = LIMITS.vmax_m_s[0], s * LIMITS.amax_m_s2[0]
+    j_x = profile.JERK_SHARE * LIMITS.jmax_m_s3[0]
     ref = (_ruckig_s(0.0, 0.0, L1, v_j, min(FEED, v_x), a_x, j_x)
            + 0.5 * math.pi * R / v_j
            + _ruckig_s(0.0, v_j, L2, 0.0, min(FEED, v_x), a_x, j_x))

@@ -167,7 +167,7 @@ def test_no_baseline_names_the_closest_gains_their_break_and_a_remedy_that_works
     with pytest.raises(OptionError, match="no equal fixed gains"):
         robust_optimize(sp, m, scenarios=scen, threads=1)
     # the remedy it names: a narrower set has a baseline, and it keeps every plant (afresh)
-    m = wide((0.3, 3.0), (0.3, 2.0))
+    m = wide((0.4, 2.5), (0.4, 2.0))
     scen = scenario_set(m, n=16)
     r = robust_baseline(sp, m, scen, threads=2)
     assert r.ok
