@@ -40,8 +40,7 @@ def break_samples(setpoints: Setpoints, machine: Machine, u: np.ndarray, pos: np
     for order in range(3):
         if order:
             d = np.diff(d, axis=0, prepend=np.zeros((1, 3))) / setpoints.dt
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out |= (np.abs(d) > limits[:, order] * (1.0 + 1e-9)).any(axis=1)
+        out |= (np.abs(d) > limits[:, order] * (1.0 + 1e-9)).any(axis=1)
     ferror = machine.ferror_limits()
     out |= (np.abs(setpoints.pos - pos) > ferror * (1.0 + 1e-9)).any(axis=1)
     return out
@@ -67,9 +66,9 @@ def repaired(setpoints: Setpoints, machine: Machine, table, base, scenarios, bou
              cert: Certificate, base_replays, threads: int = 1):
     """The table ``(kp, kf)`` (N, 3) repaired against the baseline ``base`` ``(kp, kf)`` (N, 3)
     (module doc), where its certificate ``cert`` on ``scenarios`` fails by schedule-only
-    breaks alone (on plants where the table is no worse than the baseline). Returns ``(kp, kf, certificate)`` once the certificate passes (at once
-    where ``cert`` does), else None (a plant worse than the baseline without a break, or the
-    steps spent)."""
+    breaks alone, on plants where the table is no worse than the baseline. Returns ``(kp, kf,
+    certificate)`` once the certificate passes (at once where ``cert`` does), else None (a
+    plant worse than the baseline, a break with no sample to fade, or the steps spent)."""
     kp, kf = table
     bkp, bkf = base
     kp_r, kf_r = kp, kf
