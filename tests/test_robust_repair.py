@@ -94,6 +94,11 @@ def test_a_table_that_breaks_a_limit_in_one_stretch_is_faded_there_and_kept_else
     for r, t, b in ((kp_r, kp, bkp), (kf_r, kf, bkf)):  # between the table and the baseline
         assert np.all((r - b) * (t - b) >= 0) and np.all(np.abs(r - b) <= np.abs(t - b))
     assert again.median < 1.0  # most of the table's gain kept
+    # on plants the repair never saw (another seed), every sample: no limit the baseline keeps
+    other = scenario_set(m, n=8, seed=10)
+    for plant, kb in zip(other.plants, plant_bounds(other, ("x", "z"))):
+        if verify(sp, plant, bkp, bkf, kb).limits_ok:
+            assert verify(sp, plant, kp_r, kf_r, kb).limits_ok
 
 
 def test_a_table_worse_than_the_baseline_without_a_break_is_not_repaired(short_xz):

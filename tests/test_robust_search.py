@@ -206,7 +206,7 @@ def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shr
     def round_(value, key):
         table = MultiSearch(kp=np.full((4, 3), value), kf=np.full((4, 3), 0.9), fallbacks=0,
                             windows=0, time_s=0.0)
-        return NS(found=table, key=key, complete=lambda ctx: None)
+        return NS(found=table, key=key, complete=lambda ctx: None, cert=NS(worst=0.9))
 
     kept, twin, bold, mild = (round_(1.5, (True, 3, 2.0)), round_(1.5, (True, 3, 2.0)),
                               round_(1.9, (True, 9, 5.0)), round_(1.7, (True, 5, 3.0)))
@@ -251,6 +251,12 @@ def test_where_no_share_of_the_kept_table_passes_the_other_rounds_tables_are_shr
     done, alpha, cert = search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
     assert done is mild and alpha == (1.0, 1.0) and cert.worst == 0.6 and not shrunk
     assert done.found.kp[0, 0] == pytest.approx(1.69)
+    # a round already worse than the baseline on a plant it was judged on: its repair is not
+    # tried (the repair refuses such a table), so it is not certified for it either
+    bold.cert, tried[:] = NS(worst=1.2), []
+    repairs.clear()
+    search._shrunk_round(ctx, kept, [bold, kept, twin, mild])
+    assert tried == [1.5, 1.69]  # (mild's table: the repaired one above)
 
 
 def test_where_no_table_passes_at_the_default_anchor_the_search_runs_again_at_a_stronger_one(

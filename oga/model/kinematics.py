@@ -8,9 +8,20 @@ one implementation used by the kinematic range, the searches and the verificatio
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
-__all__ = ["command_peaks", "eq2_excess"]
+__all__ = ["command_peaks", "command_rates", "eq2_excess"]
+
+
+def command_rates(u: np.ndarray, te: float) -> tuple[np.ndarray, np.ndarray]:
+    """The velocity command's ``|du|/Te`` and ``|d2u|/Te^2`` at every sample, the axes at
+    rest before sample 0 (:func:`command_peaks`'s differences, not only their peaks).
+
+    ``u`` (N, A), m/s; returns two arrays (N, A), m/s^2 and m/s^3."""
+    du = np.diff(u, axis=0, prepend=np.zeros((1,) + u.shape[1:]))
+    d2u = np.diff(du, axis=0, prepend=np.zeros((1,) + u.shape[1:]))
+    return np.abs(du) / te, np.abs(d2u) / (te * te)
 
 
 @njit(cache=True, nogil=True)

@@ -70,6 +70,7 @@ from scipy.ndimage import maximum_filter1d
 
 from feedplan.setpoints import AXES, Setpoints
 from oga import defaults
+from oga.model.kinematics import command_rates
 from oga.model.machine import Machine
 from oga.model.plant import plant_of
 from oga.model.response import simulate_si
@@ -231,11 +232,8 @@ def _baseline_floor(setpoints, plants, base_kp, base_kf, m):
     size = 2 * defaults.ROBUST_FLOOR_SAMPLES + 1
     for s, machine in enumerate(plants):
         _, u = simulate_si(setpoints, plant_of(machine), gains.kp_si, gains.kf)
-        du = np.diff(u, axis=0, prepend=np.zeros((1, 3)))  # the axis starts at rest
-        d2u = np.diff(du, axis=0, prepend=np.zeros((1, 3)))
-        for r, d in enumerate((du, d2u)):
-            peak = maximum_filter1d(np.abs(d).T, size, axis=1)
-            floor[s, :, r, :n] = peak / setpoints.dt ** (r + 1)
+        for r, rate in enumerate(command_rates(u, setpoints.dt)):
+            floor[s, :, r, :n] = maximum_filter1d(rate.T, size, axis=1)
     return floor
 
 

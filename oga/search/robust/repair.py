@@ -21,6 +21,7 @@ import numpy as np
 
 from feedplan.setpoints import Setpoints
 from oga import defaults
+from oga.model.kinematics import command_rates
 from oga.model.machine import Machine
 from oga.model.plant import plant_of
 from oga.verify.certificate import Certificate, certify
@@ -36,11 +37,8 @@ def break_samples(setpoints: Setpoints, machine: Machine, u: np.ndarray, pos: np
     positions ``pos`` (N, 3), m. Returns a bool array (N,)."""
     limits = plant_of(machine).limits  # (3, 3): axis, (v, a, j)
     out = np.zeros(len(u), dtype=bool)
-    d = u
-    for order in range(3):
-        if order:
-            d = np.diff(d, axis=0, prepend=np.zeros((1, 3))) / setpoints.dt
-        out |= (np.abs(d) > limits[:, order] * (1.0 + 1e-9)).any(axis=1)
+    for order, rate in enumerate((np.abs(u),) + command_rates(u, setpoints.dt)):
+        out |= (rate > limits[:, order] * (1.0 + 1e-9)).any(axis=1)
     ferror = machine.ferror_limits()
     out |= (np.abs(setpoints.pos - pos) > ferror * (1.0 + 1e-9)).any(axis=1)
     return out

@@ -329,21 +329,24 @@ def _shrunk_round(ctx: _Context, kept: _Round, tried) -> tuple:
     for done in [kept] + sorted((r for r in tried if r is not kept), key=lambda r: r.key):
         if not _same_table(done, rounds):
             rounds.append(done)
-    kept.complete(ctx)
-    certs = [_certified_on_all(ctx, kept)]
-    if certs[0].status == "ok":
-        return kept, (1.0, 1.0), certs[0]
-    for done in rounds[1:]:
-        done.complete(ctx)
-        certs.append(_certified_on_all(ctx, done))
-    fixed = _repaired_round(ctx, rounds, certs)
+    certs: dict[int, Certificate] = {}
+
+    def cert_of(done: _Round) -> Certificate:  # on the whole set, once per round
+        if id(done) not in certs:
+            done.complete(ctx)
+            certs[id(done)] = _certified_on_all(ctx, done)
+        return certs[id(done)]
+
+    if cert_of(kept).status == "ok":
+        return kept, (1.0, 1.0), cert_of(kept)
+    fixed = _repaired_round(ctx, rounds, cert_of)
     if fixed is not None:
         return fixed
     first = None
-    for done, cert in zip(rounds, certs):
+    for done in rounds:
         alpha, cert = _shrink(ctx.setpoints, ctx.machine,
                               GainSchedule(kp_m_min_per_mm=done.found.kp, kf=done.found.kf),
-                              ctx.bkp, ctx.bkf, ctx.full, ctx.full_bounds, cert,
+                              ctx.bkp, ctx.bkf, ctx.full, ctx.full_bounds, cert_of(done),
                               ctx.base.replays, ctx.threads)
         first = first or (done, alpha, cert)
         if cert.status == "ok":
@@ -351,16 +354,19 @@ def _shrunk_round(ctx: _Context, kept: _Round, tried) -> tuple:
     return first
 
 
-def _repaired_round(ctx: _Context, rounds, certs):
-    """Every round's table (``rounds``, their certificates ``certs`` on the whole set)
+def _repaired_round(ctx: _Context, rounds, cert_of):
+    """Every round's table (``rounds``; ``cert_of(round)`` its certificate on the whole set)
     repaired where it breaks a limit (:func:`oga.search.robust.repair.repaired`); the one of
     least key (goals missed, worst ratio) that passes, as ``(round, (1, 1), certificate)``,
-    its ``found`` the repaired table; None where none passes."""
+    its ``found`` the repaired table; None where none passes. A round already worse than the
+    baseline on a plant it was judged on is passed over uncertified (the repair refuses it)."""
     best = None
-    for done, cert in zip(rounds, certs):
+    for done in rounds:
+        if done.cert.worst > 1.0:
+            continue
         fix = repaired(ctx.setpoints, ctx.machine, (done.found.kp, done.found.kf),
-                       (ctx.bkp, ctx.bkf), ctx.full, ctx.full_bounds, cert, ctx.base.replays,
-                       ctx.threads)
+                       (ctx.bkp, ctx.bkf), ctx.full, ctx.full_bounds, cert_of(done),
+                       ctx.base.replays, ctx.threads)
         if fix is None:
             continue
         key = (not _meets_goals(fix[2]), fix[2].worst)
